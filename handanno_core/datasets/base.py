@@ -1,0 +1,142 @@
+"""The depth-sequence interface every reader implements.
+
+A :class:`DepthSequence` is lazy: opening it reads only what is needed to know the frame count and
+the camera; ``depth(i)`` reads one frame. Depth maps are ``(H, W)`` float32 in mm, 0 = no
+measurement, in the OpenCV camera frame (readers convert other conventions once).
+
+Ground truth, when a format has it, is exposed only through ``sequence.ground_truth`` so the
+pipeline cannot touch it by accident: evaluation and the simulated annotator take it explicitly.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import CameraIntrinsics
+from ..skeleton import Skeleton
+
+
+class DatasetError(ValueError):
+    """A dataset cannot be opened: names the path and what is wrong."""
+
+
+class FrameError(ValueError):
+    """One frame is missing or corrupt. ``str()`` names the file, the frame and the problem."""
+
+    def __init__(self, path: str | Path, frame: int, problem: str):
+        self.path = str(path)
+        self.frame = int(frame)
+        self.problem = problem
+        super().__init__(f"{self.path} (frame {self.frame}): {problem}")
+
+
+@dataclass
+class GroundTruth:
+    """Ground-truth joints, kept apart from the depth. ``joints_mm``: ``(N, J, 3)`` camera frame."""
+
+    joints_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.joints_mm.ndim != 3 or self.joints_mm.shape[-1] != 3:
+            raise ValueError(f"ground truth must be (N, J, 3), got {self.joints_mm.shape}")
+
+
+@dataclass
+class BadFrameReport:
+    """Frames skipped while iterating, with the reason for each."""
+
+    errors: list[FrameError] = field(default_factory=list)
+
+    @property
+    def frames(self) -> list[int]:
+        return [e.frame for e in self.errors]
+
+    def summary(self) -> str:
+        if not self.errors:
+            return "all frames read"
+        lines = [f"{len(self.errors)} bad frame(s) skipped:"]
+        lines += [f"  {e}" for e in self.errors[:20]]
+        if len(self.errors) > 20:
+            lines.append(f"  ... and {len(self.errors) - 20} more")
+        return "\n".join(lines)
+
+
+def validate_depth(depth: np.ndarray, path: str | Path, frame: int, shape: tuple[int, int]) -> np.ndarray:
+    """Check a decoded depth map; return it as float32 mm or raise :class:`FrameError`."""
+    if depth.shape != shape:
+        raise FrameError(path, frame, f"depth has shape {depth.shape}, expected {shape}")
+    depth = depth.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(depth)):
+        raise FrameError(path, frame, f"{int(np.sum(~np.isfinite(depth)))} NaN/inf depth values")
+    if np.any(depth < 0):
+        raise FrameError(path, frame, f"{int(np.sum(depth < 0))} negative depth values")
+    return depth
+
+
+class DepthSequence(abc.ABC):
+    """A lazily read depth video with a camera, a skeleton layout and optional ground truth."""
+
+    #: the format name as used by ``--format`` (``msra``, ``blender``, ``nyu``, ``icvl``, ``folder``).
+    format: str = ""
+
+    def __init__(self, path: str | Path, camera: CameraIntrinsics, skeleton: Skeleton):
+        self.path = Path(path)
+        self.camera = camera
+        self.skeleton = skeleton
+
+    @abc.abstractmethod
+    def __len__(self) -> int: ...
+
+    @abc.abstractmethod
+    def depth(self, index: int) -> np.ndarray:
+        """Depth of frame ``index`` as ``(H, W)`` float32 mm; raises :class:`FrameError` if bad."""
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        """Ground-truth joints or None. Only evaluation and the simulated annotator may use it."""
+        return None
+
+    @property
+    def sequence_breaks(self) -> list[int]:
+        """Frame indices where a new, temporally unrelated sequence starts (frame 0 excluded)."""
+        return []
+
+    @property
+    def frame_names(self) -> list[str] | None:
+        """Optional per-frame file names (for export and messages)."""
+        return None
+
+    def _check_index(self, index: int) -> int:
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"{self.path}: frame {index} out of range (sequence has {n} frames)")
+        return index % n
+
+    def iter_depth(
+        self, frames: np.ndarray | list[int] | None = None, report: BadFrameReport | None = None
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(index, depth)``; bad frames are recorded in ``report`` and skipped.
+
+        Without a ``report`` the first bad frame raises.
+        """
+        indices = range(len(self)) if frames is None else frames
+        for i in indices:
+            try:
+                yield int(i), self.depth(int(i))
+            except FrameError as err:
+                if report is None:
+                    raise
+                report.errors.append(err)
+
+    def describe(self) -> str:
+        gt = "with ground truth" if self.ground_truth is not None else "no ground truth"
+        c = self.camera
+        return (
+            f"{self.format} sequence {self.path}: {len(self)} frames, {c.width}x{c.height} px, "
+            f"f=({c.fx:g}, {c.fy:g}), skeleton {self.skeleton.name}, {gt}"
+        )

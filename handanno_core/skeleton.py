@@ -1,0 +1,253 @@
+"""Hand skeletons as data: joint names, parent array, bones, surface offsets, joint-angle limits.
+
+Layouts: ``msra21`` (default), ``blender24``, ``icvl16``, ``nyu14``. A skeleton is a tree given by
+its parent array (``-1`` for the root). A bone is a (parent, child) pair; bone ``b`` ends at joint
+``bones[b, 1]``, so there are J - 1 bones.
+
+Joint angles (thesis Eq. 5) are defined for a joint ``k`` with parent ``p`` and a single child ``c``:
+with ``a = X_k - X_p`` (incoming bone) and ``b = X_c - X_k`` (outgoing bone),
+
+* ``flexion`` = signed angle of ``b`` from ``a`` in the plane spanned by ``a`` and the palm normal
+  (positive = bending towards the palm side);
+* ``abduction`` = angle of ``b`` out of that plane (sideways), signed along ``a x n_perp``.
+
+The palm normal of a right hand is ``normalize((index_mcp - wrist) x (little_mcp - wrist))`` in the
+OpenCV camera frame and points out of the palm; it is negated for a left hand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A hand skeleton layout. Arrays are indexed by joint (length J) or bone (length J - 1)."""
+
+    name: str
+    joint_names: tuple[str, ...]
+    parents: tuple[int, ...]
+    #: joint centre lies this far (mm) behind the observed surface (about the finger radius).
+    surface_offsets_mm: tuple[float, ...]
+    #: template bone lengths (mm) per bone, for initial scaling; None if the layout has none.
+    template_bone_lengths_mm: tuple[float, ...] | None = None
+    #: (wrist, index_mcp, little_mcp) joints that span the palm, or None (no angle limits).
+    palm_joints: tuple[int, int, int] | None = None
+    #: per joint (min, max) flexion and abduction in degrees; NaN where the joint has no limit.
+    flexion_limits_deg: tuple[tuple[float, float], ...] | None = None
+    abduction_limits_deg: tuple[tuple[float, float], ...] | None = None
+    fingertips: tuple[int, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        j = len(self.joint_names)
+        if len(self.parents) != j or len(self.surface_offsets_mm) != j:
+            raise ValueError(f"skeleton {self.name}: per-joint arrays must have length {j}")
+        if sum(p < 0 for p in self.parents) != 1:
+            raise ValueError(f"skeleton {self.name}: exactly one root joint expected")
+        if self.template_bone_lengths_mm is not None and len(self.template_bone_lengths_mm) != j - 1:
+            raise ValueError(f"skeleton {self.name}: template needs {j - 1} bone lengths")
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def parent_array(self) -> np.ndarray:
+        """``(J,)`` int array, -1 at the root."""
+        return np.asarray(self.parents, dtype=np.int64)
+
+    @property
+    def root(self) -> int:
+        return int(np.flatnonzero(self.parent_array < 0)[0])
+
+    @property
+    def bones(self) -> np.ndarray:
+        """``(B, 2)`` int array of (parent, child) joints, in joint order of the child."""
+        child = np.flatnonzero(self.parent_array >= 0)
+        return np.stack([self.parent_array[child], child], axis=1)
+
+    @property
+    def topological_order(self) -> np.ndarray:
+        """Joints ordered so that every parent comes before its children."""
+        parents = self.parent_array
+        depth = np.zeros(len(parents), dtype=np.int64)
+        for j in range(len(parents)):
+            k = j
+            while parents[k] >= 0:
+                depth[j] += 1
+                k = parents[k]
+        return np.argsort(depth, kind="stable")
+
+    def children(self, joint: int) -> np.ndarray:
+        return np.flatnonzero(self.parent_array == joint)
+
+    @property
+    def angle_joints(self) -> np.ndarray:
+        """Joints with angle limits, ``(A,)``; their single child is ``angle_children``."""
+        if self.flexion_limits_deg is None:
+            return np.zeros(0, dtype=np.int64)
+        limits = np.asarray(self.flexion_limits_deg)
+        return np.flatnonzero(np.isfinite(limits[:, 0]))
+
+    @property
+    def angle_children(self) -> np.ndarray:
+        return np.asarray([self.children(k)[0] for k in self.angle_joints], dtype=np.int64)
+
+    # ------------------------------------------------------------------ measurements
+    def bone_vectors(self, poses_mm: np.ndarray) -> np.ndarray:
+        """``(..., J, 3)`` poses -> ``(..., B, 3)`` bone vectors child - parent."""
+        b = self.bones
+        return poses_mm[..., b[:, 1], :] - poses_mm[..., b[:, 0], :]
+
+    def bone_lengths(self, poses_mm: np.ndarray) -> np.ndarray:
+        """``(..., J, 3)`` poses -> ``(..., B)`` bone lengths in mm."""
+        return np.linalg.norm(self.bone_vectors(np.asarray(poses_mm, dtype=np.float64)), axis=-1)
+
+    def estimate_bone_lengths(self, poses_mm: np.ndarray) -> np.ndarray:
+        """Robust (median) bone lengths ``(B,)`` in mm from poses ``(N, J, 3)``; NaN poses ignored."""
+        lengths = self.bone_lengths(np.asarray(poses_mm, dtype=np.float64).reshape(-1, self.num_joints, 3))
+        return np.nanmedian(lengths, axis=0)
+
+    def palm_normal(self, poses_mm: np.ndarray, right_hand: bool = True) -> np.ndarray:
+        """Unit palm normals ``(..., 3)`` pointing out of the palm."""
+        if self.palm_joints is None:
+            raise ValueError(f"skeleton {self.name} defines no palm joints")
+        w, i, lt = self.palm_joints
+        n = np.cross(poses_mm[..., i, :] - poses_mm[..., w, :], poses_mm[..., lt, :] - poses_mm[..., w, :])
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
+        return n if right_hand else -n
+
+    def joint_angles(self, poses_mm: np.ndarray, right_hand: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``."""
+        poses = np.asarray(poses_mm, dtype=np.float64)
+        k = self.angle_joints
+        p = self.parent_array[k]
+        c = self.angle_children
+        n = self.palm_normal(poses, right_hand)[..., None, :]
+        a = poses[..., k, :] - poses[..., p, :]
+        b = poses[..., c, :] - poses[..., k, :]
+        a_hat = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-9)
+        n_perp = n - np.sum(n * a_hat, axis=-1, keepdims=True) * a_hat
+        n_perp = n_perp / np.maximum(np.linalg.norm(n_perp, axis=-1, keepdims=True), 1e-9)
+        lateral = np.cross(a_hat, n_perp)
+        along = np.sum(b * a_hat, axis=-1)
+        towards_palm = np.sum(b * n_perp, axis=-1)
+        side = np.sum(b * lateral, axis=-1)
+        flexion = np.degrees(np.arctan2(towards_palm, along))
+        abduction = np.degrees(np.arctan2(side, np.hypot(along, towards_palm)))
+        return flexion, abduction
+
+    def angle_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, 2)`` flexion and abduction limits in degrees for ``angle_joints``."""
+        k = self.angle_joints
+        return np.asarray(self.flexion_limits_deg)[k], np.asarray(self.abduction_limits_deg)[k]
+
+
+_NAN = (float("nan"), float("nan"))
+_MCP, _PIP, _DIP = (0.0, 90.0), (0.0, 110.0), (0.0, 90.0)
+_ABD_MCP, _ABD_HINGE = (-15.0, 15.0), (-5.0, 5.0)
+
+MSRA21 = Skeleton(
+    name="msra21",
+    joint_names=(
+        "wrist",
+        "index_mcp", "index_pip", "index_dip", "index_tip",
+        "middle_mcp", "middle_pip", "middle_dip", "middle_tip",
+        "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
+        "little_mcp", "little_pip", "little_dip", "little_tip",
+        "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
+    ),
+    parents=(-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19),
+    surface_offsets_mm=(
+        15.0,
+        9.0, 8.0, 7.0, 0.0,
+        9.0, 8.0, 7.0, 0.0,
+        9.0, 8.0, 7.0, 0.0,
+        8.0, 7.0, 6.0, 0.0,
+        12.0, 10.0, 8.0, 0.0,
+    ),
+    template_bone_lengths_mm=(
+        80.0, 40.0, 24.0, 20.0,
+        78.0, 45.0, 28.0, 22.0,
+        74.0, 42.0, 27.0, 21.0,
+        68.0, 33.0, 20.0, 19.0,
+        38.0, 42.0, 32.0, 26.0,
+    ),
+    palm_joints=(0, 1, 13),
+    flexion_limits_deg=(
+        _NAN,
+        _MCP, _PIP, _DIP, _NAN,
+        _MCP, _PIP, _DIP, _NAN,
+        _MCP, _PIP, _DIP, _NAN,
+        _MCP, _PIP, _DIP, _NAN,
+        (-30.0, 90.0), (-20.0, 80.0), (-20.0, 90.0), _NAN,
+    ),
+    abduction_limits_deg=(
+        _NAN,
+        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
+        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
+        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
+        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
+        (-60.0, 60.0), (-30.0, 30.0), (-20.0, 20.0), _NAN,
+    ),
+    fingertips=(4, 8, 12, 16, 20),
+)
+
+BLENDER24 = Skeleton(
+    name="blender24",
+    joint_names=(
+        "CT", "T1", "T2", "T3",
+        "CI", "I1", "I2", "I3", "I4",
+        "CM", "M1", "M2", "M3", "M4",
+        "CR", "R1", "R2", "R3", "R4",
+        "CP", "P1", "P2", "P3", "P4",
+    ),
+    parents=(4, 0, 1, 2, 9, 4, 5, 6, 7, -1, 9, 10, 11, 12, 9, 14, 15, 16, 17, 14, 19, 20, 21, 22),
+    surface_offsets_mm=(
+        20.0, 10.0, 8.0, 2.0,
+        15.0, 9.0, 8.0, 7.0, 2.0,
+        15.0, 9.0, 8.0, 7.0, 2.0,
+        15.0, 9.0, 8.0, 7.0, 2.0,
+        15.0, 8.0, 7.0, 6.0, 2.0,
+    ),
+    fingertips=(3, 8, 13, 18, 23),
+)
+
+ICVL16 = Skeleton(
+    name="icvl16",
+    joint_names=(
+        "palm",
+        "thumb_root", "thumb_mid", "thumb_tip",
+        "index_root", "index_mid", "index_tip",
+        "middle_root", "middle_mid", "middle_tip",
+        "ring_root", "ring_mid", "ring_tip",
+        "little_root", "little_mid", "little_tip",
+    ),
+    parents=(-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 0, 10, 11, 0, 13, 14),
+    surface_offsets_mm=(15.0,) + (9.0, 8.0, 0.0) * 5,
+    fingertips=(3, 6, 9, 12, 15),
+)
+
+NYU14 = Skeleton(
+    name="nyu14",
+    joint_names=(
+        "little_tip", "little_mid", "ring_tip", "ring_mid", "middle_tip", "middle_mid",
+        "index_tip", "index_mid", "thumb_tip", "thumb_mid", "thumb_root", "wrist1", "wrist2", "palm",
+    ),
+    parents=(1, 13, 3, 13, 5, 13, 7, 13, 9, 10, 13, 13, 13, -1),
+    surface_offsets_mm=(0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 10.0, 15.0, 15.0, 15.0),
+    fingertips=(0, 2, 4, 6, 8),
+)
+
+SKELETONS: dict[str, Skeleton] = {s.name: s for s in (MSRA21, BLENDER24, ICVL16, NYU14)}
+
+
+def get_skeleton(name: str) -> Skeleton:
+    """Look a layout up by name (``msra21``, ``blender24``, ``icvl16``, ``nyu14``)."""
+    try:
+        return SKELETONS[name.lower()]
+    except KeyError:
+        raise ValueError(f"unknown skeleton layout {name!r}; known: {', '.join(SKELETONS)}") from None

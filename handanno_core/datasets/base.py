@@ -11,6 +11,7 @@ pipeline cannot touch it by accident: evaluation and the simulated annotator tak
 from __future__ import annotations
 
 import abc
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,3 +141,11 @@ class DepthSequence(abc.ABC):
             f"{self.format} sequence {self.path}: {len(self)} frames, {c.width}x{c.height} px, "
             f"f=({c.fx:g}, {c.fy:g}), skeleton {self.skeleton.name}, {gt}"
         )
+
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key that orders embedded numbers numerically (``f2`` before ``f10``)."""
+    return tuple(int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(name))

@@ -1,0 +1,90 @@
+"""Per-frame data for the views: depth, hand centre and scene geometry, cached (LRU, thread-safe).
+
+A frame whose depth cannot be read (missing or corrupt file) is not an error for the app: it comes
+back with ``error`` set and an empty geometry, and the view shows the message instead.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from handanno_core.session import CROPS_META_FILE, Session
+
+from .geometry import FrameGeometry, build_frame_geometry, empty_geometry
+
+
+@dataclass
+class FrameData:
+    frame: int
+    depth: np.ndarray | None  # (H, W) float32 mm, None if unreadable
+    geometry: FrameGeometry
+    error: str | None = None
+
+
+class FrameStore:
+    """Loads frames of a session's sequence on demand and keeps the last ``capacity`` of them."""
+
+    def __init__(self, session: Session, capacity: int = 16):
+        self.session = session
+        self.capacity = capacity
+        self._cache: OrderedDict[int, FrameData] = OrderedDict()
+        self._lock = threading.Lock()
+        self._centres = self._load_centres()
+
+    def _load_centres(self) -> np.ndarray | None:
+        """Hand centres (N,3) mm from the crop cache, if the pipeline computed them."""
+        path = self.session.folder / CROPS_META_FILE
+        if not path.exists():
+            return None
+        try:
+            with np.load(path) as meta:
+                for key in ("centres_mm", "centres"):
+                    if key in meta.files:
+                        c = np.asarray(meta[key], dtype=np.float64)
+                        if c.shape == (self.session.num_frames, 3):
+                            return c
+        except (OSError, ValueError):
+            return None
+        return None
+
+    def centre_of(self, frame: int, depth: np.ndarray) -> np.ndarray:
+        if self._centres is not None and np.all(np.isfinite(self._centres[frame])):
+            return self._centres[frame]
+        from handanno_core.crops import locate_hand
+
+        return locate_hand(depth, self.session.camera, cube_mm=self.session.model.settings.cube_mm)
+
+    def get(self, frame: int) -> FrameData:
+        with self._lock:
+            data = self._cache.get(frame)
+            if data is not None:
+                self._cache.move_to_end(frame)
+                return data
+        data = self._load(frame)
+        with self._lock:
+            self._cache[frame] = data
+            while len(self._cache) > self.capacity:
+                self._cache.popitem(last=False)
+        return data
+
+    def _load(self, frame: int) -> FrameData:
+        camera = self.session.camera
+        try:
+            depth = np.asarray(self.session.open_sequence().depth(frame), dtype=np.float32)
+        except Exception as exc:  # FrameError, SessionError, OSError: show, don't break
+            return FrameData(frame, None, empty_geometry(camera), error=f"frame {frame}: no depth ({exc})")
+        if depth.shape != (camera.height, camera.width):
+            return FrameData(
+                frame,
+                None,
+                empty_geometry(camera),
+                error=f"frame {frame}: depth is {depth.shape}, camera expects {(camera.height, camera.width)}",
+            )
+        centre = self.centre_of(frame, depth)
+        geometry = build_frame_geometry(depth, camera, centre, cube_mm=self.session.model.settings.cube_mm)
+        error = None if len(geometry.cloud_mm) else f"frame {frame}: no hand found in the depth map"
+        return FrameData(frame, depth, geometry, error)

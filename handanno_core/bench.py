@@ -1,0 +1,197 @@
+"""``handanno bench``: the whole pipeline per (strategy, reference fraction) with the simulated annotator.
+
+Every configuration runs in the same invocation on the same data and machine, so the published
+baselines (``chain`` = thesis, ``coverage`` = Oberweger et al., ``uniform``) and our strategy are
+compared side by side. Crops are computed once and shared. Writes the JSON of DESIGN.md, prints a
+table shaped like the thesis's Tables 2-4 and plots error against reference fraction (Figure 6).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import pipeline
+from .evaluate import error_summary
+from .session import CROPS_FILE, CROPS_META_FILE, Session
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process and its (finished) worker processes, in MB."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, children) / 1024.0
+
+
+def _summary(pred: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None) -> dict:
+    s = error_summary(pred, gt, frames=frames)
+    return {k: round(float(s[k]), 3) for k in ("mean_mm", "median_mm", "max_mm")}
+
+
+def machine_description() -> str:
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def run_bench(
+    dataset: str | Path,
+    *,
+    format: str | None = None,
+    fractions: list[float] = (0.02, 0.05, 0.10),  # type: ignore[assignment]
+    strategies: list[str] = ("forest", "chain", "coverage", "uniform"),  # type: ignore[assignment]
+    noise_px: float = 0.0,
+    json_out: str | Path = "bench.json",
+    workers: int = 2,
+    aligner: str | None = None,
+    gt_bones: bool = False,
+    work_dir: str | Path | None = None,
+    quiet: bool = False,
+) -> dict:
+    json_out = Path(json_out)
+    json_out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(work_dir) if work_dir else Path(tempfile.mkdtemp(prefix="handanno-bench-"))
+    tmp.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    base = pipeline.new_session(tmp / "base", dataset, format=format, overwrite=True)
+    sequence = base.open_sequence()
+    if sequence.ground_truth is None:
+        raise ValueError(f"{dataset}: bench needs a dataset with ground truth")
+    gt = sequence.ground_truth.joints_mm
+    pipeline.ensure_crops(base, quiet=quiet)
+    load_s = time.perf_counter() - t0
+    gt_bone_lengths = sequence.skeleton.estimate_bone_lengths(gt) if gt_bones else None
+
+    runs = []
+    doc = {
+        "dataset": str(dataset),
+        "frames": len(sequence),
+        "machine": machine_description(),
+        "workers": workers,
+        "aligner": aligner or base.model.settings.aligner,
+        "runs": runs,
+    }
+    for strategy in strategies:
+        for fraction in fractions:
+            folder = tmp / f"{strategy}-{fraction:g}"
+            if folder.exists():
+                shutil.rmtree(folder)
+            session = Session.create(
+                folder,
+                base.model.dataset,
+                base.num_frames,
+                base.camera,
+                base.model.skeleton,
+                base.model.sequence_breaks,
+            )
+            for name in (CROPS_FILE, CROPS_META_FILE):
+                (folder / name).symlink_to((tmp / "base" / name).resolve())
+            timings = {"load": round(load_s, 3)}
+
+            t = time.perf_counter()
+            pipeline.select(session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True)
+            timings["select"] = round(time.perf_counter() - t, 3)
+            refs = session.reference_frames
+            pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
+            if gt_bone_lengths is not None:
+                session.set_bone_lengths(gt_bone_lengths, pinned=True)
+
+            t = time.perf_counter()
+            pipeline.lift(session, workers=workers, quiet=True)
+            timings["lift"] = round(time.perf_counter() - t, 3)
+
+            t = time.perf_counter()
+            pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True)
+            timings["propagate"] = round(time.perf_counter() - t, 3)
+
+            t = time.perf_counter()
+            pipeline.refine(session, quiet=True)
+            timings["refine"] = round(time.perf_counter() - t, 3)
+
+            results = session.load_results()
+            non_ref = np.setdiff1d(np.arange(session.num_frames), refs)
+            run = {
+                "strategy": strategy,
+                "ref_fraction_target": fraction,
+                "references": int(len(refs)),
+                "corrections": len(session.model.corrections),
+                "noise_px": noise_px,
+                "bones": "ground-truth" if gt_bones else "estimated",
+                "lift": _summary(results["lifted_mm"], gt, refs),
+                "init": _summary(results["init_mm"], gt),
+                "final": _summary(results["final_mm"], gt),
+                "final_non_reference": _summary(results["final_mm"], gt, non_ref),
+                "timings_s": timings,
+                "peak_rss_mb": round(peak_rss_mb(), 1),
+            }
+            runs.append(run)
+            session.close()
+            json_out.write_text(json.dumps(doc, indent=2))
+            if not quiet:
+                print(_row(run), flush=True)
+    if not quiet:
+        print()
+        print(format_table(doc))
+    plot_error_vs_fraction(doc, json_out.with_suffix(".png"))
+    if not work_dir:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return doc
+
+
+def _row(run: dict) -> str:
+    t = run["timings_s"]
+    return (
+        f"{run['strategy']:>10} {run['ref_fraction_target'] * 100:5.1f}% {run['references']:5d} "
+        f"| {run['init']['mean_mm']:6.2f} {run['init']['median_mm']:6.2f} {run['init']['max_mm']:7.1f} "
+        f"| {run['final']['mean_mm']:6.2f} {run['final']['median_mm']:6.2f} {run['final']['max_mm']:7.1f} "
+        f"| {run['final_non_reference']['mean_mm']:6.2f} | {run['lift']['mean_mm']:5.2f} "
+        f"| {t['select']:5.1f} {t['lift']:5.1f} {t['propagate']:6.1f} {t['refine']:6.1f}"
+    )
+
+
+def format_table(doc: dict) -> str:
+    head = (
+        f"{'strategy':>10} {'refs':>6} {'K':>5} | {'init: mean':>10} {'median':>6} {'max':>7} "
+        f"| {'final: mean':>11} {'median':>5} {'max':>7} | {'nonref':>6} | {'lift':>5} "
+        f"| {'t_sel':>5} {'t_lift':>5} {'t_prop':>6} {'t_ref':>6}"
+    )
+    return "\n".join([f"{doc['dataset']} ({doc['frames']} frames), errors in mm, times in s", head]
+                     + [_row(r) for r in doc["runs"]])
+
+
+def plot_error_vs_fraction(doc: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for strategy in dict.fromkeys(r["strategy"] for r in doc["runs"]):
+        rows = sorted((r for r in doc["runs"] if r["strategy"] == strategy), key=lambda r: r["ref_fraction_target"])
+        x = [100 * r["references"] / doc["frames"] for r in rows]
+        ax.plot(x, [r["final"]["mean_mm"] for r in rows], "o-", label=f"{strategy} final")
+        ax.plot(x, [r["init"]["mean_mm"] for r in rows], "x--", alpha=0.6, label=f"{strategy} init")
+    ax.set_xlabel("reference frames (% of sequence)")
+    ax.set_ylabel("mean 3D joint error (mm)")
+    ax.set_title(f"{Path(doc['dataset']).name}: error vs. reference fraction")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

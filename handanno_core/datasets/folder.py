@@ -1,0 +1,157 @@
+"""A generic folder of depth frames: 16-bit PNG or ``.npy`` (mm), plus intrinsics.
+
+- Frames: ``*.png`` (single-channel uint16; depth_mm = value x ``depth_scale_mm``) or, if there is no
+  PNG, ``*.npy`` (``(H, W)`` float mm). Sorted naturally by the numbers in the file names
+  (``2.png`` before ``10.png``). ``joints.npy`` is not a frame.
+- Camera: the ``intrinsics=`` argument, else ``intrinsics.json`` in the folder
+  (``fx, fy, cx, cy, width, height`` and optionally ``depth_scale_mm``). Neither: :class:`DatasetError`.
+- ``depth_scale_mm``: the argument, else the JSON key, else 1.0.
+- Ground truth only if ``joints.npy`` ``(N, J, 3)`` mm (OpenCV frame) is present; the skeleton is
+  chosen by J (21 -> msra21, 24 -> blender24, 16 -> icvl16, 14 -> nyu14); default msra21.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import CameraIntrinsics
+from ..skeleton import MSRA21, SKELETONS
+from .base import DatasetError, DepthSequence, FrameError, GroundTruth, natural_key, validate_depth
+from .icvl import read_png16
+
+INTRINSICS_FILE = "intrinsics.json"
+JOINTS_FILE = "joints.npy"
+_SKELETON_BY_J = {s.num_joints: s for s in SKELETONS.values()}
+
+
+def _frames(folder: Path) -> tuple[list[str], str]:
+    pngs, npys = [], []
+    with os.scandir(folder) as it:
+        for e in it:
+            name = e.name
+            low = name.lower()
+            if low.endswith(".png"):
+                pngs.append(name)
+            elif low.endswith(".npy") and name != JOINTS_FILE:
+                npys.append(name)
+    if pngs:
+        return sorted(pngs, key=natural_key), "png"
+    return sorted(npys, key=natural_key), "npy"
+
+
+def looks_like_folder(path: str | Path) -> bool:
+    """Cheap check: a folder with ``.png`` or ``.npy`` frames."""
+    path = Path(path)
+    return path.is_dir() and bool(_frames(path)[0])
+
+
+class FolderSequence(DepthSequence):
+    """Depth frames in a plain folder; see the module docstring."""
+
+    format = "folder"
+
+    def __init__(
+        self,
+        path: str | Path,
+        intrinsics: CameraIntrinsics | None = None,
+        depth_scale_mm: float | None = None,
+    ):
+        root = Path(path)
+        if not root.is_dir():
+            raise DatasetError(f"{root}: not a folder of depth frames")
+        names, kind = _frames(root)
+        if not names:
+            raise DatasetError(f"{root}: no .png or .npy depth frames found")
+        meta: dict = {}
+        meta_path = root / INTRINSICS_FILE
+        if meta_path.is_file():
+            try:
+                meta = json.loads(meta_path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise DatasetError(f"{meta_path}: cannot read: {exc}") from exc
+            if not isinstance(meta, dict):
+                raise DatasetError(f"{meta_path}: expected a JSON object")
+        if intrinsics is None:
+            if not meta:
+                raise DatasetError(
+                    f"{root}: no camera intrinsics: put {INTRINSICS_FILE} "
+                    "(fx, fy, cx, cy, width, height[, depth_scale_mm]) in the folder or pass intrinsics"
+                )
+            try:
+                intrinsics = CameraIntrinsics.from_json(meta_path)
+            except ValueError as exc:
+                raise DatasetError(str(exc)) from exc
+        if depth_scale_mm is None:
+            depth_scale_mm = meta.get("depth_scale_mm", 1.0)
+        try:
+            scale = float(depth_scale_mm)
+        except (TypeError, ValueError):
+            scale = float("nan")
+        if not (np.isfinite(scale) and scale > 0):
+            raise DatasetError(
+                f"{root}: depth_scale_mm must be a number > 0, got {depth_scale_mm!r}"
+            )
+        self.depth_scale_mm = scale
+        self._names = names
+        self._kind = kind
+        skeleton = MSRA21
+        self._joints_path = root / JOINTS_FILE
+        if self._joints_path.is_file():
+            skeleton = self._joints_skeleton(len(names))
+        super().__init__(root, intrinsics, skeleton)
+
+    def _joints_skeleton(self, n: int):
+        """Read only the header of joints.npy (memory-mapped) to pick the skeleton and check N."""
+        try:
+            arr = np.load(self._joints_path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise DatasetError(f"{self._joints_path}: cannot read: {exc}") from exc
+        if arr.ndim != 3 or arr.shape[2] != 3:
+            raise DatasetError(f"{self._joints_path}: shape {arr.shape}, expected (N, J, 3)")
+        if arr.shape[0] != n:
+            raise DatasetError(
+                f"{self._joints_path}: {arr.shape[0]} poses but the folder has {n} frames"
+            )
+        if arr.shape[1] not in _SKELETON_BY_J:
+            raise DatasetError(
+                f"{self._joints_path}: {arr.shape[1]} joints matches no known skeleton "
+                f"({', '.join(f'{s.name}: {j}' for j, s in _SKELETON_BY_J.items())})"
+            )
+        return _SKELETON_BY_J[arr.shape[1]]
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    @property
+    def frame_names(self) -> list[str]:
+        return list(self._names)
+
+    def depth(self, index: int) -> np.ndarray:
+        index = self._check_index(index)
+        path = self.path / self._names[index]
+        shape = (self.camera.height, self.camera.width)
+        if self._kind == "png":
+            return read_png16(path, index, shape, self.depth_scale_mm)
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise FrameError(path, index, f"cannot read .npy: {exc}") from exc
+        if raw.dtype.kind not in "fiu":
+            raise FrameError(path, index, f"depth has non-numeric dtype {raw.dtype}")
+        if raw.shape != shape:
+            raise FrameError(path, index, f"depth has shape {raw.shape}, expected {shape}")
+        return validate_depth(raw.astype(np.float32), path, index, shape)
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        """``joints.npy`` ``(N, J, 3)`` mm if present, else None."""
+        if not self._joints_path.is_file():
+            return None
+        joints = np.load(self._joints_path, allow_pickle=False).astype(np.float64)
+        if not np.all(np.isfinite(joints)):
+            raise DatasetError(f"{self._joints_path}: NaN/inf joint coordinates")
+        return GroundTruth(joints)

@@ -1,0 +1,732 @@
+"""Lift annotated reference frames from 2D to 3D (thesis Eq. 3), and estimate the bone lengths.
+
+For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jacobians,
+
+    min_X  1/2 sum_k |pi(X_k) - uv_k|^2                       (px^2, joints with 2D)
+         + 1/2 w_3d   sum_k |X_k - xyz_k|^2                    (px^2/mm^2 * mm^2, joints placed in 3D)
+         + 1/2 w_surf sum_k (z_k - D_k - o_k)^2                (tie-breaker, visible joints with depth)
+         + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
+    s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
+           D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
+           D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
+           sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
+           flexion/abduction within the skeleton's limits      (thesis Eq. 5, optional)
+
+``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
+and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
+
+Why the surface tie-breaker: with exact 2D the one-sided depth intervals leave the whole hand free
+to slide up to ``eps`` along the viewing rays; the weak pull towards ``D_k + o_k`` picks the
+shallowest consistent pose, which is where joint centres of a hand seen from the front lie.
+
+Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame). The limits
+are written as smooth constraints that are linear in the outgoing bone ``b`` for a fixed local
+frame (``a_hat``, ``n_perp``, ``lateral``):
+
+* flexion >= fmin:  cos(fmin) b.n_perp - sin(fmin) b.a_hat >= 0   (a half-plane; range < 180 deg)
+* flexion <= fmax:  sin(fmax) b.a_hat - cos(fmax) b.n_perp >= 0
+* abduction in [amin, amax]:  |b| sin(amin) <= b.lateral <= |b| sin(amax)
+
+The frame depends on the incoming bone and on the palm normal; both are differentiated exactly
+(no lagged frame), so one SLSQP run converges to a point where every constraint holds.
+
+Variables are offsets from the initial pose in centimetres, which keeps SLSQP well conditioned
+(1 cm is a few pixels at hand distance); constraints are in mm.
+
+Bone lengths (:func:`lift_references`) are unknown in advance. They start from the skeleton's
+template scaled to the annotated frames and are re-estimated from all lifted references: each
+round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
+hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
+stretches or shrinks the bone; the new estimate is the median over frames. Rounds stop when no
+bone moves by more than 0.1 mm; a final lift uses the estimate as hard constraints.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .annotation import AnnotationError, FrameAnnotation
+from .camera import CameraIntrinsics
+from .skeleton import Skeleton
+
+__all__ = [
+    "LiftResult",
+    "LiftSet",
+    "initial_pose",
+    "lift_frame",
+    "lift_references",
+    "observed_depth",
+    "AnnotationError",
+]
+
+_CM = 10.0  # mm per optimisation unit
+
+
+# ---------------------------------------------------------------------------------------- results
+@dataclass
+class LiftResult:
+    """One lifted frame.
+
+    joints_mm: ``(J, 3)`` camera frame, mm. confidence: ``(J,)`` in [0, 1] (low for unannotated
+    joints and joints without valid depth). reprojection_px: ``(J,)`` distance between the lifted
+    joint's projection and its 2D annotation (NaN where there is no 2D). observed_depth_mm: ``(J,)``
+    depth ``D_k`` used for the joint's interval (NaN where none). bone_error_mm: largest
+    ``| |X_c - X_p| - d_b |`` at the solution.
+    """
+
+    joints_mm: np.ndarray
+    confidence: np.ndarray
+    converged: bool
+    iterations: int
+    reprojection_px: np.ndarray
+    observed_depth_mm: np.ndarray
+    bone_error_mm: float
+    message: str = ""
+    time_s: float = 0.0
+
+
+@dataclass
+class LiftSet:
+    """Lifted references: ``joints_mm[f]`` ``(J, 3)``, ``confidence[f]`` ``(J,)``, bones ``(B,)`` mm."""
+
+    joints_mm: dict[int, np.ndarray]
+    confidence: dict[int, np.ndarray]
+    bone_lengths_mm: np.ndarray
+    results: dict[int, LiftResult] = field(default_factory=dict)
+    bone_history_mm: list[np.ndarray] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------- depth
+def observed_depth(
+    depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3
+) -> np.ndarray:
+    """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: the pixel itself if valid, else the
+    nearest valid pixel within ``window`` px (ties: the closer surface). NaN where none."""
+    depth = np.asarray(depth_mm)
+    h, w = depth.shape
+    uv = np.asarray(uv_px, dtype=np.float64)
+    out = np.full(len(uv), np.nan)
+    ok = np.all(np.isfinite(uv), axis=1)
+    if not np.any(ok):
+        return out
+    r = np.arange(-window, window + 1)
+    dv, du = np.meshgrid(r, r, indexing="ij")
+    dist2 = (du**2 + dv**2).ravel().astype(np.float64)
+    cu = np.rint(uv[ok, 0]).astype(np.int64)
+    cv = np.rint(uv[ok, 1]).astype(np.int64)
+    uu = cu[:, None] + du.ravel()[None, :]
+    vv = cv[:, None] + dv.ravel()[None, :]
+    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+    vals = np.zeros(uu.shape, dtype=np.float64)
+    vals[inside] = depth[vv[inside], uu[inside]]
+    valid = inside & np.isfinite(vals) & (vals > 0)
+    # nearest valid pixel; among equally near ones the closer surface (depth breaks ties)
+    key = np.where(valid, dist2[None, :] * 1e6 + vals, np.inf)
+    best = np.argmin(key, axis=1)
+    found = np.isfinite(key[np.arange(len(best)), best])
+    res = np.where(found, vals[np.arange(len(best)), best], np.nan)
+    out[np.flatnonzero(ok)] = res
+    return out
+
+
+def _template_direction(skeleton: Skeleton, joint: int, pose: np.ndarray) -> np.ndarray:
+    p = skeleton.parent_array[joint]
+    pp = skeleton.parent_array[p] if p >= 0 else -1
+    if pp >= 0:
+        d = pose[p] - pose[pp]
+    else:
+        d = np.nanmean(pose, axis=0) - pose[p] if np.isfinite(pose).any() else np.zeros(3)
+        if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-6:
+            d = np.array([0.0, -1.0, 0.0])
+    n = np.linalg.norm(d)
+    return d / n if n > 1e-9 else np.array([0.0, -1.0, 0.0])
+
+
+def initial_pose(
+    annotation: FrameAnnotation,
+    depth_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Initial joints ``(J, 3)`` mm and observed depths ``(J,)`` mm for a frame.
+
+    Joints with 2D are back-projected at the observed depth plus their surface offset (the median
+    of the other joints' depths where there is no valid depth); joints placed in 3D start there;
+    unannotated joints are hung off their parent along the parent bone's direction.
+    """
+    ann = annotation
+    j = skeleton.num_joints
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    d_obs = observed_depth(depth_mm, ann.uv_px)
+    has2d = ann.has_2d
+    has3d = ann.has_3d
+    z = d_obs + offsets
+    known = np.isfinite(z) & has2d
+    ref_depths = np.concatenate([z[known], ann.xyz_mm[has3d, 2]])
+    if len(ref_depths) == 0:
+        valid = depth_mm[(depth_mm > 0) & np.isfinite(depth_mm)]
+        ref_depths = np.array([np.median(valid)]) if valid.size else np.array([400.0])
+    zmed = float(np.median(ref_depths))
+    z = np.where(np.isfinite(z), z, zmed)
+    # occluded joints: behind the occluder, at least near the hand's median depth
+    z = np.where(has2d & ~ann.visible, np.maximum(z, zmed), z)
+    pose = np.full((j, 3), np.nan)
+    pose[has2d] = camera.backproject(ann.uv_px[has2d], z[has2d])
+    pose[has3d] = ann.xyz_mm[has3d]
+    lengths = (
+        np.asarray(bone_lengths_mm, dtype=np.float64)
+        if bone_lengths_mm is not None
+        else np.asarray(skeleton.template_bone_lengths_mm or [40.0] * (j - 1), dtype=np.float64)
+    )
+    bone_of_child = np.full(j, -1)
+    bone_of_child[skeleton.bones[:, 1]] = np.arange(len(skeleton.bones))
+    order = skeleton.topological_order
+    root = skeleton.root
+    if not np.all(np.isfinite(pose[root])):
+        pose[root] = (
+            np.nanmean(pose, axis=0)
+            if np.isfinite(pose).any()
+            else camera.backproject(np.array([camera.cx, camera.cy]), np.array(zmed))
+        )
+    for k in order:
+        if k == root or np.all(np.isfinite(pose[k])):
+            continue
+        p = skeleton.parent_array[k]
+        pose[k] = pose[p] + lengths[bone_of_child[k]] * _template_direction(skeleton, k, pose)
+    return pose, d_obs
+
+
+# ---------------------------------------------------------------------------------------- problem
+def _skew_cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.cross(a, b)
+
+
+class _Problem:
+    """Objective, constraints and their analytic derivatives for one frame (vectorized)."""
+
+    def __init__(
+        self,
+        annotation: FrameAnnotation,
+        d_obs: np.ndarray,
+        camera: CameraIntrinsics,
+        skeleton: Skeleton,
+        bone_lengths_mm: np.ndarray,
+        x0_mm: np.ndarray,
+        *,
+        eps_mm: float,
+        angle_limits: bool,
+        order_margin_mm: float,
+        w_3d: float,
+        w_surface: float,
+        w_free: float,
+        soft_bones: float | None,
+        right_hand: bool,
+    ):
+        self.cam = camera
+        self.sk = skeleton
+        self.j = skeleton.num_joints
+        self.x0 = np.asarray(x0_mm, dtype=np.float64)
+        self.bones = skeleton.bones
+        self.d = np.asarray(bone_lengths_mm, dtype=np.float64)
+        self.soft = soft_bones
+        ann = annotation
+        self.has2d = ann.has_2d
+        self.uv = np.where(self.has2d[:, None], ann.uv_px, 0.0)
+        self.has3d = ann.has_3d
+        self.xyz = np.where(self.has3d[:, None], ann.xyz_mm, 0.0)
+        self.w_3d = w_3d
+        self.free = ~(self.has2d | self.has3d)
+        self.w_free = w_free
+        offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+        valid_d = np.isfinite(d_obs) & self.has2d
+        lo = np.where(valid_d, d_obs + offsets, -np.inf)
+        hi = np.where(valid_d & ann.visible, d_obs + offsets + eps_mm, np.inf)
+        self.z_lo, self.z_hi = lo, hi
+        self.surf_mask = valid_d & ann.visible
+        self.surf_target = np.where(self.surf_mask, lo, 0.0)
+        self.w_surface = w_surface
+        # depth order rows
+        par = skeleton.parent_array
+        sel = (np.asarray(ann.depth_order) != 0) & (par >= 0)
+        self.ord_k = np.flatnonzero(sel)
+        self.ord_p = par[self.ord_k]
+        self.ord_s = np.asarray(ann.depth_order, dtype=np.float64)[self.ord_k]
+        self.margin = order_margin_mm
+        # angle rows
+        self.use_angles = bool(angle_limits) and skeleton.palm_joints is not None and len(
+            skeleton.angle_joints
+        ) > 0
+        if self.use_angles:
+            k = skeleton.angle_joints
+            self.ak = k
+            self.ap = par[k]
+            self.ac = skeleton.angle_children
+            fl, ab = skeleton.angle_limits()
+            fl, ab = np.radians(fl), np.radians(ab)
+            self.cfmin, self.sfmin = np.cos(fl[:, 0]), np.sin(fl[:, 0])
+            self.cfmax, self.sfmax = np.cos(fl[:, 1]), np.sin(fl[:, 1])
+            self.samin, self.samax = np.sin(ab[:, 0]), np.sin(ab[:, 1])
+            self.palm = skeleton.palm_joints
+            self.hand_sign = 1.0 if right_hand else -1.0
+        self.nfev = 0
+
+    # -- variables: x (3J,) = (X - x0) / 1 cm
+    def pose(self, x: np.ndarray) -> np.ndarray:
+        return self.x0 + _CM * x.reshape(self.j, 3)
+
+    def bounds(self) -> list[tuple[float | None, float | None]]:
+        b: list[tuple[float | None, float | None]] = []
+        for k in range(self.j):
+            b.append((None, None))
+            b.append((None, None))
+            lo = (self.z_lo[k] - self.x0[k, 2]) / _CM if np.isfinite(self.z_lo[k]) else None
+            hi = (self.z_hi[k] - self.x0[k, 2]) / _CM if np.isfinite(self.z_hi[k]) else None
+            b.append((lo, hi))
+        return b
+
+    # -- objective
+    def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        self.nfev += 1
+        X = self.pose(x)
+        g = np.zeros((self.j, 3))
+        f = 0.0
+        m = self.has2d
+        if np.any(m):
+            Xm = X[m]
+            z = np.maximum(Xm[:, 2], 1e-3)
+            u = self.cam.fx * Xm[:, 0] / z + self.cam.cx
+            v = self.cam.fy * Xm[:, 1] / z + self.cam.cy
+            ru = u - self.uv[m, 0]
+            rv = v - self.uv[m, 1]
+            f += 0.5 * float(np.sum(ru**2 + rv**2))
+            gx = ru * self.cam.fx / z
+            gy = rv * self.cam.fy / z
+            gz = -(ru * (u - self.cam.cx) + rv * (v - self.cam.cy)) / z
+            g[m] += np.stack([gx, gy, gz], axis=1)
+        if np.any(self.has3d):
+            r = (X - self.xyz)[self.has3d]
+            f += 0.5 * self.w_3d * float(np.sum(r**2))
+            g[self.has3d] += self.w_3d * r
+        if np.any(self.surf_mask) and self.w_surface > 0:
+            r = (X[:, 2] - self.surf_target)[self.surf_mask]
+            f += 0.5 * self.w_surface * float(np.sum(r**2))
+            g[self.surf_mask, 2] += self.w_surface * r
+        if np.any(self.free) and self.w_free > 0:
+            r = (X - self.x0)[self.free]
+            f += 0.5 * self.w_free * float(np.sum(r**2))
+            g[self.free] += self.w_free * r
+        if self.soft is not None:
+            c, jac = self._bone_eq(X)
+            f += 0.5 * self.soft * float(np.sum(c**2))
+            g += self.soft * np.einsum("b,bjk->jk", c, jac)
+        return f, _CM * g.ravel()
+
+    # -- constraints (in mm), Jacobians w.r.t. joints (rows, J, 3)
+    def _bone_eq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p, c = self.bones[:, 0], self.bones[:, 1]
+        v = X[c] - X[p]
+        n = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        jac = np.zeros((len(p), self.j, 3))
+        rows = np.arange(len(p))
+        unit = v / n[:, None]
+        jac[rows, c] = unit
+        jac[rows, p] -= unit
+        return n - self.d, jac
+
+    def eq(self, x: np.ndarray) -> np.ndarray:
+        return self._bone_eq(self.pose(x))[0]
+
+    def eq_jac(self, x: np.ndarray) -> np.ndarray:
+        return _CM * self._bone_eq(self.pose(x))[1].reshape(len(self.d), -1)
+
+    def _ineq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        vals = []
+        jacs = []
+        if len(self.ord_k):
+            r = len(self.ord_k)
+            val = self.ord_s * (X[self.ord_k, 2] - X[self.ord_p, 2]) - self.margin
+            jac = np.zeros((r, self.j, 3))
+            rows = np.arange(r)
+            jac[rows, self.ord_k, 2] = self.ord_s
+            jac[rows, self.ord_p, 2] -= self.ord_s
+            vals.append(val)
+            jacs.append(jac)
+        if self.use_angles:
+            v, jac = self._angles(X)
+            vals.append(v)
+            jacs.append(jac)
+        if not vals:
+            return np.zeros(0), np.zeros((0, self.j, 3))
+        return np.concatenate(vals), np.concatenate(jacs, axis=0)
+
+    def _angles(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k, p, c = self.ak, self.ap, self.ac
+        a_n = len(k)
+        w0, i1, l1 = self.palm
+        e1 = X[i1] - X[w0]
+        e2 = X[l1] - X[w0]
+        mvec = self.hand_sign * np.cross(e1, e2)
+        mn = max(float(np.linalg.norm(mvec)), 1e-9)
+        n = mvec / mn
+        u = X[k] - X[p]  # (A, 3) incoming
+        b = X[c] - X[k]  # (A, 3) outgoing
+        un = np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+        a = u / un
+        wv = np.cross(u, n[None, :])
+        wn = np.maximum(np.linalg.norm(wv, axis=1, keepdims=True), 1e-9)
+        lat = wv / wn
+        npp = np.cross(lat, a)
+        bn = np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-9)
+        s1 = np.sum(b * a, axis=1)
+        s2 = np.sum(b * npp, axis=1)
+        s3 = np.sum(b * lat, axis=1)
+
+        def proj_a(vec: np.ndarray) -> np.ndarray:  # (I - a a^T) vec / |u|
+            return (vec - np.sum(vec * a, axis=1, keepdims=True) * a) / un
+
+        def proj_l(vec: np.ndarray) -> np.ndarray:  # (I - l l^T) vec / |w|
+            return (vec - np.sum(vec * lat, axis=1, keepdims=True) * lat) / wn
+
+        # derivatives of s1, s2, s3 wrt b, u, n   (A, 3) each
+        ds1_b, ds2_b, ds3_b = a, npp, lat
+        ds1_u = proj_a(b)
+        q3 = proj_l(b)
+        ds3_u = np.cross(n[None, :], q3)
+        ds3_n = np.cross(q3, u)
+        q2 = proj_l(np.cross(a, b))
+        ds2_u = np.cross(n[None, :], q2) + proj_a(np.cross(b, lat))
+        ds2_n = np.cross(q2, u)
+        bunit = b / bn
+        # constraint values (A,) and their partials
+        vals = [
+            self.cfmin * s2 - self.sfmin * s1,
+            self.sfmax * s1 - self.cfmax * s2,
+            s3 - bn[:, 0] * self.samin,
+            bn[:, 0] * self.samax - s3,
+        ]
+        cb = [
+            self.cfmin[:, None] * ds2_b - self.sfmin[:, None] * ds1_b,
+            self.sfmax[:, None] * ds1_b - self.cfmax[:, None] * ds2_b,
+            ds3_b - self.samin[:, None] * bunit,
+            self.samax[:, None] * bunit - ds3_b,
+        ]
+        cu = [
+            self.cfmin[:, None] * ds2_u - self.sfmin[:, None] * ds1_u,
+            self.sfmax[:, None] * ds1_u - self.cfmax[:, None] * ds2_u,
+            ds3_u,
+            -ds3_u,
+        ]
+        cn = [
+            self.cfmin[:, None] * ds2_n,
+            -self.cfmax[:, None] * ds2_n,
+            ds3_n,
+            -ds3_n,
+        ]
+        val = np.concatenate(vals)
+        gb = np.concatenate(cb)
+        gu = np.concatenate(cu)
+        gn = np.concatenate(cn)
+        # n = sign * m/|m|, m = e1 x e2
+        gm = (gn - np.sum(gn * n[None, :], axis=1, keepdims=True) * n[None, :]) / mn * self.hand_sign
+        ge1 = np.cross(e2[None, :], gm)
+        ge2 = np.cross(gm, e1[None, :])
+        rows = np.arange(4 * a_n)
+        kk, pp, cc = np.tile(k, 4), np.tile(p, 4), np.tile(c, 4)
+        jac = np.zeros((4 * a_n, self.j, 3))
+        jac[rows, cc] += gb
+        jac[rows, kk] += gu - gb
+        jac[rows, pp] -= gu
+        jac[:, i1] += ge1
+        jac[:, l1] += ge2
+        jac[:, w0] -= ge1 + ge2
+        return val, jac
+
+    def ineq(self, x: np.ndarray) -> np.ndarray:
+        return self._ineq(self.pose(x))[0]
+
+    def ineq_jac(self, x: np.ndarray) -> np.ndarray:
+        jac = self._ineq(self.pose(x))[1]
+        return _CM * jac.reshape(jac.shape[0], -1)
+
+    def num_ineq(self) -> int:
+        return len(self.ord_k) + (4 * len(self.ak) if self.use_angles else 0)
+
+
+# ---------------------------------------------------------------------------------------- lift
+def _check_inputs(annotation: FrameAnnotation, skeleton: Skeleton, bone_lengths_mm) -> np.ndarray:
+    if not isinstance(annotation, FrameAnnotation):
+        raise AnnotationError(f"expected a FrameAnnotation, got {type(annotation).__name__}")
+    annotation.validate(skeleton.num_joints)
+    if np.any(np.isnan(annotation.uv_px).any(axis=1) & annotation.has_3d):
+        pass  # 3D-only joints are fine
+    d = np.asarray(bone_lengths_mm, dtype=np.float64)
+    if d.shape != (len(skeleton.bones),) or not np.all(np.isfinite(d)) or np.any(d <= 0):
+        raise ValueError(
+            f"bone_lengths_mm must be {len(skeleton.bones)} positive finite lengths, got {d!r}"
+        )
+    return d
+
+
+def lift_frame(
+    annotation: FrameAnnotation,
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    *,
+    eps_mm: float = 15.0,
+    angle_limits: bool = True,
+    init_mm: np.ndarray | None = None,
+    order_margin_mm: float = 5.0,
+    w_3d: float = 1.0,
+    w_surface: float = 0.01,
+    soft_bones: float | None = None,
+    right_hand: bool = True,
+    max_iter: int = 200,
+    tol: float = 1e-7,
+) -> LiftResult:
+    """Lift one annotated frame to 3D (see the module docstring for the problem).
+
+    annotation: the frame's :class:`FrameAnnotation` (J joints; validated, AnnotationError if bad).
+    depth: ``(H, W)`` mm, 0 = invalid. bone_lengths_mm: ``(B,)`` mm, bone ``b`` = ``skeleton.bones[b]``.
+    eps_mm: width of a visible joint's interval behind ``D + o``. angle_limits: thesis Eq. 5 limits.
+    init_mm: ``(J, 3)`` warm start (e.g. the previous solution while a joint is dragged).
+    order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
+    w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
+    soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
+    (used for bone-length estimation). Returns a :class:`LiftResult`.
+    """
+    t0 = time.perf_counter()
+    d = _check_inputs(annotation, skeleton, bone_lengths_mm)
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
+    x0_pose, d_obs = initial_pose(annotation, depth, camera, skeleton, d)
+    if init_mm is not None:
+        init = np.asarray(init_mm, dtype=np.float64)
+        if init.shape != x0_pose.shape:
+            raise ValueError(f"init_mm must be {x0_pose.shape}, got {init.shape}")
+        x0_pose = np.where(np.isfinite(init), init, x0_pose)
+    prob = _Problem(
+        annotation,
+        d_obs,
+        camera,
+        skeleton,
+        d,
+        x0_pose,
+        eps_mm=eps_mm,
+        angle_limits=angle_limits,
+        order_margin_mm=order_margin_mm,
+        w_3d=w_3d,
+        w_surface=w_surface,
+        w_free=1e-3,
+        soft_bones=soft_bones,
+        right_hand=right_hand,
+    )
+    # start inside the depth bounds
+    z0 = np.clip(x0_pose[:, 2], prob.z_lo, prob.z_hi)
+    prob.x0 = x0_pose.copy()
+    prob.x0[:, 2] = z0
+    constraints = []
+    if soft_bones is None:
+        constraints.append({"type": "eq", "fun": prob.eq, "jac": prob.eq_jac})
+    if prob.num_ineq():
+        constraints.append({"type": "ineq", "fun": prob.ineq, "jac": prob.ineq_jac})
+    x_start = np.zeros(3 * prob.j)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = minimize(
+            prob.objective,
+            x_start,
+            jac=True,
+            method="SLSQP",
+            bounds=prob.bounds(),
+            constraints=constraints,
+            options={"maxiter": max_iter, "ftol": tol},
+        )
+    X = prob.pose(res.x)
+    proj = camera.project(X)
+    reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
+    bone_err = float(np.max(np.abs(skeleton.bone_lengths(X) - d)))
+    conf = _confidence(annotation, d_obs, reproj, bool(res.success))
+    return LiftResult(
+        joints_mm=X,
+        confidence=conf,
+        converged=bool(res.success),
+        iterations=int(res.nit),
+        reprojection_px=reproj,
+        observed_depth_mm=np.where(prob.has2d, d_obs, np.nan),
+        bone_error_mm=bone_err,
+        message=str(res.message),
+        time_s=time.perf_counter() - t0,
+    )
+
+
+def _confidence(
+    ann: FrameAnnotation, d_obs: np.ndarray, reproj: np.ndarray, converged: bool
+) -> np.ndarray:
+    """Heuristic per-joint confidence in [0, 1].
+
+    1.0 for a visible joint with 2D and valid depth, 0.8 if occluded, 0.5 with 2D but no valid
+    depth, 0.9 for a joint placed in 3D, 0.2 for an unannotated joint; times
+    ``exp(-(reprojection / 5 px)^2)`` and 0.5 when SLSQP did not converge.
+    """
+    has2d, has3d = ann.has_2d, ann.has_3d
+    c = np.full(len(has2d), 0.2)
+    c[has3d] = 0.9
+    c[has2d & np.isfinite(d_obs) & ann.visible] = 1.0
+    c[has2d & np.isfinite(d_obs) & ~ann.visible] = 0.8
+    c[has2d & ~np.isfinite(d_obs)] = 0.5
+    r = np.where(np.isfinite(reproj), reproj, 0.0)
+    c = c * np.exp(-((r / 5.0) ** 2))
+    if not converged:
+        c *= 0.5
+    return c
+
+
+# ---------------------------------------------------------------------------------------- refs
+def _lift_job(args: tuple) -> LiftResult:
+    ann, depth, camera, skeleton, bones, kwargs = args
+    return lift_frame(ann, depth, camera, skeleton, bones, **kwargs)
+
+
+def _run_all(jobs: list[tuple], workers: int, progress, stage: str) -> list[LiftResult]:
+    out: list[LiftResult] = []
+    total = len(jobs)
+    if workers > 1 and total > 1:
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            for i, r in enumerate(ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))):
+                out.append(r)
+                if progress is not None:
+                    progress(i + 1, total)
+    else:
+        for i, job in enumerate(jobs):
+            out.append(_lift_job(job))
+            if progress is not None:
+                progress(i + 1, total)
+    return out
+
+
+def initial_bone_lengths(
+    annotations: dict[int, FrameAnnotation],
+    depths: dict[int, np.ndarray],
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+) -> np.ndarray:
+    """Template bone lengths ``(B,)`` scaled to the annotated frames.
+
+    The scale is the median over frames and bones (both joints visible with valid depth) of the
+    back-projected 2D length divided by the template length, corrected upwards because a
+    projected length is never longer than the bone (we take the 75th percentile of the ratios).
+    """
+    if skeleton.template_bone_lengths_mm is None:
+        raise ValueError(f"skeleton {skeleton.name} has no template bone lengths; pass bone_lengths_mm")
+    tmpl = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    ratios = []
+    offsets = np.asarray(skeleton.surface_offsets_mm)
+    p, c = skeleton.bones[:, 0], skeleton.bones[:, 1]
+    for f, ann in annotations.items():
+        d_obs = observed_depth(depths[f], ann.uv_px)
+        ok = ann.has_2d & ann.visible & np.isfinite(d_obs)
+        z = np.where(ok, d_obs + offsets, np.nan)
+        X = camera.backproject(np.where(ann.has_2d[:, None], ann.uv_px, 0.0), np.nan_to_num(z))
+        good = ok[p] & ok[c]
+        # planar (projected) length at the mean depth of the two joints
+        zm = 0.5 * (z[p] + z[c])
+        planar = np.linalg.norm(
+            (X[c, :2] / np.maximum(z[c, None], 1) - X[p, :2] / np.maximum(z[p, None], 1)), axis=1
+        ) * zm
+        ratios.append((planar / tmpl)[good])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    r = r[np.isfinite(r) & (r > 0)]
+    scale = float(np.percentile(r, 75)) if len(r) >= 5 else 1.0
+    return tmpl * float(np.clip(scale, 0.5, 2.0))
+
+
+def lift_references(
+    annotations: dict[int, FrameAnnotation],
+    depth_of: Callable[[int], np.ndarray],
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    *,
+    bone_lengths_mm: np.ndarray | None = None,
+    pin_bone_lengths: bool = False,
+    eps_mm: float = 15.0,
+    angle_limits: bool = True,
+    workers: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+    max_rounds: int = 10,
+    bone_tol_mm: float = 0.1,
+    soft_bone_weight: float = 0.05,
+    **lift_kwargs,
+) -> LiftSet:
+    """Lift every annotated reference frame and estimate the bone lengths jointly.
+
+    annotations: frame -> :class:`FrameAnnotation`. depth_of(frame) -> ``(H, W)`` mm.
+    bone_lengths_mm: ``(B,)`` starting lengths (default: template scaled to the annotations).
+    pin_bone_lengths: keep ``bone_lengths_mm`` fixed (no re-estimation; requires the lengths).
+    Re-estimation rounds (see module docstring) run until no bone changes by more than
+    ``bone_tol_mm`` or ``max_rounds``. workers > 1 lifts frames in processes.
+    progress(done, total) is called after every frame of every round.
+    Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per round).
+    """
+    frames = sorted(int(f) for f in annotations)
+    for f in frames:
+        if not isinstance(annotations[f], FrameAnnotation):
+            raise AnnotationError(f"frame {f}: expected a FrameAnnotation")
+        annotations[f].validate(skeleton.num_joints, where=f"frame {f}")
+    if pin_bone_lengths and bone_lengths_mm is None:
+        raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
+    depths = {f: np.asarray(depth_of(f)) for f in frames}
+    if bone_lengths_mm is not None:
+        bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
+    elif frames:
+        bones = initial_bone_lengths({f: annotations[f] for f in frames}, depths, camera, skeleton)
+    else:
+        bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    history = [bones.copy()]
+    kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
+    inits: dict[int, np.ndarray] = {}
+    if not pin_bone_lengths and len(frames) > 0:
+        for _ in range(max_rounds):
+            jobs = [
+                (annotations[f], depths[f], camera, skeleton, bones,
+                 dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)))
+                for f in frames
+            ]
+            res = _run_all(jobs, workers, progress, "bones")
+            poses = np.stack([r.joints_mm for r in res])
+            lengths = skeleton.bone_lengths(poses)  # (F, B)
+            # only bones whose both joints carry evidence (2D or 3D) vote
+            votes = np.stack([annotations[f].annotated for f in frames])
+            bmask = votes[:, skeleton.bones[:, 0]] & votes[:, skeleton.bones[:, 1]]
+            lengths = np.where(bmask, lengths, np.nan)
+            new = np.nanmedian(lengths, axis=0)
+            new = np.where(np.isfinite(new), new, bones)
+            change = float(np.max(np.abs(new - bones)))
+            bones = new
+            history.append(bones.copy())
+            inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
+            if change < bone_tol_mm:
+                break
+    jobs = [
+        (annotations[f], depths[f], camera, skeleton, bones, dict(kw, init_mm=inits.get(f)))
+        for f in frames
+    ]
+    res = _run_all(jobs, workers, progress, "final")
+    results = dict(zip(frames, res, strict=True))
+    return LiftSet(
+        joints_mm={f: r.joints_mm for f, r in results.items()},
+        confidence={f: r.confidence for f, r in results.items()},
+        bone_lengths_mm=bones,
+        results=results,
+        bone_history_mm=history,
+    )

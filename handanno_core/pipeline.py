@@ -1,0 +1,321 @@
+"""The pipeline composes the stages on a session; the CLI and the app call these functions.
+
+Each function reads what it needs from the session folder, runs one stage and stores its output
+back in the session (``session.json`` for selection and bone lengths, ``results.npz`` for joints).
+Stages never call each other behind the user's back except :func:`ensure_crops`, a cache.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .camera import CameraIntrinsics
+from .datasets import BadFrameReport
+from .session import CROPS_FILE, CROPS_META_FILE, Batch, DatasetSpec, Session, SessionError, SetFrameAnnotation
+
+Progress = Callable[[int, int], None] | None
+
+
+def _log(message: str, quiet: bool = False) -> None:
+    if not quiet:
+        print(message, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sessions
+
+
+def new_session(
+    folder: str | Path,
+    dataset_path: str | Path,
+    *,
+    format: str | None = None,
+    intrinsics: CameraIntrinsics | None = None,
+    depth_scale_mm: float | None = None,
+    overwrite: bool = False,
+) -> Session:
+    """Create a session for a dataset (format auto-detected unless given)."""
+    from .datasets import open_sequence
+
+    dataset_path = Path(dataset_path).resolve()
+    sequence = open_sequence(dataset_path, format=format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm)
+    spec = DatasetSpec(
+        path=str(dataset_path), format=sequence.format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm
+    )
+    return Session.create(
+        folder,
+        spec,
+        frames=len(sequence),
+        camera=sequence.camera,
+        skeleton=sequence.skeleton.name,
+        sequence_breaks=list(sequence.sequence_breaks),
+        overwrite=overwrite,
+    )
+
+
+def root_reference(parent: np.ndarray) -> np.ndarray:
+    """For a parent forest ``(N,)`` (-1 at references) the reference at the root of each frame's tree."""
+    parent = np.asarray(parent, dtype=np.int64)
+    hop = np.where(parent < 0, np.arange(len(parent)), parent)
+    # Pointer jumping: log2(depth) vectorized passes instead of walking every chain in Python.
+    while True:
+        nxt = hop[hop]
+        if np.array_equal(nxt, hop):
+            break
+        hop = nxt
+    if np.any(parent[hop] >= 0):
+        raise ValueError("parent array is not a forest rooted at references (cycle found)")
+    return hop
+
+
+# ---------------------------------------------------------------------------------------------
+# Crops (cache)
+
+
+def ensure_crops(session: Session, *, progress: bool = True, quiet: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session."""
+    from .crops import compute_crops, crop_boxes, locate_hands
+
+    s = session.model.settings
+    crops_path = session.folder / CROPS_FILE
+    meta_path = session.folder / CROPS_META_FILE
+    if crops_path.exists() and meta_path.exists():
+        with np.load(meta_path) as meta:
+            ok = (
+                int(meta["frames"]) == session.num_frames
+                and float(meta["cube_mm"]) == s.cube_mm
+                and int(meta["size"]) == s.crop_size
+            )
+            centres, boxes = meta["centres_mm"], meta["boxes"]
+        if ok:
+            return np.load(crops_path, mmap_mode="r"), centres, boxes
+    sequence = session.open_sequence()
+    report = BadFrameReport()
+    t0 = time.perf_counter()
+    centres = locate_hands(sequence, report=report, cube_mm=s.cube_mm)
+    boxes = crop_boxes(centres, sequence.camera, cube_mm=s.cube_mm, size=s.crop_size)
+    crops = compute_crops(
+        sequence, centres, out_path=crops_path, cube_mm=s.cube_mm, size=s.crop_size, report=BadFrameReport()
+    )
+    np.savez(
+        meta_path, frames=session.num_frames, cube_mm=s.cube_mm, size=s.crop_size, centres_mm=centres, boxes=boxes
+    )
+    _log(f"crops: {session.num_frames} frames in {time.perf_counter() - t0:.1f} s", quiet)
+    if report.errors:
+        _log(report.summary(), quiet)
+    return np.load(crops_path, mmap_mode="r"), centres, boxes
+
+
+# ---------------------------------------------------------------------------------------------
+# Stages
+
+
+def select(
+    session: Session,
+    *,
+    strategy: str = "forest",
+    ref_fraction: float | None = None,
+    rho: float | None = None,
+    figures: bool = True,
+    quiet: bool = False,
+):
+    """Select reference frames and the parent forest; store them in ``session.json``."""
+    from .descriptors import compute_descriptors
+    from .select import select_references
+
+    crops, _, _ = ensure_crops(session, quiet=quiet)
+    descriptors = compute_descriptors(np.asarray(crops, dtype=np.float32), kind=session.model.settings.descriptor)
+    selection = select_references(
+        descriptors,
+        strategy,
+        ref_fraction=ref_fraction,
+        rho=rho,
+        sequence_breaks=session.model.sequence_breaks,
+    )
+    data = selection.to_dict()
+    data["ref_fraction"] = ref_fraction
+    session.set_selection(data)
+    if figures:
+        from .select import coverage_curve, plot_coverage, plot_embedding
+
+        plot_embedding(descriptors, selection, session.folder / "selection_embedding.png")
+        gt = session.open_sequence().ground_truth
+        if gt is not None:
+            thresholds, fraction = coverage_curve(gt.joints_mm, selection)
+            plot_coverage(thresholds, fraction, session.folder / "selection_coverage.png")
+    return selection
+
+
+def annotate_from_gt(session: Session, *, noise_px: float = 0.0, seed: int = 0, quiet: bool = False) -> int:
+    """Simulated annotator (benchmarks only): fill every reference frame from ground truth.
+
+    Uses ground truth for the 2D joints, visibility and depth order only, as a real annotator would
+    give them. Returns the number of frames annotated. One journal entry (one undo step).
+    """
+    from .synth import simulate_annotations
+
+    sequence = session.open_sequence()
+    if sequence.ground_truth is None:
+        raise SessionError(f"{session.model.dataset.path}: dataset has no ground truth to simulate an annotator")
+    refs = session.reference_frames
+    if len(refs) == 0:
+        raise SessionError(f"{session.folder}: no reference frames; run `handanno select` first")
+    annotations = simulate_annotations(sequence, refs, noise_px=noise_px, seed=seed)
+    batch = Batch(
+        commands=[SetFrameAnnotation(frame=f, annotation=a.to_json()).model_dump() for f, a in annotations.items()]
+    )
+    session.execute(batch, client="simulated-annotator")
+    _log(f"annotated {len(annotations)} reference frames from ground truth (noise {noise_px:g} px)", quiet)
+    return len(annotations)
+
+
+def lift(session: Session, *, workers: int = 1, quiet: bool = False) -> dict[int, np.ndarray]:
+    """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths."""
+    from .lift import lift_references
+
+    sequence = session.open_sequence()
+    annotations = session.annotations(session.reference_frames)
+    if not annotations:
+        raise SessionError(f"{session.folder}: no annotated reference frames to lift")
+    pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
+    result = lift_references(
+        annotations,
+        sequence.depth,
+        sequence.camera,
+        sequence.skeleton,
+        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm) if pinned else None,
+        pin_bone_lengths=pinned,
+        eps_mm=session.model.settings.eps_mm,
+        angle_limits=session.model.settings.angle_limits,
+        workers=workers,
+    )
+    results = session.load_results()
+    lifted = np.full_like(results["lifted_mm"], np.nan)
+    confidence = results["confidence"]
+    for f, joints in result.joints_mm.items():
+        lifted[f] = joints
+        confidence[f] = result.confidence[f]
+    session.save_results(lifted_mm=lifted, confidence=confidence)
+    session.set_bone_lengths(result.bone_lengths_mm)
+    _log(f"lifted {len(result.joints_mm)} reference frames; bone lengths (mm): "
+         + " ".join(f"{b:.1f}" for b in result.bone_lengths_mm), quiet)
+    return result.joints_mm
+
+
+def _reference_joints(session: Session, results: dict[str, np.ndarray]) -> dict[int, np.ndarray]:
+    lifted = results["lifted_mm"]
+    refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
+    if not refs:
+        raise SessionError(f"{session.folder}: no lifted reference frames; run `handanno lift` first")
+    return {f: lifted[f] for f in refs}
+
+
+def propagate(
+    session: Session,
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    aligner: str | None = None,
+    frames: np.ndarray | None = None,
+    progress: Progress = None,
+    on_result: Callable | None = None,
+    quiet: bool = False,
+):
+    """Propagate lifted references to every frame along the selection's parent forest."""
+    from .propagate import propagate as run_propagation
+
+    sequence = session.open_sequence()
+    crops, centres, boxes = ensure_crops(session, quiet=quiet)
+    results = session.load_results()
+    reference_joints = _reference_joints(session, results)
+    if session.model.bone_lengths_mm is None:
+        raise SessionError(f"{session.folder}: no bone lengths; run `handanno lift` first")
+    result = run_propagation(
+        session.parent,
+        reference_joints,
+        crops,
+        boxes,
+        centres,
+        sequence.depth,
+        sequence.camera,
+        sequence.skeleton,
+        np.asarray(session.model.bone_lengths_mm),
+        aligner=aligner or session.model.settings.aligner,
+        workers=workers,
+        scheduler=scheduler,
+        frames=frames,
+        progress=progress,
+        on_result=on_result,
+    )
+    init = result.joints_mm
+    confidence = result.confidence
+    if frames is not None:
+        # Only the recomputed frames change.
+        mask = np.zeros(session.num_frames, dtype=bool)
+        mask[np.asarray(frames, dtype=np.int64)] = True
+        init = np.where(mask[:, None, None], init, results["init_mm"])
+        confidence = np.where(mask[:, None], confidence, results["confidence"])
+    session.save_results(init_mm=init, confidence=confidence)
+    if result.skipped:
+        _log(f"propagation skipped {len(result.skipped)} frame(s): {result.skipped[:10]}", quiet)
+    return result
+
+
+def refine(session: Session, *, progress: Callable | None = None, quiet: bool = False):
+    """Global refinement of all frames (thesis Eq. 4); stores ``final_mm``."""
+    from .refine import refine as run_refine
+
+    sequence = session.open_sequence()
+    crops, centres, boxes = ensure_crops(session, quiet=quiet)
+    results = session.load_results()
+    init = results["init_mm"]
+    if not np.isfinite(init).any():
+        raise SessionError(f"{session.folder}: nothing propagated yet; run `handanno propagate` first")
+    refs = session.reference_frames
+    result = run_refine(
+        init,
+        crops=crops,
+        boxes=boxes,
+        centres_mm=centres,
+        depth_of=sequence.depth,
+        camera=sequence.camera,
+        skeleton=sequence.skeleton,
+        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
+        reference_frames=refs,
+        reference_annotations=session.annotations(refs),
+        closest_reference=root_reference(session.parent),
+        sequence_breaks=session.model.sequence_breaks,
+        progress=progress,
+    )
+    session.save_results(final_mm=result.joints_mm)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# Demo
+
+
+def ensure_demo_session(sessions_dir: str | Path, *, frames: int = 300, seed: int = 0, quiet: bool = False) -> Path:
+    """Create ``sessions_dir/demo`` from a synthetic sequence once (with a 5 % selection); return its folder."""
+    from .synth import generate_sequence
+
+    folder = Path(sessions_dir) / "demo"
+    if (folder / "session.json").exists():
+        try:
+            Session.open(folder).close()
+            return folder
+        except SessionError as exc:
+            raise SessionError(f"{exc}\n(delete {folder} to recreate the demo session)") from exc
+    data = Path(sessions_dir) / "demo-data"
+    if not (data / "joint.txt").exists():
+        _log(f"generating a {frames}-frame synthetic sequence in {data} ...", quiet)
+        generate_sequence(data, frames=frames, seed=seed, progress=not quiet)
+    session = new_session(folder, data, format="msra", overwrite=True)
+    select(session, strategy="forest", ref_fraction=0.05, figures=False, quiet=quiet)
+    session.close()
+    return folder
+

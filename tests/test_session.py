@@ -1,0 +1,141 @@
+"""Session data model: journal durability, undo/redo, crash recovery, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from handanno_core.camera import MSRA_CAMERA
+from handanno_core.session import (
+    Batch,
+    DatasetSpec,
+    Session,
+    SessionError,
+    SetDepthOrder,
+    SetJoint2D,
+    SetJoint3D,
+    SetReference,
+    SetReview,
+    SetVisibility,
+    resolve_session,
+    safe_session_path,
+)
+
+
+@pytest.fixture
+def session(tmp_path):
+    s = Session.create(tmp_path / "s", DatasetSpec(path=str(tmp_path / "data"), format="msra"), 10, MSRA_CAMERA)
+    s.set_selection({"strategy": "uniform", "reference_frames": [0, 5], "parent": [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8]})
+    return s
+
+
+def test_edit_is_journaled_before_it_is_applied(session):
+    entry = session.execute(SetJoint2D(frame=0, joint=4, uv_px=(100.5, 80.25)))
+    lines = (session.folder / "journal.jsonl").read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["seq"] == entry.seq
+    assert session.annotation(0).uv_px[4].tolist() == [100.5, 80.25]
+
+
+def test_reopen_without_close_replays_every_acknowledged_edit(session):
+    session.execute(SetJoint2D(frame=0, joint=1, uv_px=(10, 20)))
+    session.execute(SetVisibility(frame=0, joint=1, visible=False))
+    session.execute(SetDepthOrder(frame=5, joint=2, order=-1))
+    # no close(): simulates a SIGKILL after the edits were acknowledged
+    again = Session.open(session.folder)
+    ann0, ann5 = again.annotation(0), again.annotation(5)
+    assert ann0.uv_px[1].tolist() == [10, 20] and not ann0.visible[1]
+    assert ann5.depth_order[2] == -1
+
+
+def test_torn_last_journal_line_is_ignored_but_corrupt_middle_line_is_an_error(session):
+    session.execute(SetJoint2D(frame=0, joint=1, uv_px=(1, 2)))
+    path = session.folder / "journal.jsonl"
+    with open(path, "ab") as f:
+        f.write(b'{"seq": 2, "time": 1.0, "cl')  # crash in the middle of a write: never acknowledged
+    assert Session.open(session.folder).annotation(0).uv_px[1].tolist() == [1, 2]
+    path.write_bytes(b"garbage\n" + path.read_bytes())
+    with pytest.raises(SessionError, match="journal.jsonl: line 1"):
+        Session.open(session.folder)
+
+
+def test_undo_redo_per_client_and_after_restart(session):
+    session.execute(SetJoint2D(frame=0, joint=2, uv_px=(5, 6)), client="a")
+    session.execute(SetJoint2D(frame=0, joint=3, uv_px=(7, 8)), client="b")
+    session.undo("a")  # undoes a's edit only: b's joint on the same frame survives
+    ann = session.annotation(0)
+    assert np.isnan(ann.uv_px[2]).all() and ann.uv_px[3].tolist() == [7, 8]
+    again = Session.open(session.folder)
+    assert again.can_redo("a") and not again.can_redo("b")
+    again.redo("a")
+    assert again.annotation(0).uv_px[2].tolist() == [5, 6]
+    again.undo("a")
+    again.undo("a")  # nothing left for a: no-op
+    assert np.isnan(again.annotation(0).uv_px[2]).all()
+
+
+def test_set_3d_projects_to_2d_and_reference_batch_undoes_as_one(session):
+    cmd = Batch(
+        commands=[
+            SetJoint3D(frame=7, joint=0, xyz_mm=(10.0, -20.0, 400.0)).model_dump(),
+            SetReference(frame=7, is_reference=True, correction=True).model_dump(),
+        ]
+    )
+    session.execute(cmd)
+    assert 7 in session.reference_frames and session.model.corrections == [7]
+    assert session.parent[7] == -1
+    uv = session.annotation(7).uv_px[0]
+    np.testing.assert_allclose(uv, MSRA_CAMERA.project(np.array([10.0, -20.0, 400.0])))
+    session.undo()
+    assert 7 not in session.reference_frames and session.parent[7] == 6
+    ann = session.annotation(7)
+    assert (ann is None or not ann.annotated.any()) and session.model.corrections == []
+
+
+def test_invalid_edits_are_refused_and_not_journaled(session):
+    with pytest.raises(ValueError, match="out of range"):
+        session.execute(SetJoint2D(frame=99, joint=0, uv_px=(1, 2)))
+    with pytest.raises(ValueError, match="joint 21 out of range"):
+        session.execute(SetVisibility(frame=0, joint=21, visible=True))
+    with pytest.raises(ValueError, match="finite"):
+        session.execute(SetJoint2D(frame=0, joint=0, uv_px=(float("nan"), 1)))
+    assert not (session.folder / "journal.jsonl").exists()
+
+
+def test_review_status_round_trip(session):
+    session.execute(SetReview(frame=3, status="flagged"))
+    session.execute(SetReview(frame=3, status="accepted"))
+    session.undo()
+    assert session.model.review == {"3": "flagged"}
+
+
+def test_missing_and_corrupt_sessions_name_the_file(tmp_path):
+    with pytest.raises(SessionError, match="no such session folder"):
+        Session.open(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SessionError, match="session.json: missing"):
+        Session.open(tmp_path / "empty")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "session.json").write_text("{not json")
+    with pytest.raises(SessionError, match="corrupt session file"):
+        Session.open(tmp_path / "bad")
+
+
+def test_results_are_atomic_and_partial_updates_keep_other_arrays(session):
+    n, j = 10, 21
+    session.save_results(init_mm=np.ones((n, j, 3)))
+    session.save_results(final_mm=np.full((n, j, 3), 2.0))
+    res = session.load_results()
+    assert res["init_mm"].mean() == 1 and res["final_mm"].mean() == 2
+    assert np.isnan(res["lifted_mm"]).all()
+    assert not list(session.folder.glob(".results*"))
+
+
+def test_session_names_are_confined_to_the_sessions_folder(tmp_path):
+    assert safe_session_path("demo", tmp_path) == (tmp_path / "demo").resolve()
+    for bad in ("../etc", "a/b", "..", "/abs", ".hidden", "a\\b"):
+        with pytest.raises(SessionError):
+            safe_session_path(bad, tmp_path)
+    assert resolve_session("x", tmp_path) == (tmp_path / "x").resolve()
+    assert resolve_session(str(tmp_path / "y"), "sessions") == tmp_path / "y"

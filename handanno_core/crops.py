@@ -1,9 +1,10 @@
 """Hand localization without ground truth and normalized 3D-cube crops (DESIGN.md step 2).
 
-Localization (:func:`locate_hand`) finds the nearest sizeable blob inside a depth band, takes the
-centre of mass of its 3D points and refines it with a few mean-shift steps inside a sphere of
-``cube_mm / 2`` (this walks the centre off the forearm onto the hand, where the points are
-densest). :func:`locate_hands` does this for every frame (the previous centre as a hint), fills
+Localization (:func:`locate_hand`) finds the nearest sizeable blob inside a depth band (a blob
+that stands out in front of its surroundings beats a body part that only curves towards the
+camera), takes the centre of mass of its nearest points and refines it with a few mean-shift
+steps inside a sphere of ``0.4 * cube_mm`` (this keeps the centre on the hand, where the points
+are densest, instead of the forearm). :func:`locate_hands` does this for every frame (the previous centre as a hint), fills
 gaps by linear interpolation and smooths over time, never across ``sequence_breaks``.
 
 Crops are a cube of ``cube_mm`` around the centre, projected to an image box and resampled to
@@ -71,7 +72,12 @@ def _continuation_fraction(
     h, w = z.shape
     x0, y0, bw, bh = (int(t) for t in box[:4])
     pad = 3
-    xa, ya, xb, yb = max(0, x0 - pad), max(0, y0 - pad), min(w, x0 + bw + pad), min(h, y0 + bh + pad)
+    xa, ya, xb, yb = (
+        max(0, x0 - pad),
+        max(0, y0 - pad),
+        min(w, x0 + bw + pad),
+        min(h, y0 + bh + pad),
+    )
     mk = (labels[ya:yb, xa:xb] == k).astype(np.uint8)
     zr = z[ya:yb, xa:xb]
     ker = np.ones((5, 5), np.uint8)
@@ -84,8 +90,26 @@ def _continuation_fraction(
     if n_ring == 0:
         return 0.0
     czmax = cv2.dilate(np.where(mk > 0, zr, 0).astype(np.float32), ker)
-    cont = ring & valid[ya:yb, xa:xb] & (zr - czmax < step_mm)
+    cont = ring & valid[ya:yb, xa:xb] & (zr - czmax < step_mm) & (zr > czmax - 5.0)
     return float(cont.sum()) / n_ring
+
+
+def _exit_pixels(
+    z: np.ndarray, valid: np.ndarray, mask: np.ndarray, step_mm: float = 40.0
+) -> np.ndarray:
+    """Pixels of ``mask`` where the blob is attached to something: within 2 px of the image
+    border, or next to a pixel where the surface continues smoothly out of the band (valid, at
+    most ``step_mm`` behind). ``(H, W)`` bool."""
+    mk = mask.astype(np.uint8)
+    ker = np.ones((3, 3), np.uint8)
+    czmax = cv2.dilate(np.where(mask, z, 0).astype(np.float32), ker)
+    cont = (cv2.dilate(mk, ker) > 0) & ~mask & valid & (z - czmax < step_mm) & (z > czmax - 5.0)
+    out = mask & (cv2.dilate(cont.astype(np.uint8), ker) > 0)
+    out[:2] |= mask[:2]
+    out[-2:] |= mask[-2:]
+    out[:, :2] |= mask[:, :2]
+    out[:, -2:] |= mask[:, -2:]
+    return out
 
 
 def _choose_component(
@@ -98,8 +122,8 @@ def _choose_component(
     prev_uvz: np.ndarray | None,
     prev_radius_px: float,
 ) -> tuple[np.ndarray | None, float]:
-    """Components of ``valid & d_near <= z <= d_near + band``; return (mask, near depth) of the
-    chosen one, or (None, NaN).
+    """Components of ``valid & d_near <= z <= d_near + band``; return (mask, nearest depth) of
+    the chosen one, or (None, NaN).
 
     Each sizeable component (metric area >= ``min_area_mm2``) is scored by its near depth (the
     depth at which its nearest 1000 mm^2 of surface are reached, robust to a few flying pixels)
@@ -127,6 +151,7 @@ def _choose_component(
     target = base + np.minimum(NEAR_AREA_MM2, 0.5 * area)
     idx = np.searchsorted(a_s, target)
     near = z_s[np.clip(idx, 0, len(z_s) - 1)]
+    zmin = z_s[np.clip(starts, 0, len(z_s) - 1)]  # nearest depth of each component
     if prev_uvz is not None:
         u0, v0, _ = prev_uvz
         rr, cc = np.nonzero(inband)
@@ -135,18 +160,19 @@ def _choose_component(
         hits[~ok] = 0
         if hits.max() > 0:
             k = int(np.argmax(hits))
-            return labels == k, float(near[k])
+            return labels == k, float(zmin[k])
     if len(cand) == 1:
         k = int(cand[0])
-        return labels == k, float(near[k])
+        return labels == k, float(zmin[k])
     score = np.array(
         [
-            near[k] + ISOLATION_PENALTY_MM * _continuation_fraction(z, valid, labels, k, stats[k], 40.0)
+            near[k]
+            + ISOLATION_PENALTY_MM * _continuation_fraction(z, valid, labels, k, stats[k], 40.0)
             for k in cand
         ]
     )
     k = int(cand[np.argmin(score)])
-    return labels == k, float(near[k])
+    return labels == k, float(zmin[k])
 
 
 def locate_hand(
@@ -160,6 +186,8 @@ def locate_hand(
     cube_mm: float = 220.0,
     prev_centre_mm: np.ndarray | None = None,
     mean_shift_iters: int = 8,
+    front_mm: float = 40.0,
+    radius_mm: float | None = None,
 ) -> np.ndarray:
     """Centre of the hand ``(3,)`` mm in the camera frame, or all-NaN if no hand-sized blob.
 
@@ -168,13 +196,16 @@ def locate_hand(
     of the pixels in ``[d_near, d_near + band_mm]``; the nearest component whose metric area
     (sum of ``(z/fx)(z/fy)`` over its pixels) is at least ``min_area_mm2``; if that component
     starts well behind ``d_near`` (the near pixels were noise) the band is re-anchored at it.
-    Centre = centre of mass of the component's points within ``band_mm / 2`` of its near depth,
+    Centre = centre of mass of the component's points within ``front_mm`` of its nearest depth,
     then ``mean_shift_iters`` mean-shift steps over the component's points within a sphere of
-    radius ``cube_mm / 2`` (moves the centre off the forearm onto the hand).
+    radius ``radius_mm`` (default ``0.4 * cube_mm``): the shift climbs to the densest nearby
+    surface (palm + fingers) and does not run down the forearm the way a plain centre of mass
+    of the whole blob does.
 
     ``prev_centre_mm`` (3,): the previous frame's centre; if given (and finite), the component
-    with the most pixels within ``cube_mm / 2`` of its projection is preferred, the band is
-    anchored no farther than its depth, and mean shift starts from it.
+    with the most pixels within ``cube_mm / 2`` of its projection is preferred (the start of the
+    mean shift is chosen as without a hint: starting from the previous centre lets the centre
+    drift down the arm frame after frame).
     """
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
@@ -197,7 +228,7 @@ def locate_hand(
 
     zv = z[valid]
     k = max(0, int(0.005 * zv.size) - 1)
-    d_near = float(np.partition(zv, k)[k])
+    d_near = float(np.partition(zv, k)[k]) - 20.0  # include the few pixels in front of it
     mask = None
     for _ in range(4):
         mask, d_comp = _choose_component(
@@ -209,7 +240,7 @@ def locate_hand(
             if farther.size == 0:
                 return nan3
             k = max(0, int(0.005 * farther.size) - 1)
-            d_near = float(np.partition(farther, k)[k])
+            d_near = float(np.partition(farther, k)[k]) - 20.0
             continue
         if d_comp - d_near > 0.2 * band_mm:
             # the band was anchored on noise in front of the blob: re-anchor on the blob
@@ -222,12 +253,16 @@ def locate_hand(
     rows, cols = np.nonzero(mask)
     zc = z[rows, cols].astype(np.float64)
     pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
-    if prev_uvz is not None:
-        centre = camera.backproject(prev_uvz[:2], np.float64(prev_uvz[2]))
+    exits = _exit_pixels(z, valid, mask)[rows, cols]
+    if exits.sum() >= max(8, 0.002 * len(rows)):
+        # the blob is attached to something (an arm leaving the image or the band): the hand is
+        # its free end, so start from the points farthest from where it is attached
+        dist = np.linalg.norm(pts - pts[exits].mean(axis=0), axis=1)
+        centre = pts[dist >= np.percentile(dist, 98)].mean(axis=0)
     else:
-        front = zc <= zc.min() + 0.5 * band_mm
+        front = zc <= zc.min() + front_mm
         centre = pts[front].mean(axis=0)
-    r2 = (0.5 * cube_mm) ** 2
+    r2 = (0.4 * cube_mm if radius_mm is None else radius_mm) ** 2
     for _ in range(mean_shift_iters):
         inside = np.sum((pts - centre) ** 2, axis=1) <= r2
         if not inside.any():
@@ -311,7 +346,9 @@ def locate_hands(
     for i, depth in it:
         if i in breaks or i != last + 1:
             prev = None  # new segment, or the previous frame was bad
-        c = locate_hand(depth, sequence.camera, cube_mm=cube_mm, prev_centre_mm=prev, **locate_kwargs)
+        c = locate_hand(
+            depth, sequence.camera, cube_mm=cube_mm, prev_centre_mm=prev, **locate_kwargs
+        )
         if np.all(np.isfinite(c)) and prev is not None and np.linalg.norm(c - prev) > cube_mm:
             # the hint led astray or the hand jumped: retry without it
             c = locate_hand(depth, sequence.camera, cube_mm=cube_mm, **locate_kwargs)
@@ -429,7 +466,9 @@ def compute_crops(
         out_path = Path(out_path)
         out_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = out_path.with_name(out_path.name + ".tmp.npy")
-        header = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(n, *frame_shape))
+        header = np.lib.format.open_memmap(
+            tmp, mode="w+", dtype=np.float16, shape=(n, *frame_shape)
+        )
         offset = int(header.offset)
         del header
         target = None
@@ -443,7 +482,11 @@ def compute_crops(
         b = min(n, a + chunk_frames)
         if out_path is not None:
             target = np.memmap(
-                tmp, dtype=np.float16, mode="r+", offset=offset + a * frame_bytes, shape=(b - a, *frame_shape)
+                tmp,
+                dtype=np.float16,
+                mode="r+",
+                offset=offset + a * frame_bytes,
+                shape=(b - a, *frame_shape),
             )
             base = a
         else:

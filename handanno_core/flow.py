@@ -167,17 +167,14 @@ def _data_cost(s1: np.ndarray, s2: np.ndarray, offset: np.ndarray, radius: int, 
     s2f = s2.reshape(h * w, c)
     ys, xs = np.mgrid[0:h, 0:w]
     cost = np.empty((h, w, size, size), np.float32)
+    # targets outside the image read the replicated border (crops have background there)
     for iv in range(size):
-        yy = ys + offset[..., 1] + (iv - radius)
-        vin = (yy >= 0) & (yy < h)
-        yy = np.clip(yy, 0, h - 1)
+        yy = np.clip(ys + offset[..., 1] + (iv - radius), 0, h - 1)
         for iu in range(size):
-            xx = xs + offset[..., 0] + (iu - radius)
-            inside = vin & (xx >= 0) & (xx < w)
-            idx = (yy * w + np.clip(xx, 0, w - 1)).ravel()
-            diff = cv2.absdiff(s1f, s2f[idx])
+            xx = np.clip(xs + offset[..., 0] + (iu - radius), 0, w - 1)
+            diff = cv2.absdiff(s1f, s2f[(yy * w + xx).ravel()])
             l1 = cv2.reduce(diff, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32F).reshape(h, w)
-            cost[:, :, iv, iu] = np.where(inside, np.minimum(l1, trunc), trunc)
+            cost[:, :, iv, iu] = np.minimum(l1, trunc)
     return cost
 
 
@@ -300,19 +297,26 @@ def _bp_level(
     bv, bu = np.divmod(best, size)
     flow = np.stack([offset[..., 0] + bu - r, offset[..., 1] + bv - r], axis=-1).astype(np.float32)
     if subpixel:
-        b = belief.reshape(h, w, size, size)
+        # Sub-pixel: a fit through the data cost aggregated over a small window (the beliefs
+        # are piecewise linear near their minimum and would bias the fit).
+        agg = cv2.blur(cost.reshape(h, w, size * size), (5, 5), borderType=cv2.BORDER_REFLECT)
+        agg = agg.reshape(h, w, size, size)
         yy, xx = np.mgrid[0:h, 0:w]
-        f0 = b[yy, xx, bv, bu]
+        f0 = agg[yy, xx, bv, bu]
         for comp, lab_i in ((0, bu), (1, bv)):
-            inner = (lab_i > 0) & (lab_i < size - 1)
+            # both neighbouring labels must point inside the image (outside costs are flat)
+            pos = (xx, yy)[comp] + offset[..., comp] + lab_i - r
+            limit = (w, h)[comp]
+            inner = (lab_i > 0) & (lab_i < size - 1) & (pos >= 1) & (pos <= limit - 2)
             k = np.clip(lab_i, 1, size - 2)
             if comp == 0:
-                fm, fp = b[yy, xx, bv, k - 1], b[yy, xx, bv, k + 1]
+                fm, fp = agg[yy, xx, bv, k - 1], agg[yy, xx, bv, k + 1]
             else:
-                fm, fp = b[yy, xx, k - 1, bu], b[yy, xx, k + 1, bu]
-            den = fm - 2.0 * f0 + fp
+                fm, fp = agg[yy, xx, k - 1, bu], agg[yy, xx, k + 1, bu]
+            # equiangular (V-shaped) fit: an L1 cost is linear, not quadratic, near its minimum
+            den = 2.0 * (np.maximum(fm, fp) - f0)
             with np.errstate(divide="ignore", invalid="ignore"):
-                delta = np.where(inner & (den > 1e-6), 0.5 * (fm - fp) / den, 0.0)
+                delta = np.where(inner & (den > 1e-6), (fm - fp) / den, 0.0)
             flow[..., comp] += np.clip(delta, -0.5, 0.5)
     return flow
 
@@ -324,7 +328,7 @@ def sift_flow(
     alpha: float = 2.0,
     d: float = 40.0,
     gamma: float = 0.005,
-    levels: int = 3,
+    levels: int = 2,
     wsize: int = 2,
     topwsize: int = 4,
     iterations: int = 4,
@@ -352,7 +356,11 @@ def sift_flow(
     Search: ``topwsize`` labels (+-px) at the coarsest level, ``wsize`` around the upsampled flow
     below; ``top_iterations`` / ``iterations`` sweeps of synchronous loopy min-sum BP per level.
     ``working_size``: the crops are resampled to this size (px) for matching and the flow is
-    upsampled back (None = full resolution; 64 keeps a 128x128 crop near 50 ms in numpy).
+    upsampled back (None = full resolution). ``levels`` counts pyramid levels from the working
+    resolution: the default 64 px with ``levels=2`` (64, 32) matches the two coarse levels of the
+    paper's 3-level pyramid on a 128 px crop (``working_size=None, levels=3`` gives the paper's
+    setting, ~15x slower in numpy). A 16x16 top level was measured to fail on hand crops (an 8 px
+    descriptor covers the whole hand there).
     The finest labels are refined to sub-pixel by a parabola fit of the beliefs (``subpixel``).
     """
     ref = np.asarray(reference, dtype=np.float32)
@@ -448,7 +456,7 @@ def dis_flow(
     preset: int = cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
     patch_size: int = 8,
     patch_stride: int = 3,
-    finest_scale: int = 0,
+    finest_scale: int = 1,
     gradient_descent_iterations: int = 25,
     variational_iterations: int = 5,
     value_range: tuple[float, float] = (-1.0, 1.0),
@@ -456,7 +464,9 @@ def dis_flow(
 ) -> np.ndarray:
     """DIS optical flow (Kroeger et al., ECCV 2016) from ``reference`` to ``moving`` ``(H, W)``.
 
-    The crops are scaled from ``value_range`` to uint8. Returns ``(H, W, 2)`` float32 px with the
+    The crops are scaled from ``value_range`` to uint8. ``finest_scale=1`` (patches matched at
+    half resolution, then variational refinement at full resolution) was both faster and more
+    accurate than 0 on the synthetic benchmark (6.1 vs 6.6 mm propagated, 3 vs 14 ms per call). Returns ``(H, W, 2)`` float32 px with the
     module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
     in :func:`coarse_to_fine` (each level initialized with the upsampled flow).
     """
@@ -552,27 +562,24 @@ def sample_flow(flow: np.ndarray, points: np.ndarray, *, radius: int = 1) -> np.
     Samples at ``points + (i, j)`` for i, j in [-radius, radius] (bilinear, border replicated)
     and returns the per-component median ``(P, 2)`` px. NaN points give NaN.
     """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    h, w = flow.shape[:2]
-    off = np.arange(-radius, radius + 1)
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 2)
+    off = np.arange(-radius, radius + 1, dtype=np.float32)
     oy, ox = np.meshgrid(off, off, indexing="ij")
     x = pts[:, 0, None] + ox.ravel()[None]
     y = pts[:, 1, None] + oy.ravel()[None]
-    bad = ~(np.isfinite(x) & np.isfinite(y))
-    x = np.clip(np.nan_to_num(x), 0, w - 1)
-    y = np.clip(np.nan_to_num(y), 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(int), w - 2) if w > 1 else np.zeros_like(x, dtype=int)
-    y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros_like(y, dtype=int)
-    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    val = (
-        flow[y0, x0] * (1 - fx) * (1 - fy)
-        + flow[y0, x1] * fx * (1 - fy)
-        + flow[y1, x0] * (1 - fx) * fy
-        + flow[y1, x1] * fx * fy
+    bad = ~np.isfinite(pts).all(axis=1)
+    x[bad] = 0.0
+    y[bad] = 0.0
+    val = cv2.remap(
+        np.ascontiguousarray(flow, dtype=np.float32),
+        np.ascontiguousarray(x),
+        np.ascontiguousarray(y),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
     )
-    val[bad] = np.nan
-    return np.median(val, axis=1)
+    out = np.median(val, axis=1).astype(np.float64)
+    out[bad] = np.nan
+    return out
 
 
 ALIGNERS = ("sift", "dis", "ncc")

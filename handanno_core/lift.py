@@ -196,11 +196,37 @@ def initial_pose(
             if np.isfinite(pose).any()
             else camera.backproject(np.array([camera.cx, camera.cy]), np.array(zmed))
         )
+    par = skeleton.parent_array
     for k in order:
-        if k == root or np.all(np.isfinite(pose[k])):
+        if k == root:
             continue
-        p = skeleton.parent_array[k]
-        pose[k] = pose[p] + lengths[bone_of_child[k]] * _template_direction(skeleton, k, pose)
+        p = par[k]
+        length = lengths[bone_of_child[k]]
+        if has3d[k]:
+            continue
+        if not has2d[k]:
+            pose[k] = pose[p] + length * _template_direction(skeleton, k, pose)
+            continue
+        # on the joint's viewing ray at bone length from the (already placed) parent
+        ray = np.array([(ann.uv_px[k, 0] - camera.cx) / camera.fx, (ann.uv_px[k, 1] - camera.cy) / camera.fy, 1.0])
+        ray /= np.linalg.norm(ray)
+        rp = float(ray @ pose[p])
+        disc = rp**2 - float(pose[p] @ pose[p]) + length**2
+        if disc < 0:
+            t = rp
+        else:
+            cands = np.array([rp - np.sqrt(disc), rp + np.sqrt(disc)])
+            zc = cands * ray[2]
+            order_k = int(ann.depth_order[k])
+            ok = np.ones(2, dtype=bool)
+            if order_k != 0:
+                ok = order_k * (zc - pose[p, 2]) > 0
+                if not ok.any():
+                    ok[:] = True
+            cost = np.where(ok, np.abs(zc - z[k]), np.inf)
+            t = float(cands[np.argmin(cost)])
+        if t * ray[2] > 1.0:
+            pose[k] = t * ray
     return pose, d_obs
 
 

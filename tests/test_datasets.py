@@ -27,6 +27,7 @@ from handanno_core.datasets import (
     write_msra_frame,
     write_msra_joints,
 )
+from handanno_core.datasets import msra as msra_module
 from handanno_core.datasets.blender import BLENDER_CAMERA
 from handanno_core.datasets.icvl import ICVL_CAMERA
 from handanno_core.datasets.nyu import NYU_JOINTS, encode_nyu_png
@@ -578,3 +579,31 @@ def test_open_sequence_detection_and_errors(tmp_path):
         open_sequence(tmp_path / "missing")
     with pytest.raises(DatasetError, match="depth_scale_mm"):
         open_sequence(tmp_path / "msra", depth_scale_mm=0.125)
+
+
+def test_opening_reads_no_frame(tmp_path, monkeypatch):
+    """No reader decodes a depth file while opening: imread / np.load / .bin reads are refused."""
+    rng = np.random.default_rng(60)
+    (tmp_path / "blender").mkdir()
+    _blender_fixture(tmp_path / "blender", rng, ids=(1, 2))
+    _nyu_fixture(tmp_path / "nyu", rng, n=2, cameras=1)
+    _icvl_fixture(tmp_path / "icvl", rng, n=2)
+    _write_gesture(tmp_path / "msra", rng, n=2)
+    (tmp_path / "folder").mkdir()
+    cv2.imwrite(str(tmp_path / "folder" / "0.png"), np.zeros((30, 40), np.uint16))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a frame was read while opening")
+
+    with monkeypatch.context() as m:
+        m.setattr(cv2, "imread", refuse)
+        m.setattr(np, "load", refuse)
+        m.setattr(msra_module, "read_msra_frame", refuse)
+        m.setattr(scipy.io, "loadmat", refuse)
+        seqs = {
+            name: open_sequence(tmp_path / name, intrinsics=SMALL if name == "folder" else None)
+            for name in FORMATS
+        }
+    for name, seq in seqs.items():
+        assert seq.format == name and len(seq) >= 1
+        assert seq.depth(0).dtype == np.float32

@@ -87,6 +87,7 @@ class ICVLSequence(DepthSequence):
         if not self.depth_scale_mm > 0:
             raise DatasetError(f"{path}: depth_scale_mm must be > 0, got {depth_scale_mm}")
         super().__init__(root, intrinsics or ICVL_CAMERA, ICVL16)
+        self._gt: GroundTruth | None = None
 
     def __len__(self) -> int:
         return len(self._names)
@@ -104,7 +105,9 @@ class ICVLSequence(DepthSequence):
     @property
     def ground_truth(self) -> GroundTruth:
         """Joints ``(N, 16, 3)`` mm in the OpenCV frame, back-projected from (u, v, d) labels."""
-        return GroundTruth(self.camera.backproject(self._uvd[..., :2], self._uvd[..., 2]))
+        if self._gt is None:
+            self._gt = GroundTruth(self.camera.backproject(self._uvd[..., :2], self._uvd[..., 2]))
+        return self._gt
 
 
 def read_png16(path: Path, index: int, shape: tuple[int, int], scale: float) -> np.ndarray:

@@ -1,0 +1,171 @@
+"""What one annotator is doing, without viser: current frame, selected joint, click mode, and
+every annotation action as a session command (SLEAP style: testable without a browser).
+
+Each action that edits returns the acknowledged :class:`~handanno_core.session.JournalEntry`
+(journaled and fsynced by ``Session.execute`` before it returns), or None if there was nothing
+to do. Navigation walks the reference frames (all frames if the session has no selection yet).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from handanno_core.annotation import FrameAnnotation
+from handanno_core.session import (
+    JournalEntry,
+    Session,
+    SetDepthOrder,
+    SetJoint2D,
+    SetJoint3D,
+    SetVisibility,
+)
+
+ClickMode = Literal["2d", "3d"]
+#: the order "D" cycles depth order through.
+DEPTH_ORDER_CYCLE = {0: -1, -1: 1, 1: 0}
+DEPTH_ORDER_TEXT = {-1: "closer", 0: "unknown", 1: "farther"}
+
+
+class AnnotateState:
+    def __init__(self, session: Session, client: str):
+        self.session = session
+        self.client = client
+        refs = [int(f) for f in session.reference_frames]
+        self.frames: list[int] = refs if refs else list(range(session.num_frames))
+        self.has_selection = bool(refs)
+        self.index = self._first_unfinished()
+        self.joint = self.first_unplaced_joint()
+        self.click_mode: ClickMode = "2d"
+
+    # ------------------------------------------------------------------ navigation
+    @property
+    def frame(self) -> int:
+        return self.frames[self.index]
+
+    @property
+    def num_joints(self) -> int:
+        return self.session.skeleton.num_joints
+
+    def _first_unfinished(self) -> int:
+        for i, f in enumerate(self.frames):
+            if not self.session.is_annotated(f):
+                return i
+        return 0
+
+    def go_to_index(self, index: int) -> int:
+        """Select the ``index``-th navigable frame (clamped); returns the frame."""
+        self.index = int(np.clip(index, 0, len(self.frames) - 1))
+        self.joint = self.first_unplaced_joint()
+        return self.frame
+
+    def next_frame(self) -> int:
+        return self.go_to_index(self.index + 1)
+
+    def prev_frame(self) -> int:
+        return self.go_to_index(self.index - 1)
+
+    def select_joint(self, joint: int) -> None:
+        self.joint = int(joint) % self.num_joints
+
+    def annotation(self) -> FrameAnnotation:
+        return self.session.annotation(self.frame) or FrameAnnotation.empty(self.num_joints)
+
+    def first_unplaced_joint(self) -> int:
+        placed = self.annotation().annotated
+        missing = np.flatnonzero(~placed)
+        return int(missing[0]) if missing.size else 0
+
+    def advance_joint(self) -> int:
+        """After placing: select the next unplaced joint after the current one (wrapping), or
+        simply the next joint when all are placed."""
+        placed = self.annotation().annotated
+        j = self.num_joints
+        for step in range(1, j + 1):
+            k = (self.joint + step) % j
+            if not placed[k]:
+                self.joint = k
+                return k
+        self.joint = (self.joint + 1) % j
+        return self.joint
+
+    # ------------------------------------------------------------------ edits
+    def _execute(self, command) -> JournalEntry:
+        return self.session.execute(command, client=self.client)
+
+    def place_2d(self, uv_px: np.ndarray, joint: int | None = None, advance: bool = True) -> JournalEntry:
+        """Set the (selected) joint's 2D position; the next unplaced joint becomes selected."""
+        j = self.joint if joint is None else int(joint)
+        uv = np.asarray(uv_px, dtype=np.float64)
+        cam = self.session.camera
+        uv = np.clip(uv, [0.0, 0.0], [cam.width - 1.0, cam.height - 1.0])
+        entry = self._execute(SetJoint2D(frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))))
+        self.joint = j
+        if advance:
+            self.advance_joint()
+        return entry
+
+    def place_3d(self, xyz_mm: np.ndarray, joint: int | None = None, advance: bool = True) -> JournalEntry:
+        """Place the (selected) joint in 3D (mm, camera frame)."""
+        j = self.joint if joint is None else int(joint)
+        xyz = tuple(round(float(x), 2) for x in np.asarray(xyz_mm, dtype=np.float64))
+        entry = self._execute(SetJoint3D(frame=self.frame, joint=j, xyz_mm=xyz))  # type: ignore[arg-type]
+        self.joint = j
+        if advance:
+            self.advance_joint()
+        return entry
+
+    def clear_joint(self) -> JournalEntry | None:
+        ann = self.annotation()
+        j = self.joint
+        if ann.has_3d[j]:
+            return self._execute(SetJoint3D(frame=self.frame, joint=j, xyz_mm=None))
+        if ann.has_2d[j]:
+            return self._execute(SetJoint2D(frame=self.frame, joint=j, uv_px=None))
+        return None
+
+    def toggle_visibility(self) -> JournalEntry:
+        visible = bool(self.annotation().visible[self.joint])
+        return self._execute(SetVisibility(frame=self.frame, joint=self.joint, visible=not visible))
+
+    def cycle_depth_order(self) -> JournalEntry | None:
+        if self.session.skeleton.parent_array[self.joint] < 0:
+            return None  # the root has no parent to compare with
+        order = int(self.annotation().depth_order[self.joint])
+        return self._execute(SetDepthOrder(frame=self.frame, joint=self.joint, order=DEPTH_ORDER_CYCLE[order]))
+
+    def undo(self) -> JournalEntry | None:
+        return self.session.undo(self.client)
+
+    def redo(self) -> JournalEntry | None:
+        return self.session.redo(self.client)
+
+    def toggle_click_mode(self) -> ClickMode:
+        self.click_mode = "3d" if self.click_mode == "2d" else "2d"
+        return self.click_mode
+
+    # ------------------------------------------------------------------ text for the panel
+    def progress_text(self) -> str:
+        done, total = self.session.progress()
+        if not self.has_selection:
+            return "No reference selection yet (run `handanno select`): browsing all frames."
+        return f"{done} of {total} reference frames annotated"
+
+    def joint_text(self) -> tuple[str, str]:
+        """(visibility text, depth-order text) of the selected joint."""
+        ann = self.annotation()
+        vis = "visible" if ann.visible[self.joint] else "occluded"
+        if self.session.skeleton.parent_array[self.joint] < 0:
+            return vis, "n/a (root)"
+        return vis, DEPTH_ORDER_TEXT[int(ann.depth_order[self.joint])]
+
+
+def entry_frame(entry: JournalEntry) -> int:
+    """The frame a journal entry edits (-1 if none)."""
+    from handanno_core.session import parse_command
+
+    try:
+        return int(parse_command(entry.command).frame)
+    except Exception:
+        return -1

@@ -1,0 +1,615 @@
+"""The "Annotate" view: one object per connected browser, owning that client's scene nodes and panel.
+
+Scene (client-scoped, under ``/annotate``, metres centred on the hand, see geometry.py):
+
+* ``/annotate/cloud`` - the hand's point cloud coloured by depth (not clickable in viser: clicks
+  are snapped server-side from ``scene.on_click`` rays);
+* ``/annotate/image`` - the colour-mapped depth image on a plane behind the hand, lined up with
+  the cloud; a click on it sets the selected joint's 2D position;
+* ``/annotate/handles2d`` - the 2D annotations as small markers on the image plane (draggable
+  within the plane);
+* ``/annotate/joints`` - the 21 joints as ONE batched mesh (draggable in 3D), positions from the
+  live lift (or the annotation until the first lift arrives); the selected joint highlighted;
+* ``/annotate/bones`` - skeleton line segments; ``/annotate/labels/<k>`` - joint labels.
+
+Frame changes assign new arrays to these handles; nothing is recreated. Every edit goes through
+:class:`~app.annotate_state.AnnotateState` (session commands); the view re-renders from the
+session when the server forwards the journal entry (``on_entry``) and when the worker delivers a
+lift (``on_lift``). Locking rule: the view lock guards handle assignment only; it is never held
+while calling into the session (whose lock is held while entries are dispatched).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import trimesh
+import viser
+
+from handanno_core.annotation import FrameAnnotation
+from handanno_core.session import JournalEntry, SessionError
+
+from .annotate_state import AnnotateState
+from .frames import FrameData
+from .hotkeys import bind_all
+from .worker import LiftOutcome
+
+if TYPE_CHECKING:
+    from .server import AnnoServer
+
+STATIC = Path(__file__).resolve().parent.parent / "static"
+ROOT = "/annotate"
+JOINT_RADIUS_M = 0.0045
+HANDLE2D_RADIUS_M = 0.0025
+SURFACE_MARGIN_MM = 6.0
+
+
+def load_colours() -> dict[str, Any]:
+    try:
+        return json.loads((STATIC / "colours.json").read_text())
+    except (OSError, ValueError):
+        return {
+            "root": [240, 240, 240],
+            "chains": [[230, 60, 60], [240, 160, 40], [70, 190, 80], [60, 140, 230], [190, 80, 220]],
+            "selected": [255, 255, 0],
+            "handle_2d": [255, 255, 255],
+            "occluded_opacity": 0.35,
+        }
+
+
+def joint_colours(parents: np.ndarray, colours: dict[str, Any]) -> np.ndarray:
+    """(J, 3) uint8: the root in ``root`` colour, each subtree of the root in its chain colour."""
+    parents = np.asarray(parents)
+    out = np.zeros((len(parents), 3), np.uint8)
+    chains = colours["chains"]
+    root_children = [int(c) for c in np.flatnonzero(parents == np.flatnonzero(parents < 0)[0])]
+    for j in range(len(parents)):
+        k = j
+        while parents[k] >= 0 and k not in root_children:
+            k = int(parents[k])
+        out[j] = colours["root"] if parents[j] < 0 else chains[root_children.index(k) % len(chains)]
+    return out
+
+
+def short_name(name: str) -> str:
+    """'index_tip' -> 'I-tip'; used for labels."""
+    if "_" not in name:
+        return name
+    finger, part = name.split("_", 1)
+    return f"{finger[0].upper()}-{part}"
+
+
+class AnnotateView:
+    """Per-client annotation view; see the module docstring."""
+
+    name = "Annotate"
+
+    def __init__(self, app: AnnoServer, client: viser.ClientHandle):
+        self.app = app
+        self.client = client
+        self.session = app.session
+        self.state = AnnotateState(app.session, client=f"browser-{client.client_id}")
+        self.skeleton = app.session.skeleton
+        self._lock = threading.RLock()
+        self._frame_data: FrameData | None = None
+        self._annotation: FrameAnnotation = FrameAnnotation.empty(self.skeleton.num_joints)
+        self._lifted: LiftOutcome | None = None
+        self._drag_offset: np.ndarray | None = None
+        self._drag_depth_offset = np.zeros(3)
+        self._dragging: int | None = None
+        #: (journal_seq, perf_counter) of the last lift assigned to the skeleton handle (latency).
+        self.last_skeleton_update: tuple[int, float] | None = None
+        self.colours = load_colours()
+        self.base_colours = joint_colours(self.skeleton.parent_array, self.colours)
+        self._build_scene()
+        self._build_gui()
+        self.show_frame(self.state.frame, reset_camera=True)
+
+    # ================================================================== construction
+    def _build_scene(self) -> None:
+        scene = self.client.scene
+        scene.set_up_direction("-y")  # OpenCV camera frame: y down
+        cam = self.session.camera
+        j = self.skeleton.num_joints
+        ident = np.tile([1.0, 0.0, 0.0, 0.0], (j, 1))
+        zeros = np.zeros((j, 3))
+        self.cloud = scene.add_point_cloud(
+            f"{ROOT}/cloud", points=np.zeros((1, 3), np.float32), colors=(0, 0, 0), point_size=0.002,
+            point_shape="rounded",
+        )
+        self.image = scene.add_image(
+            f"{ROOT}/image", np.zeros((cam.height, cam.width, 3), np.uint8), render_width=0.3, render_height=0.2,
+            format="jpeg", jpeg_quality=90, cast_shadow=False, receive_shadow=False,
+        )
+        sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        self.handles2d = scene.add_batched_meshes_simple(
+            f"{ROOT}/handles2d", vertices=sphere.vertices, faces=sphere.faces, batched_wxyzs=ident,
+            batched_positions=zeros, batched_scales=np.zeros(j), batched_colors=self.base_colours,
+            cast_shadow=False, receive_shadow=False, lod="off",
+        )
+        self.joints = scene.add_batched_meshes_simple(
+            f"{ROOT}/joints", vertices=sphere.vertices, faces=sphere.faces, batched_wxyzs=ident,
+            batched_positions=zeros, batched_scales=np.zeros(j), batched_colors=self.base_colours,
+            batched_opacities=np.ones(j, np.float32), cast_shadow=False, receive_shadow=False, lod="off",
+        )
+        bones = self.skeleton.bones
+        self.bones = scene.add_line_segments(
+            f"{ROOT}/bones", points=np.zeros((len(bones), 2, 3), np.float32),
+            colors=np.repeat(self.base_colours[bones[:, 1]][:, None, :], 2, axis=1), thickness=3.0,
+            thickness_units="screen",
+        )
+        self.labels = [
+            scene.add_label(
+                f"{ROOT}/labels/{k}", short_name(self.skeleton.joint_names[k]), position=(0.0, 0.0, 0.0),
+                visible=False, font_screen_scale=0.7, anchor="bottom-left",
+            )
+            for k in range(j)
+        ]
+
+        @self.image.on_click
+        def _(event: viser.SceneNodePointerEvent) -> None:
+            if event.modifier is None and self.state.click_mode == "2d":
+                self.click_image(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+
+        @scene.on_click()
+        def _(event: viser.SceneClickEvent) -> None:
+            if self.state.click_mode == "3d":
+                self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+
+        @scene.on_click(modifier="shift")
+        def _(event: viser.SceneClickEvent) -> None:
+            self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+
+        @self.joints.on_click
+        def _(event: viser.SceneNodePointerEvent) -> None:
+            k = event.instance_index
+            if k is None:
+                k = self._joint_near_ray(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+            if k is not None:
+                self.select_joint(int(k))
+
+        @self.joints.on_drag("left")
+        async def _(event: viser.SceneNodeDragEvent) -> None:
+            self._on_joint_drag(event)
+
+        @self.handles2d.on_drag("left")
+        async def _(event: viser.SceneNodeDragEvent) -> None:
+            self._on_handle2d_drag(event)
+
+    def _build_gui(self) -> None:
+        gui = self.client.gui
+        j = self.skeleton.num_joints
+        self.frame_md = gui.add_markdown("")
+        self.progress_md = gui.add_markdown("")
+        self.progress_bar = gui.add_progress_bar(0.0)
+        n = len(self.state.frames)
+        self.frame_slider = gui.add_slider(
+            "Reference", min=0, max=max(n - 1, 1), step=1, initial_value=self.state.index, disabled=n < 2
+        )
+        self.nav = gui.add_button_group("Frame", ("◀ Prev (P)", "Next (N) ▶"))
+        self.joint_dropdown = gui.add_dropdown(
+            "Joint", tuple(f"{k} {self.skeleton.joint_names[k]}" for k in range(j)), initial_value=f"0 {self.skeleton.joint_names[0]}"
+        )
+        self.visibility_button = gui.add_button("Visibility: visible (V)", hint="Toggle visible / occluded")
+        self.depth_button = gui.add_button("Depth vs parent: unknown (D)", hint="Cycle unknown → closer → farther")
+        self.click_mode = gui.add_dropdown(
+            "Click places", ("2D on image", "3D on cloud"), initial_value="2D on image",
+            hint="Shift+click always snaps to the cloud",
+        )
+        self.edit_buttons = gui.add_button_group("Edit", ("Undo", "Redo", "Clear joint"))
+        self.camera_button = gui.add_button("Sensor view", hint="Look from the depth camera (image and cloud line up)")
+        self.follow_sensor = gui.add_checkbox(
+            "Sensor view on frame change", True, hint="Put the camera at the depth sensor whenever the frame changes"
+        )
+        self.saved_md = gui.add_markdown("*no edits yet in this browser*")
+        self.lift_md = gui.add_markdown("")
+        self.message_md = gui.add_markdown("")
+        with gui.add_folder("Help", expand_by_default=False):
+            gui.add_markdown(self.app.help_markdown)
+
+        @self.frame_slider.on_update
+        def _(event: Any) -> None:
+            if event.client is not None and int(self.frame_slider.value) != self.state.index:
+                self.go_to_index(int(self.frame_slider.value))
+
+        @self.nav.on_click
+        def _(event: Any) -> None:
+            self.next_frame() if event.target.value.startswith("Next") else self.prev_frame()
+
+        @self.joint_dropdown.on_update
+        def _(event: Any) -> None:
+            joint = int(self.joint_dropdown.value.split()[0])
+            if event.client is not None and joint != self.state.joint:
+                self.select_joint(joint)
+
+        @self.visibility_button.on_click
+        def _(_: Any) -> None:
+            self.toggle_visibility()
+
+        @self.depth_button.on_click
+        def _(_: Any) -> None:
+            self.cycle_depth_order()
+
+        @self.click_mode.on_update
+        def _(_event: Any) -> None:
+            self.state.click_mode = "3d" if self.click_mode.value.startswith("3D") else "2d"
+
+        @self.edit_buttons.on_click
+        def _(event: Any) -> None:
+            {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[event.target.value]()
+
+        @self.camera_button.on_click
+        def _(_: Any) -> None:
+            self.reset_camera()
+
+        bind_all(
+            gui,
+            {
+                "next_frame": lambda _c: self.next_frame(),
+                "prev_frame": lambda _c: self.prev_frame(),
+                "next_joint": lambda _c: self.select_joint(self.state.joint + 1),
+                "prev_joint": lambda _c: self.select_joint(self.state.joint - 1),
+                "toggle_visibility": lambda _c: self.toggle_visibility(),
+                "cycle_depth_order": lambda _c: self.cycle_depth_order(),
+                "clear_joint": lambda _c: self.clear_joint(),
+                "toggle_click_mode": lambda _c: self._toggle_click_mode(),
+                "undo": lambda _c: self.undo(),
+                "redo": lambda _c: self.redo(),
+            },
+        )
+
+    # ================================================================== navigation
+    @property
+    def frame(self) -> int:
+        return self.state.frame
+
+    def go_to_index(self, index: int) -> None:
+        self.state.go_to_index(index)
+        self.show_frame(self.state.frame, reset_camera=bool(self.follow_sensor.value))
+
+    def next_frame(self) -> None:
+        self.go_to_index(self.state.index + 1)
+
+    def prev_frame(self) -> None:
+        self.go_to_index(self.state.index - 1)
+
+    def select_joint(self, joint: int) -> None:
+        self.state.select_joint(joint)
+        self._render()
+
+    def _toggle_click_mode(self) -> None:
+        self.state.toggle_click_mode()
+        self.click_mode.value = "3D on cloud" if self.state.click_mode == "3d" else "2D on image"
+
+    def show_frame(self, frame: int, reset_camera: bool = False) -> None:
+        """Load ``frame`` (the state's current frame) into the existing handles."""
+        data = self.app.frames.get(frame)
+        annotation = self.session.annotation(frame) or FrameAnnotation.empty(self.skeleton.num_joints)
+        lifted = self.app.worker.latest.get(frame)
+        geo = data.geometry
+        with self._lock, self.client.atomic():
+            self._frame_data = data
+            self._annotation = annotation
+            self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
+            has_cloud = len(geo.cloud_mm) > 0
+            self.cloud.points = geo.to_scene(geo.cloud_mm if has_cloud else geo.centre_mm[None]).astype(np.float32)
+            self.cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
+            self.cloud.point_size = float(1.6 * geo.centre_mm[2] / self.session.camera.fx / 1000.0)
+            self.cloud.visible = has_cloud
+            rw, rh = geo.image_render_size
+            self.image.image = geo.image_rgb
+            self.image.render_width = rw
+            self.image.render_height = rh
+            self.image.position = geo.image_position
+            self.image.visible = data.depth is not None
+        if reset_camera:
+            self.reset_camera()
+        if data.error:
+            self.client.add_notification("Frame problem", data.error, color="yellow", auto_close_seconds=8.0)
+        if self._lifted is None and annotation.annotated.any():
+            self.app.worker.submit(frame)
+        self._render()
+
+    def reset_camera(self) -> None:
+        """Put the browser camera at the depth sensor, looking at the hand (pixels line up)."""
+        data = self._frame_data
+        if data is None:
+            return
+        geo = data.geometry
+        cam = self.session.camera
+        with self.client.atomic():
+            self.client.camera.up_direction = (0.0, -1.0, 0.0)
+            self.client.camera.fov = float(2.0 * np.arctan(cam.height / 2.0 / cam.fy))
+            self.client.camera.position = geo.sensor_position
+            self.client.camera.look_at = (0.0, 0.0, 0.0)
+
+    # ================================================================== clicks and drags
+    def click_image(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
+        """A click ray on the image plane -> the selected joint's 2D position."""
+        data = self._frame_data
+        if data is None or data.depth is None:
+            return None
+        uv = data.geometry.ray_to_pixel(origin, direction)
+        if uv is None:
+            return None
+        return self._edit(lambda: self.state.place_2d(uv))
+
+    def click_cloud(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
+        """A click ray -> snap to the nearest cloud point along it -> the selected joint in 3D."""
+        data = self._frame_data
+        if data is None:
+            return None
+        xyz = data.geometry.nearest_cloud_point(origin, direction)
+        if xyz is None:
+            return None
+        return self._edit(lambda: self.state.place_3d(xyz))
+
+    def _joint_near_ray(self, origin: np.ndarray, direction: np.ndarray) -> int | None:
+        pos = self._joint_positions_scene()
+        ok = np.all(np.isfinite(pos), axis=1)
+        if not ok.any():
+            return None
+        d = direction / np.linalg.norm(direction)
+        rel = pos - origin
+        perp = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
+        perp[~ok] = np.inf
+        return int(np.argmin(perp))
+
+    def _on_joint_drag(self, event: viser.SceneNodeDragEvent) -> None:
+        k = event.instance_index
+        if k is None or self._frame_data is None:
+            return
+        if event.phase == "start":
+            geo = self._frame_data.geometry
+            true_mm = self._joint_positions_mm()
+            drawn = geo.to_scene(self._display_mm(true_mm))
+            if not np.all(np.isfinite(drawn[k])):
+                return
+            self._dragging = int(k)
+            # new joint = drop point + (drawn - grab point) + (true - drawn)
+            self._drag_offset = drawn[k] - np.asarray(event.start_position)
+            self._drag_depth_offset = geo.to_scene(true_mm[k]) - drawn[k]
+            self.state.select_joint(k)
+            return
+        if self._dragging != k or self._drag_offset is None:
+            return
+        new = np.asarray(event.end_position) + self._drag_offset
+        if event.phase == "update":
+            with self._lock:
+                positions = np.asarray(self.joints.batched_positions, dtype=np.float64).copy()
+                positions[k] = new
+                self.joints.batched_positions = positions.astype(np.float32)
+            return
+        # end
+        self._dragging = None
+        self._drag_offset = None
+        xyz = self._frame_data.geometry.from_scene(new + self._drag_depth_offset)
+        if xyz[2] > 0:
+            self._edit(lambda: self.state.place_3d(xyz, joint=k, advance=False))
+
+    def _on_handle2d_drag(self, event: viser.SceneNodeDragEvent) -> None:
+        k = event.instance_index
+        data = self._frame_data
+        if k is None or data is None or data.depth is None or event.phase != "end":
+            if k is not None and event.phase == "start":
+                self.state.select_joint(k)
+            return
+        # The drag point lies on a camera-aligned plane: cast the ray from the browser camera.
+        origin = np.asarray(self.client.camera.position, dtype=np.float64)
+        direction = np.asarray(event.end_position) - origin
+        uv = data.geometry.ray_to_pixel(origin, direction)
+        if uv is not None:
+            self._edit(lambda: self.state.place_2d(uv, joint=k, advance=False))
+
+    # ================================================================== edits
+    def toggle_visibility(self) -> JournalEntry | None:
+        return self._edit(self.state.toggle_visibility)
+
+    def cycle_depth_order(self) -> JournalEntry | None:
+        return self._edit(self.state.cycle_depth_order)
+
+    def clear_joint(self) -> JournalEntry | None:
+        return self._edit(self.state.clear_joint)
+
+    def undo(self) -> JournalEntry | None:
+        entry = self._edit(self.state.undo)
+        if entry is None:
+            self.client.add_notification("Nothing to undo", "", auto_close_seconds=2.0)
+        else:
+            self._follow(entry)
+        return entry
+
+    def redo(self) -> JournalEntry | None:
+        entry = self._edit(self.state.redo)
+        if entry is None:
+            self.client.add_notification("Nothing to redo", "", auto_close_seconds=2.0)
+        else:
+            self._follow(entry)
+        return entry
+
+    def _follow(self, entry: JournalEntry) -> None:
+        """Undo/redo of an edit on another frame: go there so the change is visible."""
+        from .annotate_state import entry_frame
+
+        frame = entry_frame(entry)
+        if frame != self.frame and frame in self.state.frames:
+            self.go_to_index(self.state.frames.index(frame))
+
+    def _edit(self, action) -> JournalEntry | None:
+        """Run one edit; show "saved" only once the session acknowledged it (journal fsynced)."""
+        try:
+            entry = action()
+        except SessionError as exc:
+            self.saved_md.content = f"**⚠ NOT saved:** {exc}"
+            self.client.add_notification("Edit NOT saved", str(exc), color="red", with_close_button=True)
+            return None
+        except ValueError as exc:
+            self.client.add_notification("Edit refused", str(exc), color="yellow", auto_close_seconds=5.0)
+            return None
+        if entry is not None:
+            stamp = time.strftime("%H:%M:%S", time.localtime(entry.time))
+            what = {"do": "edit", "undo": "undo", "redo": "redo"}[entry.action]
+            self.saved_md.content = f"✓ saved {stamp} ({what} #{entry.seq})"
+        self._render()
+        return entry
+
+    # ================================================================== session / worker events
+    def on_entry(self, entry: JournalEntry, frame: int) -> None:
+        """A journal entry on ``frame`` was acknowledged (any client). Called under the session lock."""
+        if frame != self.frame:
+            if entry.client != self.state.client:
+                self._update_panel()  # progress may have changed
+            return
+        self._annotation = self.session.annotation(frame) or FrameAnnotation.empty(self.skeleton.num_joints)
+        if entry.client != self.state.client:
+            self.client.add_notification(
+                "Frame edited elsewhere",
+                f"another annotator ({entry.client}) changed frame {frame}",
+                color="blue",
+                auto_close_seconds=4.0,
+            )
+            self._render()
+
+    def on_lift(self, outcome: LiftOutcome) -> None:
+        """The worker lifted ``outcome.frame`` (worker thread)."""
+        if outcome.frame != self.frame:
+            return
+        if outcome.joints_mm is None:
+            self.lift_md.content = f"*skeleton: {outcome.error}*"
+            return
+        self._lifted = outcome
+        self._render(lift=outcome)
+
+    # ================================================================== drawing
+    def _joint_positions_mm(self) -> np.ndarray:
+        """(J, 3) mm: lifted joints, else placed 3D, else 2D on the depth surface; NaN = unknown."""
+        ann = self._annotation
+        data = self._frame_data
+        out = np.full((self.skeleton.num_joints, 3), np.nan)
+        if self._lifted is not None and self._lifted.joints_mm is not None:
+            out[:] = self._lifted.joints_mm
+        if data is None:
+            return out
+        missing = ~np.all(np.isfinite(out), axis=1)
+        if missing.any():
+            out[missing & ann.has_3d] = ann.xyz_mm[missing & ann.has_3d]
+            only2d = missing & ~ann.has_3d & ann.has_2d
+            if only2d.any():
+                uv = ann.uv_px[only2d]
+                z = np.full(len(uv), data.geometry.centre_mm[2])
+                if data.depth is not None:
+                    cam = self.session.camera
+                    col = np.clip(np.round(uv[:, 0]).astype(int), 0, cam.width - 1)
+                    row = np.clip(np.round(uv[:, 1]).astype(int), 0, cam.height - 1)
+                    d = data.depth[row, col]
+                    z = np.where(d > 0, d, z)
+                out[only2d] = self.session.camera.backproject(uv, z)
+        return out
+
+    def _joint_positions_scene(self) -> np.ndarray:
+        """(J, 3) scene positions where the joint handles are *drawn* (see _display_mm)."""
+        if self._frame_data is None:
+            return np.full((self.skeleton.num_joints, 3), np.nan)
+        return self._frame_data.geometry.to_scene(self._display_mm(self._joint_positions_mm()))
+
+    def _display_mm(self, joints_mm: np.ndarray) -> np.ndarray:
+        """Joint centres lie behind the observed surface (lifting puts them ~10 mm inside the
+        finger), so the cloud would hide them. Draw each joint that is behind the surface at
+        its pixel pulled along its camera ray to ``SURFACE_MARGIN_MM`` in front of the surface:
+        from the sensor it is exactly where it projects, and it is never buried in the cloud.
+        Drags keep the offset (new joint = drop point + (true - drawn))."""
+        data = self._frame_data
+        out = np.array(joints_mm, dtype=np.float64)
+        if data is None or data.depth is None:
+            return out
+        ok = np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
+        if not ok.any():
+            return out
+        cam = self.session.camera
+        uv = cam.project(out[ok])
+        col = np.clip(np.round(uv[:, 0]).astype(int), 0, cam.width - 1)
+        row = np.clip(np.round(uv[:, 1]).astype(int), 0, cam.height - 1)
+        surface = data.depth[row, col].astype(np.float64)
+        z = out[ok, 2]
+        pull = (surface > 0) & (z > surface - SURFACE_MARGIN_MM)
+        scale = np.where(pull, (surface - SURFACE_MARGIN_MM) / z, 1.0)
+        out[ok] *= scale[:, None]
+        return out
+
+    def _render(self, lift: LiftOutcome | None = None) -> None:
+        """Assign the joints, bones, labels, 2D handles and panel from the current state."""
+        data = self._frame_data
+        if data is None:
+            return
+        geo = data.geometry
+        ann = self._annotation
+        sel = self.state.joint
+        pos = self._joint_positions_scene()
+        shown = np.all(np.isfinite(pos), axis=1)
+        pos_f = np.where(shown[:, None], pos, 0.0).astype(np.float32)
+        scales = np.where(shown, JOINT_RADIUS_M, 0.0)
+        scales[sel] *= 1.6
+        colours = self.base_colours.copy()
+        colours[sel] = self.colours["selected"]
+        opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(np.float32)
+        has2d = ann.has_2d
+        h2d = geo.pixel_to_scene(np.where(has2d[:, None], ann.uv_px, 0.0), offset_mm=2.0)
+        h2d_scales = np.where(has2d, HANDLE2D_RADIUS_M, 0.0)
+        h2d_scales[sel] *= 1.5 if has2d[sel] else 1.0
+        bones = self.skeleton.bones
+        seg = pos_f[bones]  # (B, 2, 3)
+        seg_ok = shown[bones].all(axis=1)
+        seg = np.where(seg_ok[:, None, None], seg, 0.0)
+        with self._lock, self.client.atomic():
+            if self._dragging is None:
+                self.joints.batched_positions = pos_f
+            self.joints.batched_scales = scales.astype(np.float32)
+            self.joints.batched_colors = colours
+            self.joints.batched_opacities = opac
+            self.bones.points = seg.astype(np.float32)
+            self.handles2d.batched_positions = h2d.astype(np.float32)
+            self.handles2d.batched_scales = h2d_scales.astype(np.float32)
+            self.handles2d.batched_colors = colours
+            for k, label in enumerate(self.labels):
+                if shown[k]:
+                    label.position = tuple(float(x) for x in pos_f[k])
+                label.visible = bool(shown[k])
+            if lift is not None:
+                self.last_skeleton_update = (lift.journal_seq, time.perf_counter())
+                self.lift_md.content = f"*skeleton lifted in {1000 * lift.duration_s:.0f} ms*"
+        if lift is not None:
+            self.app.notify_skeleton_update(self, lift)
+        self._update_panel()
+
+    def _update_panel(self) -> None:
+        st = self.state
+        vis, order = st.joint_text()
+        name = self.skeleton.joint_names[st.joint]
+        done, total = self.session.progress()
+        data = self._frame_data
+        complete = self.session.is_annotated(st.frame)
+        progress_text = st.progress_text()
+        with self._lock:
+            where = f"reference {st.index + 1} of {len(st.frames)}" if st.has_selection else f"frame {st.index + 1} of {len(st.frames)}"
+            status = "✓ complete" if complete else "in progress"
+            self.frame_md.content = f"**Frame {st.frame}** ({where}), {status}"
+            self.progress_md.content = progress_text
+            self.progress_bar.value = 100.0 * done / total if total else 0.0
+            if int(self.frame_slider.value) != st.index:
+                self.frame_slider.value = st.index
+            label = f"{st.joint} {name}"
+            if self.joint_dropdown.value != label:
+                self.joint_dropdown.value = label
+            self.visibility_button.label = f"Visibility: {vis} (V)"
+            self.depth_button.label = f"Depth vs parent: {order} (D)"
+            self.message_md.content = f"**⚠ {data.error}**" if data is not None and data.error else ""
+            if not self.app.worker.available:
+                self.lift_md.content = "*live lifting unavailable (handanno_core.lift missing)*"
+
+    def close(self) -> None:
+        """The client disconnected: nothing to persist (edits are journaled as they happen)."""

@@ -1,0 +1,84 @@
+"""Our own small layer over viser's experimental command palette (``gui.add_command``).
+
+Every hotkey of the app is declared once in :data:`HOTKEYS` (which also feeds the help text),
+and bound with :func:`bind`. If a viser release drops or changes ``add_command``, only this module
+changes; the buttons in the panel keep working either way.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Hotkey:
+    action: str  # our action id, e.g. "undo"
+    label: str  # shown in the command palette and the help table
+    key: str  # viser HotkeyKey: "A".."Z", "0".."9", "arrowleft", ...
+    modifier: str | None = None  # None, "cmd/ctrl", "shift", "cmd/ctrl+shift", ...
+    description: str = ""
+
+    @property
+    def keys_text(self) -> str:
+        names = {"arrowleft": "←", "arrowright": "→", "arrowup": "↑", "arrowdown": "↓"}
+        key = names.get(self.key, self.key.upper() if len(self.key) == 1 else self.key)
+        mod = {None: "", "cmd/ctrl": "Ctrl/⌘ + ", "cmd/ctrl+shift": "Ctrl/⌘ + Shift + ", "shift": "Shift + "}
+        return mod.get(self.modifier, f"{self.modifier} + ") + key
+
+
+HOTKEYS: tuple[Hotkey, ...] = (
+    Hotkey("next_frame", "Next reference frame", "N", description="go to the next reference frame"),
+    Hotkey("prev_frame", "Previous reference frame", "P", description="go to the previous reference frame"),
+    Hotkey("next_joint", "Next joint", "arrowright", description="select the next joint"),
+    Hotkey("prev_joint", "Previous joint", "arrowleft", description="select the previous joint"),
+    Hotkey("toggle_visibility", "Toggle visibility", "V", description="selected joint: visible ⇄ occluded"),
+    Hotkey(
+        "cycle_depth_order",
+        "Cycle depth order",
+        "D",
+        description="selected joint vs its parent: unknown → closer → farther",
+    ),
+    Hotkey("clear_joint", "Clear joint", "X", description="remove the selected joint's placement"),
+    Hotkey("toggle_click_mode", "Toggle click mode", "M", description="clicks place 2D on the image ⇄ 3D on the cloud"),
+    Hotkey("undo", "Undo", "Z", "cmd/ctrl", "undo your last edit"),
+    Hotkey("redo", "Redo", "Z", "cmd/ctrl+shift", "redo your last undone edit"),
+)
+
+
+def bind(gui: Any, hotkey: Hotkey, callback: Callable[[Any], None]) -> Any | None:
+    """Register ``hotkey`` on ``gui`` (a viser GuiApi, e.g. ``client.gui``); ``callback(client)``
+    runs on trigger. Returns the command handle, or None where the API is unavailable."""
+    add_command = getattr(gui, "add_command", None)
+    if add_command is None:
+        log.warning("viser has no add_command: hotkey %s not bound", hotkey.keys_text)
+        return None
+    try:
+        handle = add_command(
+            hotkey.label, description=hotkey.description or None, hotkey=hotkey.key, modifier=hotkey.modifier
+        )
+    except (TypeError, ValueError) as exc:
+        log.warning("cannot bind hotkey %s: %s", hotkey.keys_text, exc)
+        return None
+
+    @handle.on_trigger
+    def _(event: Any) -> None:
+        callback(getattr(event, "client", None))
+
+    return handle
+
+
+def bind_all(gui: Any, actions: dict[str, Callable[[Any], None]]) -> dict[str, Any]:
+    """Bind every :data:`HOTKEYS` entry whose action is in ``actions``."""
+    return {hk.action: bind(gui, hk, actions[hk.action]) for hk in HOTKEYS if hk.action in actions}
+
+
+def hotkey_table_markdown() -> str:
+    """The hotkey table of static/help.md (a test keeps the two in sync)."""
+    rows = ["| Keys | Action | What it does |", "|---|---|---|"]
+    rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in HOTKEYS]
+    return "\n".join(rows)

@@ -1,0 +1,225 @@
+"""The viser server of handanno: one session, one lift worker, a set of views per browser.
+
+``serve(session_folder)`` opens a session and serves it; ``demo(sessions_dir)`` makes the demo
+session once (``handanno_core.pipeline.ensure_demo_session``) and serves it. Both are what the CLI
+(app/cli.py) calls; ``python -m app.server SESSION [--host H] [--port P]`` does the same without
+the CLI.
+
+Structure: :class:`AnnoServer` owns the :class:`~handanno_core.session.Session`, a
+:class:`~app.frames.FrameStore` and the :class:`~app.worker.LiftWorker`. On every browser
+connection it builds a tab group with one tab per entry of :attr:`AnnoServer.view_classes`
+(``("Annotate", AnnotateView)`` now; the Review view of issue 8 appends itself there), each a
+per-client view object owning that client's scene nodes and panel. The server subscribes to the
+session: every acknowledged edit re-lifts its frame in the worker (coalesced) and is forwarded to
+the views; lift results are forwarded to the views too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import viser
+
+from handanno_core.session import JournalEntry, Session, SessionError
+
+from .annotate_state import entry_frame
+from .annotate_view import STATIC, AnnotateView
+from .frames import FrameStore
+from .hotkeys import hotkey_table_markdown
+from .worker import LiftFunction, LiftOutcome, LiftWorker
+
+
+def load_help_markdown() -> str:
+    try:
+        return (STATIC / "help.md").read_text()
+    except OSError:
+        return "## Hotkeys\n\n" + hotkey_table_markdown()
+
+
+class AnnoServer:
+    """A running annotation server; see the module docstring."""
+
+    #: (tab label, view class). A view class takes ``(app, client)`` and may define
+    #: ``on_entry(entry, frame)``, ``on_lift(outcome)`` and ``close()``.
+    view_classes: list[tuple[str, type]] = [("Annotate", AnnotateView)]
+
+    def __init__(
+        self,
+        session: Session,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        *,
+        lift_fn: LiftFunction | None = None,
+        verbose: bool = False,
+    ):
+        self.session = session
+        self.frames = FrameStore(session)
+        self.help_markdown = load_help_markdown()
+        self.worker = LiftWorker(session, self.frames, lift_fn=lift_fn, on_result=self._on_lift)
+        self.views: dict[int, dict[str, Any]] = {}
+        self._views_lock = threading.Lock()
+        #: callbacks(view, outcome) after a view assigned a lifted skeleton (benchmarks).
+        self.skeleton_listeners: list[Callable[[Any, LiftOutcome], None]] = []
+        self.server = viser.ViserServer(host=host, port=port, label="handanno", verbose=verbose)
+        self.server.gui.configure_theme(
+            show_share_button=False, control_layout="floating", control_width="medium", dark_mode=False
+        )
+        self.server.scene.set_up_direction("-y")
+        self.worker.start()
+        self._unsubscribe = session.subscribe(self._on_entry)
+        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(self._on_disconnect)
+
+    # ------------------------------------------------------------------ info
+    @property
+    def host(self) -> str:
+        return self.server.get_host()
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        host = self.host
+        return f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{self.port}"
+
+    def annotate_views(self) -> list[AnnotateView]:
+        with self._views_lock:
+            return [v["Annotate"] for v in self.views.values() if "Annotate" in v]
+
+    # ------------------------------------------------------------------ clients
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        views: dict[str, Any] = {}
+        try:
+            if len(self.view_classes) > 1:
+                tabs = client.gui.add_tab_group()
+                for label, cls in self.view_classes:
+                    with tabs.add_tab(label):
+                        views[label] = cls(self, client)
+            else:
+                label, cls = self.view_classes[0]
+                views[label] = cls(self, client)
+        except Exception as exc:  # show it in the page, keep the server up
+            traceback.print_exc()
+            client.add_notification("The view failed to load", f"{type(exc).__name__}: {exc}", color="red")
+        with self._views_lock:
+            self.views[client.client_id] = views
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        with self._views_lock:
+            views = self.views.pop(client.client_id, {})
+        for view in views.values():
+            close = getattr(view, "close", None)
+            if close is not None:
+                close()
+
+    def _all_views(self) -> list[Any]:
+        with self._views_lock:
+            return [v for views in self.views.values() for v in views.values()]
+
+    # ------------------------------------------------------------------ session and worker events
+    def _on_entry(self, entry: JournalEntry) -> None:
+        """Every acknowledged edit (called by the session, under its lock): re-lift, tell the views."""
+        frame = entry_frame(entry)
+        if frame >= 0:
+            self.worker.submit(frame)
+        for view in self._all_views():
+            handler = getattr(view, "on_entry", None)
+            if handler is not None:
+                try:
+                    handler(entry, frame)
+                except Exception:
+                    traceback.print_exc()
+
+    def _on_lift(self, frame: int, outcome: LiftOutcome) -> None:
+        for view in self._all_views():
+            handler = getattr(view, "on_lift", None)
+            if handler is not None:
+                try:
+                    handler(outcome)
+                except Exception:
+                    traceback.print_exc()
+
+    def notify_skeleton_update(self, view: Any, outcome: LiftOutcome) -> None:
+        for listener in list(self.skeleton_listeners):
+            listener(view, outcome)
+
+    # ------------------------------------------------------------------ lifetime
+    def stop(self) -> None:
+        self._unsubscribe()
+        self.worker.stop()
+        self.server.stop()
+        self.session.close()
+
+    def wait(self) -> None:
+        """Block until Ctrl+C, then stop cleanly."""
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            print("\nstopping (every edit is already saved)")
+        finally:
+            self.stop()
+
+
+def serve(
+    session_folder: Path,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    block: bool = True,
+    *,
+    lift_fn: LiftFunction | None = None,
+) -> AnnoServer:
+    """Open the session at ``session_folder`` and serve the annotation app (prints the URL).
+
+    Raises :class:`SessionError` (with a message naming the file) for a missing or corrupt session.
+    With ``block=True`` runs until Ctrl+C.
+    """
+    session = Session.open(Path(session_folder))
+    try:
+        session.open_sequence()
+    except SessionError as exc:
+        print(f"warning: {exc}\n(the app will show frames as missing)", file=sys.stderr)
+    app = AnnoServer(session, host=host, port=port, lift_fn=lift_fn)
+    done, total = session.progress()
+    print(f"handanno: session {session.model.name}: {total} reference frames, {done} annotated")
+    print(f"handanno: annotate at {app.url}  (Ctrl+C to stop; every edit is saved as you make it)", flush=True)
+    if not app.worker.available:
+        print("handanno: warning: live lifting unavailable (handanno_core.lift missing)", file=sys.stderr)
+    if block:
+        app.wait()
+    return app
+
+
+def demo(sessions_dir: Path = Path("sessions"), host: str = "127.0.0.1", port: int = 8080, block: bool = True) -> AnnoServer:
+    """Create ``sessions_dir/demo`` from a synthetic sequence once, then serve it."""
+    from handanno_core.pipeline import ensure_demo_session
+
+    folder = ensure_demo_session(sessions_dir)
+    return serve(folder, host=host, port=port, block=block)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m app.server", description="Serve a handanno session.")
+    parser.add_argument("session", type=Path, help="session folder")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8080)
+    args = parser.parse_args(argv)
+    try:
+        serve(args.session, host=args.host, port=args.port, block=True)
+    except SessionError as exc:
+        print(f"handanno: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,752 @@
+"""Propagate lifted reference poses to every frame along the selection's parent forest (step 6).
+
+Each non-reference frame ``f`` is propagated from its parent ``s = parent[f]`` (``-1`` marks a
+reference), parents always before children:
+
+1. the parent's joints ``(J, 3)`` mm are projected to the image and mapped into the parent's crop
+   (:func:`handanno_core.crops.image_to_crop`);
+2. the parent crop is aligned to the frame's crop (``aligner="dis"|"sift"|"ncc"``, see
+   :mod:`handanno_core.flow`) and every joint moves by the flow sampled robustly (median of
+   bilinear samples in a 3x3 window), then goes back to image pixels through the frame's box;
+3. depth is read from the frame's **own** depth map for joints judged visible: the parent joint
+   lay near its own surface (or was judged visible when it was propagated) and the frame's
+   surface at the new position (nearest valid pixel in a small window, plus the joint's surface
+   offset) is neither far in front of nor far behind the predicted depth. The predicted depth
+   keeps the parent's depth relative to the hand centre, ``z_parent - c_parent + c_frame``, and is
+   used for every other joint;
+4. a small Levenberg-Marquardt fit on the ``3 J`` coordinates restores the bone lengths
+   (``bone_lengths_mm``, soft but stiff: residuals in units of 0.05 mm) while staying close to the
+   flowed 2D positions (px, sigma = one crop pixel) and the target depths (mm, sigma 8 mm visible,
+   25 mm predicted).
+
+Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
+chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
+of the normalized crops at the matched points (mm), the depth residual of the fit (mm) and the
+bone-length violation of the flowed pose before the fit. ``PropagationResult.frame_score`` is the
+per-frame mean over joints (``frame_min`` the minimum).
+
+Bad frames: a frame whose depth raises ``FrameError``, has no valid pixel, or has no hand centre is
+skipped and reported with its reason; its descendants propagate from the nearest valid ancestor
+(its crop and joints), so one dropped frame does not cut a chain.
+
+Parallelism: subtrees hanging off frames with known joints are independent. They are packed into a
+few large tasks (``_Task``); ``workers=N`` runs the tasks in a process pool, ``scheduler`` on a
+Dask cluster. Crops travel as a memory-map path (an in-memory array is written to a temporary
+``.npy`` once), not pickled per task. Each frame's computation depends only on its parent's result,
+so every mode gives bit-identical results. Memory: results are ``(N, J)``-sized; flows and crops
+live only while their frame is processed.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import CameraIntrinsics
+from .crops import crop_to_image, image_to_crop
+from .datasets.base import FrameError
+from .flow import dis_flow, ncc_match, sample_flow, sift_flow
+from .skeleton import Skeleton
+
+__all__ = [
+    "ALIGNERS",
+    "PropagationResult",
+    "PropagationSettings",
+    "descendants",
+    "propagation_order",
+    "propagate",
+]
+
+ALIGNERS = ("dis", "sift", "ncc")
+DEFAULT_ALIGNER = "dis"
+
+
+@dataclass(frozen=True)
+class PropagationSettings:
+    """Tunable constants of one propagation step (units in the names)."""
+
+    cube_mm: float = 220.0  #: crop cube edge; converts normalized crop values to mm
+    sample_radius: int = 1  #: flow sampled as the median over a (2r+1)^2 window (crop px)
+    depth_window_px: int = 3  #: nearest valid depth pixel searched within this radius (image px)
+    near_surface_mm: float = 20.0  #: parent joint counts as on its surface within this (mm)
+    occlusion_mm: float = 25.0  #: surface this far in front of the prediction occludes the joint
+    behind_mm: float = 40.0  #: surface this far behind the prediction is not the joint's surface
+    sigma_px: float = 1.0  #: 2D residual scale, in crop px (converted to image px per frame)
+    sigma_visible_mm: float = 8.0
+    sigma_hidden_mm: float = 25.0
+    sigma_bone_mm: float = 0.05
+    fit_iterations: int = 10
+    fb_scale_px: float = 1.5  #: confidence scale of the forward-backward error (crop px)
+    appearance_scale_mm: float = 25.0
+    depth_scale_mm: float = 12.0
+    bone_scale: float = 0.2  #: relative bone-length violation scale
+    ncc_patch: int = 21
+    ncc_search: int = 12
+
+
+@dataclass
+class PropagationResult:
+    """Propagated joints. Rows not computed (references, skipped, outside ``frames``) are NaN.
+
+    ``joints_mm``: ``(N, J, 3)`` mm; ``confidence``: ``(N, J)`` in [0, 1]; ``skipped``: frames
+    that could not be propagated, with ``reasons[frame]``; ``source``: ``(N,)`` the frame each
+    frame was actually propagated from (``-1`` where not computed); ``seconds``: wall time.
+    """
+
+    joints_mm: np.ndarray
+    confidence: np.ndarray
+    skipped: list[int] = field(default_factory=list)
+    reasons: dict[int, str] = field(default_factory=dict)
+    source: np.ndarray | None = None
+    seconds: float = 0.0
+    order: list[int] = field(default_factory=list)
+
+    @property
+    def frame_score(self) -> np.ndarray:
+        """``(N,)`` mean joint confidence per frame (NaN where not computed)."""
+        with np.errstate(all="ignore"):
+            return np.nanmean(self.confidence, axis=1) if self.confidence.size else np.zeros(0)
+
+    @property
+    def frame_min(self) -> np.ndarray:
+        """``(N,)`` minimum joint confidence per frame."""
+        with np.errstate(all="ignore"):
+            return np.nanmin(self.confidence, axis=1) if self.confidence.size else np.zeros(0)
+
+
+# ---------------------------------------------------------------------------------------------
+# forest helpers
+# ---------------------------------------------------------------------------------------------
+def _children_csr(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR children lists: children of ``i`` are ``kids[start[i]:start[i+1]]`` (ascending)."""
+    n = len(parent)
+    has = parent >= 0
+    kids = np.flatnonzero(has)
+    kids = kids[np.argsort(parent[kids], kind="stable")]
+    counts = np.bincount(parent[has], minlength=n)
+    start = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=start[1:])
+    return kids, start
+
+
+def descendants(parent: np.ndarray, frames) -> np.ndarray:
+    """All frames whose parent chain passes through any of ``frames`` (the frames included).
+
+    ``parent``: ``(N,)`` int, -1 at references. Returns a sorted int64 array. After a reference
+    (or any frame) changes, these are the frames to re-propagate.
+    """
+    parent = np.asarray(parent, dtype=np.int64)
+    kids, start = _children_csr(parent)
+    mark = np.zeros(len(parent), dtype=bool)
+    front = np.unique(np.asarray(frames, dtype=np.int64).ravel())
+    mark[front] = True
+    while front.size:
+        nxt = np.concatenate([kids[start[i] : start[i + 1]] for i in front]) if front.size else front
+        nxt = nxt[~mark[nxt]]
+        mark[nxt] = True
+        front = nxt
+    return np.flatnonzero(mark)
+
+
+def propagation_order(parent: np.ndarray, roots) -> list[np.ndarray]:
+    """Breadth-first frames below each root (roots excluded): one array per root, parents first."""
+    parent = np.asarray(parent, dtype=np.int64)
+    kids, start = _children_csr(parent)
+    out = []
+    for r in np.asarray(roots, dtype=np.int64).ravel():
+        order: list[np.ndarray] = []
+        front = kids[start[r] : start[r + 1]]
+        while front.size:
+            order.append(front)
+            front = np.concatenate([kids[start[i] : start[i + 1]] for i in front])
+        out.append(np.concatenate(order) if order else np.zeros(0, dtype=np.int64))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the per-frame step (runs in workers)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Context:
+    """Everything a worker needs; small when pickled (crops travel by path)."""
+
+    crops_path: str | None
+    crops_offset: int
+    crops_shape: tuple[int, ...]
+    crops_dtype: str
+    boxes: np.ndarray
+    centres_mm: np.ndarray
+    depth_of: Callable[[int], np.ndarray]
+    camera: CameraIntrinsics
+    skeleton: Skeleton
+    bone_lengths_mm: np.ndarray
+    aligner: str
+    aligner_kwargs: dict
+    settings: PropagationSettings
+    crops_array: np.ndarray | None = None  # in-process only
+
+    def crops(self) -> np.ndarray:
+        if self.crops_array is not None:
+            return self.crops_array
+        key = (self.crops_path, self.crops_offset)
+        arr = _CROPS_CACHE.get(key)
+        if arr is None:
+            arr = np.memmap(
+                self.crops_path,
+                dtype=np.dtype(self.crops_dtype),
+                mode="r",
+                offset=self.crops_offset,
+                shape=self.crops_shape,
+            )
+            _CROPS_CACHE.clear()
+            _CROPS_CACHE[key] = arr
+        return arr
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["crops_array"] = None
+        return state
+
+
+_CROPS_CACHE: dict[tuple, np.ndarray] = {}
+
+
+@dataclass
+class _Task:
+    """A group of subtrees: ``frames`` in topological order with their ``sources`` (parents);
+    ``seeds[frame] = (joints (J,3), confidence (J,), visible (J,) bool | None)`` for the frames
+    the subtrees hang off (references or frames kept from a previous run)."""
+
+    frames: np.ndarray
+    sources: np.ndarray
+    seeds: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+
+
+def _robust_depth(depth: np.ndarray, uv: np.ndarray, window: int) -> np.ndarray:
+    """Depth ``(P,)`` mm at ``uv (P, 2)``: nearest valid pixel within ``window`` px, NaN if none."""
+    h, w = depth.shape
+    out = np.full(len(uv), np.nan)
+    ok = np.all(np.isfinite(uv), axis=1)
+    if not ok.any():
+        return out
+    r = np.arange(-window, window + 1)
+    dv, du = np.meshgrid(r, r, indexing="ij")
+    dist2 = (du**2 + dv**2).ravel().astype(np.float64)
+    cu = np.rint(uv[ok, 0]).astype(np.int64)[:, None] + du.ravel()[None]
+    cv = np.rint(uv[ok, 1]).astype(np.int64)[:, None] + dv.ravel()[None]
+    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    vals = np.zeros(cu.shape)
+    vals[inside] = depth[cv[inside], cu[inside]]
+    valid = inside & np.isfinite(vals) & (vals > 0)
+    key = np.where(valid, dist2[None] * 1e6 + vals, np.inf)
+    best = np.argmin(key, axis=1)
+    rows = np.arange(len(best))
+    out[np.flatnonzero(ok)] = np.where(np.isfinite(key[rows, best]), vals[rows, best], np.nan)
+    return out
+
+
+def _bilinear(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image (H, W)`` at ``pts (P, 2)`` (border replicated)."""
+    h, w = image.shape
+    x = np.clip(np.nan_to_num(pts[:, 0]), 0, w - 1)
+    y = np.clip(np.nan_to_num(pts[:, 1]), 0, h - 1)
+    x0 = np.minimum(np.floor(x).astype(int), w - 2)
+    y0 = np.minimum(np.floor(y).astype(int), h - 2)
+    fx, fy = x - x0, y - y0
+    img = image.astype(np.float64)
+    return (
+        img[y0, x0] * (1 - fx) * (1 - fy)
+        + img[y0, x0 + 1] * fx * (1 - fy)
+        + img[y0 + 1, x0] * (1 - fx) * fy
+        + img[y0 + 1, x0 + 1] * fx * fy
+    )
+
+
+def _align(ctx: _Context, crop_s: np.ndarray, crop_f: np.ndarray, xy_s: np.ndarray):
+    """Displacement ``(J, 2)`` crop px of points ``xy_s`` and forward-backward error ``(J,)``."""
+    st = ctx.settings
+    if ctx.aligner == "ncc":
+        kw = dict(patch=st.ncc_patch, search=st.ncc_search) | ctx.aligner_kwargs
+        disp, _ = ncc_match(crop_s, crop_f, xy_s, **kw)
+        back, _ = ncc_match(crop_f, crop_s, xy_s + disp, init=-disp, **kw)
+        return disp, np.linalg.norm(disp + back, axis=1)
+    fn = sift_flow if ctx.aligner == "sift" else dis_flow
+    fwd = fn(crop_s, crop_f, **ctx.aligner_kwargs)
+    disp = sample_flow(fwd, xy_s, radius=st.sample_radius)
+    del fwd
+    bwd = fn(crop_f, crop_s, **ctx.aligner_kwargs)
+    back = sample_flow(bwd, xy_s + disp, radius=st.sample_radius)
+    return disp, np.linalg.norm(disp + back, axis=1)
+
+
+def _fit(
+    x0: np.ndarray,
+    uv: np.ndarray,
+    sigma_uv: float,
+    z_t: np.ndarray,
+    sigma_z: np.ndarray,
+    camera: CameraIntrinsics,
+    bones: np.ndarray,
+    lengths: np.ndarray,
+    sigma_bone: float,
+    iterations: int,
+) -> np.ndarray:
+    """Levenberg-Marquardt on the ``(J, 3)`` joints (mm) with residuals: 2D reprojection (px /
+    ``sigma_uv``), depth (mm / ``sigma_z``) and bone length (mm / ``sigma_bone``). Dense analytic
+    Jacobian ``(3J + B, 3J)``; a handful of iterations from the back-projected start."""
+    j = len(x0)
+    nb = len(bones)
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    idx = np.arange(j)
+    rows_u, rows_v, rows_z = 2 * idx, 2 * idx + 1, 2 * j + idx
+    rows_b = 3 * j + np.arange(nb)
+    inv_z = 1.0 / sigma_z
+    jac = np.zeros((3 * j + nb, 3 * j))
+    jac[rows_z, 3 * idx + 2] = inv_z
+    cu, cp = 3 * bones[:, 1], 3 * bones[:, 0]
+
+    def residuals(x):
+        z = np.maximum(x[:, 2], 1.0)
+        r = np.empty(3 * j + nb)
+        r[rows_u] = (fx * x[:, 0] / z + cx - uv[:, 0]) / sigma_uv
+        r[rows_v] = (fy * x[:, 1] / z + cy - uv[:, 1]) / sigma_uv
+        r[rows_z] = (x[:, 2] - z_t) * inv_z
+        vec = x[bones[:, 1]] - x[bones[:, 0]]
+        ln = np.sqrt(np.einsum("ij,ij->i", vec, vec))
+        r[rows_b] = (ln - lengths) / sigma_bone
+        return r, vec, ln
+
+    x = x0.copy()
+    r, vec, ln = residuals(x)
+    cost = float(r @ r)
+    lam = 1e-4
+    eye = np.eye(3 * j)
+    for _ in range(iterations):
+        z = np.maximum(x[:, 2], 1.0)
+        s = 1.0 / (z * sigma_uv)
+        jac[rows_u, 3 * idx] = fx * s
+        jac[rows_u, 3 * idx + 2] = -fx * x[:, 0] / z * s
+        jac[rows_v, 3 * idx + 1] = fy * s
+        jac[rows_v, 3 * idx + 2] = -fy * x[:, 1] / z * s
+        unit = vec / (np.maximum(ln, 1e-9)[:, None] * sigma_bone)
+        for c in range(3):
+            jac[rows_b, cu + c] = unit[:, c]
+            jac[rows_b, cp + c] = -unit[:, c]
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        diag = np.diag(jtj) + 1e-9
+        accepted = False
+        for _ in range(5):
+            step = np.linalg.solve(jtj + lam * diag * eye, -g)
+            xn = x + step.reshape(j, 3)
+            rn, vn, lnn = residuals(xn)
+            cn = float(rn @ rn)
+            if cn < cost:
+                accepted = True
+                small = cost - cn < 1e-8 * cost + 1e-12
+                x, r, vec, ln, cost, lam = xn, rn, vn, lnn, cn, max(lam * 0.1, 1e-9)
+                break
+            lam *= 10.0
+        if not accepted or small:
+            break
+    return x
+
+
+def _visible_at_source(ctx: _Context, frame: int, joints: np.ndarray) -> np.ndarray:
+    """Joints of a seed frame lying near its observed surface (reads the frame's depth)."""
+    offsets = np.asarray(ctx.skeleton.surface_offsets_mm)
+    try:
+        depth = ctx.depth_of(frame)
+    except FrameError:
+        return np.zeros(len(joints), dtype=bool)
+    z = _robust_depth(depth, ctx.camera.project(joints), ctx.settings.depth_window_px)
+    return np.abs(joints[:, 2] - (z + offsets)) < ctx.settings.near_surface_mm
+
+
+def _step(ctx: _Context, src: int, frame: int, joints_s: np.ndarray, conf_s: np.ndarray, vis_s: np.ndarray):
+    """Propagate ``joints_s`` of frame ``src`` to ``frame``. Returns ``(joints, conf, visible)``
+    or raises ``_Skip``."""
+    st = ctx.settings
+    cam = ctx.camera
+    sk = ctx.skeleton
+    box_s, box_f = ctx.boxes[src], ctx.boxes[frame]
+    c_s, c_f = ctx.centres_mm[src], ctx.centres_mm[frame]
+    if not (np.all(np.isfinite(box_f)) and np.all(np.isfinite(c_f))):
+        raise _Skip("no hand centre")
+    try:
+        depth = ctx.depth_of(frame)
+    except FrameError as err:
+        raise _Skip(f"bad frame: {err}") from None
+    if not np.any(depth > 0):
+        raise _Skip("no depth (all zero)")
+    crops = ctx.crops()
+    crop_s = np.asarray(crops[src], dtype=np.float32)
+    crop_f = np.asarray(crops[frame], dtype=np.float32)
+    offsets = np.asarray(sk.surface_offsets_mm, dtype=np.float64)
+
+    uv_s = cam.project(joints_s)
+    xy_s = image_to_crop(uv_s, box_s)
+    disp, fb = _align(ctx, crop_s, crop_f, xy_s)
+    disp = np.where(np.isfinite(disp), disp, 0.0)
+    xy_f = xy_s + disp
+    uv_f = crop_to_image(xy_f, box_f)
+
+    z_obs = _robust_depth(depth, uv_f, st.depth_window_px) + offsets
+    z_pred = joints_s[:, 2] - c_s[2] + c_f[2]
+    visible = (
+        vis_s
+        & np.isfinite(z_obs)
+        & (z_obs > z_pred - st.occlusion_mm)
+        & (z_obs < z_pred + st.behind_mm)
+    )
+    z_t = np.where(visible, z_obs, z_pred)
+    x0 = cam.backproject(uv_f, z_t)
+    bones = sk.bones
+    lengths = np.asarray(ctx.bone_lengths_mm, dtype=np.float64)
+    len0 = np.linalg.norm(x0[bones[:, 1]] - x0[bones[:, 0]], axis=1)
+    sigma_z = np.where(visible, st.sigma_visible_mm, st.sigma_hidden_mm)
+    sigma_uv = st.sigma_px * 0.5 * float(box_f[2] + box_f[3])
+    x = _fit(x0, uv_f, sigma_uv, z_t, sigma_z, cam, bones, lengths, st.sigma_bone_mm, st.fit_iterations)
+
+    # confidence
+    half = 0.5 * st.cube_mm
+    # matched points should show the same centre-relative depth in both crops
+    app_res = np.abs(_bilinear(crop_s, xy_s) - _bilinear(crop_f, xy_f)) * half
+    bone_viol = np.zeros(len(x))
+    bone_viol[bones[:, 1]] = np.abs(len0 - lengths) / np.maximum(lengths, 1e-6)
+    depth_res = np.where(visible, np.abs(x[:, 2] - z_t), st.depth_scale_mm * 0.6)
+    local = (
+        np.exp(-0.5 * (fb / st.fb_scale_px) ** 2)
+        * np.exp(-0.5 * (app_res / st.appearance_scale_mm) ** 2)
+        * np.exp(-0.5 * (depth_res / st.depth_scale_mm) ** 2)
+        * np.exp(-0.5 * (bone_viol / st.bone_scale) ** 2)
+    )
+    conf = np.clip(conf_s * local, 0.0, 1.0)
+    # a joint is "on its surface" in this frame if the fit kept it there
+    vis_f = visible & (np.abs(x[:, 2] - z_obs) < st.near_surface_mm)
+    return x, conf, vis_f
+
+
+class _Skip(Exception):
+    pass
+
+
+def _run_task(ctx: _Context, task: _Task, emit: Callable | None = None):
+    """Propagate one task. Returns ``(frames, sources, joints (M,J,3), conf (M,J), skipped)``.
+
+    OpenCV runs single-threaded here: one task = one core (parallelism comes from tasks)."""
+    import cv2
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _run_task_inner(ctx, task, emit)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
+    j = ctx.skeleton.num_joints
+    m = len(task.frames)
+    out_j = np.full((m, j, 3), np.nan)
+    out_c = np.full((m, j), np.nan)
+    used_src = np.full(m, -1, dtype=np.int64)
+    skipped: dict[int, str] = {}
+    state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    alias: dict[int, int] = {}  # skipped frame -> nearest valid ancestor
+    for f, (jj, cc, vv) in task.seeds.items():
+        if vv is None:
+            vv = _visible_at_source(ctx, f, jj)
+        state[f] = (jj, cc, vv)
+    for k in range(m):
+        f = int(task.frames[k])
+        s = int(task.sources[k])
+        s = alias.get(s, s)
+        if s not in state:
+            skipped[f] = f"no valid ancestor (parent {int(task.sources[k])} has no joints)"
+            alias[f] = s
+            if emit is not None:
+                emit(f, None, None)
+            continue
+        jj, cc, vv = state[s]
+        try:
+            x, conf, vis = _step(ctx, s, f, jj, cc, vv)
+        except _Skip as err:
+            skipped[f] = str(err)
+            alias[f] = s
+            if emit is not None:
+                emit(f, None, None)
+            continue
+        state[f] = (x, conf, vis)
+        out_j[k], out_c[k], used_src[k] = x, conf, s
+        if emit is not None:
+            emit(f, x, conf)
+    return task.frames, used_src, out_j, out_c, skipped
+
+
+# ---------------------------------------------------------------------------------------------
+# planning and the public entry point
+# ---------------------------------------------------------------------------------------------
+def _plan(
+    parent: np.ndarray,
+    known: dict[int, tuple[np.ndarray, np.ndarray]],
+    todo: np.ndarray,
+    n_tasks: int,
+) -> tuple[list[_Task], dict[int, str]]:
+    """Pack the subtrees to compute into ``n_tasks`` balanced tasks (each in topological order)."""
+    n = len(parent)
+    in_todo = np.zeros(n, dtype=bool)
+    in_todo[todo] = True
+    in_todo[list(known)] = False
+    problems: dict[int, str] = {}
+    # a frame in todo whose parent is not in todo hangs off a known frame (or is orphaned)
+    heads = np.flatnonzero(in_todo & ~((parent >= 0) & in_todo[np.maximum(parent, 0)]))
+    sub_parent = np.where(in_todo, parent, -1)
+    groups: list[tuple[int, np.ndarray]] = []  # (seed frame, frames in BFS order)
+    by_seed: dict[int, list[np.ndarray]] = {}
+    for h, below in zip(heads, propagation_order(sub_parent, heads), strict=True):
+        p = int(parent[h])
+        if p < 0 or p not in known:
+            sub = np.concatenate([[h], below])
+            why = "reference without joints" if p < 0 else f"parent {p} has no joints"
+            for f in sub:
+                problems[int(f)] = f"no valid ancestor ({why})"
+            continue
+        by_seed.setdefault(p, []).append(np.concatenate([[h], below]).astype(np.int64))
+    for seed, parts in by_seed.items():
+        groups.append((seed, np.concatenate(parts)))
+    covered = np.zeros(n, dtype=bool)
+    for _, g in groups:
+        covered[g] = True
+    for f in np.flatnonzero(in_todo & ~covered):
+        problems.setdefault(int(f), "parent chain has a cycle or reaches no reference")
+    # greedy balancing, largest subtree first
+    groups.sort(key=lambda g: -len(g[1]))
+    n_tasks = max(1, min(n_tasks, len(groups)))
+    bins: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n_tasks)]
+    loads = np.zeros(n_tasks)
+    for g in groups:
+        b = int(np.argmin(loads))
+        bins[b].append(g)
+        loads[b] += len(g[1])
+    tasks = []
+    for b in bins:
+        if not b:
+            continue
+        frames = np.concatenate([g[1] for g in b])
+        seeds = {}
+        for seed, _ in b:
+            jj, cc = known[seed]
+            seeds[seed] = (jj, cc, None)
+        # sources: the parent of each frame (the seed for subtree heads)
+        tasks.append(_Task(frames=frames, sources=parent[frames].copy(), seeds=seeds))
+    return tasks, problems
+
+
+def propagate(
+    parent: np.ndarray,
+    reference_joints: dict[int, np.ndarray],
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    depth_of: Callable[[int], np.ndarray],
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    *,
+    aligner: str = DEFAULT_ALIGNER,
+    workers: int = 1,
+    scheduler=None,
+    frames=None,
+    progress: Callable[[int, int], None] | None = None,
+    on_result: Callable[[int, np.ndarray, np.ndarray], None] | None = None,
+    initial_mm: np.ndarray | None = None,
+    initial_confidence: np.ndarray | None = None,
+    reference_confidence: dict[int, np.ndarray] | None = None,
+    aligner_kwargs: dict | None = None,
+    settings: PropagationSettings | None = None,
+    tasks_per_worker: int = 2,
+) -> PropagationResult:
+    """Propagate reference poses to the frames of the parent forest.
+
+    Parameters
+    ----------
+    parent : ``(N,)`` int, ``-1`` at references (the selection's parent forest).
+    reference_joints : ``{frame: (J, 3) mm}`` lifted references.
+    crops : ``(N, S, S)`` normalized crops (memmap preferred), ``boxes`` ``(N, 4)``
+        ``[u_left, v_top, sx, sy]``, ``centres_mm`` ``(N, 3)`` (see :mod:`handanno_core.crops`).
+    depth_of : ``frame -> (H, W) float32 mm``; may raise ``FrameError``. Must be picklable for
+        ``workers > 1`` or ``scheduler``.
+    bone_lengths_mm : ``(J - 1,)`` bone lengths the propagated poses keep.
+    aligner : ``"dis"`` (default, measured best), ``"sift"`` (SIFT Flow) or ``"ncc"``.
+    workers : local processes (1 = in this process). scheduler : ``"tcp://HOST:PORT"`` of a Dask
+        distributed scheduler (or a ``dask.distributed.Client``); overrides ``workers``.
+    frames : frames to recompute (default: all non-references). Their ancestors outside
+        ``frames`` must have joints: references, or rows of ``initial_mm`` (a previous result).
+        Use :func:`descendants` to get the frames below a changed reference.
+    progress : ``progress(done, total)`` in frames; on_result : ``on_result(frame, joints, conf)``
+        for each computed frame, in the main process, parents before children.
+
+    Returns a :class:`PropagationResult`; rows outside ``frames`` are NaN.
+    """
+    t0 = time.perf_counter()
+    parent = np.asarray(parent, dtype=np.int64)
+    n = len(parent)
+    j = skeleton.num_joints
+    if aligner not in ALIGNERS:
+        raise ValueError(f"unknown aligner {aligner!r}; choose one of {ALIGNERS}")
+    if crops.shape[0] != n or boxes.shape[0] != n or len(centres_mm) != n:
+        raise ValueError("parent, crops, boxes and centres must have the same number of frames")
+    settings = settings or PropagationSettings()
+
+    known: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for f, jj in reference_joints.items():
+        jj = np.asarray(jj, dtype=np.float64)
+        if jj.shape != (j, 3):
+            raise ValueError(f"reference {f}: joints must be ({j}, 3), got {jj.shape}")
+        if np.all(np.isfinite(jj)):
+            conf = np.ones(j) if reference_confidence is None else reference_confidence.get(f, np.ones(j))
+            known[int(f)] = (jj, np.asarray(conf, dtype=np.float64))
+    if frames is None:
+        todo = np.flatnonzero(parent >= 0)
+    else:
+        todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
+        todo = todo[parent[todo] >= 0]
+        if initial_mm is not None:
+            keep = np.ones(n, dtype=bool)
+            keep[todo] = False
+            for f in np.flatnonzero(keep & np.all(np.isfinite(initial_mm), axis=(1, 2))):
+                if int(f) not in known:
+                    conf = (
+                        np.asarray(initial_confidence[f], dtype=np.float64)
+                        if initial_confidence is not None
+                        else np.ones(j)
+                    )
+                    known[int(f)] = (np.asarray(initial_mm[f], dtype=np.float64), np.nan_to_num(conf, nan=0.5))
+
+    n_workers = 1 if scheduler is None else 4
+    if scheduler is None and workers > 1:
+        n_workers = workers
+    tasks, problems = _plan(parent, known, todo, n_workers * tasks_per_worker if n_workers > 1 else 1)
+
+    # crops: a path to map in the workers (never pickled per task)
+    tmpdir = None
+    remote = scheduler is not None or workers > 1
+    crops_path, crops_offset = None, 0
+    if remote:
+        if isinstance(crops, np.memmap) and crops.filename is not None:
+            crops_path, crops_offset = str(crops.filename), int(crops.offset)
+        else:
+            tmpdir = tempfile.mkdtemp(prefix="handanno-crops-")
+            tmp = Path(tmpdir) / "crops.npy"
+            mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=crops.dtype, shape=crops.shape)
+            mm[:] = crops
+            crops_path, crops_offset = str(tmp), int(mm.offset)
+            del mm
+    ctx = _Context(
+        crops_path=crops_path,
+        crops_offset=crops_offset,
+        crops_shape=tuple(crops.shape),
+        crops_dtype=str(crops.dtype),
+        boxes=np.asarray(boxes, dtype=np.float64),
+        centres_mm=np.asarray(centres_mm, dtype=np.float64),
+        depth_of=depth_of,
+        camera=camera,
+        skeleton=skeleton,
+        bone_lengths_mm=np.asarray(bone_lengths_mm, dtype=np.float64),
+        aligner=aligner,
+        aligner_kwargs=dict(aligner_kwargs or {}),
+        settings=settings,
+        crops_array=None if remote else crops,
+    )
+
+    joints = np.full((n, j, 3), np.nan)
+    confidence = np.full((n, j), np.nan)
+    source = np.full(n, -1, dtype=np.int64)
+    reasons: dict[int, str] = dict(problems)
+    order: list[int] = []
+    total = sum(len(t.frames) for t in tasks)
+    done = 0
+
+    def collect(result) -> None:
+        nonlocal done
+        fr, src, jj, cc, skipped = result
+        joints[fr], confidence[fr], source[fr] = jj, cc, src
+        reasons.update(skipped)
+        if on_result is not None and remote:
+            for k, f in enumerate(fr):
+                if int(f) not in skipped:
+                    on_result(int(f), jj[k], cc[k])
+        if remote:
+            order.extend(int(f) for f in fr)
+            done += len(fr)
+            if progress is not None:
+                progress(done, total)
+
+    try:
+        if not remote:
+
+            def emit(f, x, c):
+                nonlocal done
+                order.append(f)
+                done += 1
+                if x is not None and on_result is not None:
+                    on_result(f, x, c)
+                if progress is not None and (done % 16 == 0 or done == total):
+                    progress(done, total)
+
+            for task in tasks:
+                collect(_run_task(ctx, task, emit))
+        elif scheduler is not None:
+            _run_dask(scheduler, ctx, tasks, collect)
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method)) as pool:
+                futures = [pool.submit(_run_task, ctx, t) for t in tasks]
+                for fut in as_completed(futures):
+                    collect(fut.result())
+    finally:
+        if tmpdir is not None:
+            for p in Path(tmpdir).iterdir():
+                p.unlink()
+            os.rmdir(tmpdir)
+
+    skipped = sorted(reasons)
+    return PropagationResult(
+        joints_mm=joints,
+        confidence=confidence,
+        skipped=skipped,
+        reasons={f: reasons[f] for f in skipped},
+        source=source,
+        seconds=time.perf_counter() - t0,
+        order=order,
+    )
+
+
+def _run_dask(scheduler, ctx: _Context, tasks: list[_Task], collect: Callable) -> None:
+    """Run the tasks on a Dask distributed cluster (``pip install 'handanno[distributed]'``)."""
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "scheduler= needs dask.distributed: pip install 'handanno[distributed]'"
+        ) from exc
+    own = not isinstance(scheduler, Client)
+    client = Client(scheduler) if own else scheduler
+    try:
+        ctx_future = client.scatter(ctx, broadcast=True)
+        futures = [client.submit(_run_task, ctx_future, t, pure=False) for t in tasks]
+        for fut in as_completed(futures):
+            collect(fut.result())
+    finally:
+        if own:
+            client.close()

@@ -1,0 +1,795 @@
+"""Global refinement of all frames' 3D joints (thesis Eq. 4), done properly.
+
+One robust least-squares problem over every frame of the sequence:
+
+``E = Σ λ_app  ρ_app(appearance)     per joint, 7×7 patch samples, mm
+    + Σ λ_temp ρ_temp(X[i+1,k] − X[i,k])  consecutive frames in time order, camera coords, mm
+    + Σ λ_proj ‖π(X[r,k]) − l[r,k]‖²      reference frames' annotated 2D, px
+    + Σ λ_depth (depth-band violation)²   Eq. 3 band behind the observed surface, mm
+    + Σ λ_angle (joint-angle violation)²  skeleton.angle_limits, degrees
+    + Σ λ_init ρ(X − X_init)              optional weak pull to the initialization, mm``
+
+each term written as ``½·λ·r²`` (or ``λ·Huber(r)``), i.e. residuals weighted by ``√λ`` in the units
+stated (see :class:`RefineWeights`).
+
+**Bone lengths are hard constraints** through the parameterization: each frame is a root position
+(3) plus one unit direction per bone (updated on the sphere through a 2-D tangent step), with the
+bone lengths fixed to ``bone_lengths_mm``; joints are ``X_k = root + Σ_{b on path to k} L_b·u_b``.
+The final bone violation is therefore round-off (reported in ``bone_violation_max_mm``).
+
+**Appearance** (Lucas-Kanade style, no precomputed per-pixel maps): for frame ``i`` and joint ``k``
+the crop of frame ``i`` is sampled bilinearly on a 7×7 grid (2 crop px spacing) around the joint's
+current projection; each sample is turned into depth in mm *relative to the joint's own depth*
+(``z_c + crop·cube/2 − Z_ik``, clipped to ±``appearance_clip_mm`` so background is a constant) and
+compared with the same patch taken once, at the start, around the annotated 2D position in the
+crop of the frame's closest reference (relative to that reference joint's depth). The Jacobian
+uses the analytic gradient of the bilinear interpolant. The same crops give the observed depth
+``D`` at each projection for the depth band (``D + offset_k ≤ Z ≤ D + offset_k + eps``; the lower
+side holds for every joint that projects onto the hand, the upper side only for joints visible in
+the frame's closest reference annotation and is Huber-robust because visibility can change).
+
+**Solver**: Levenberg-Marquardt with IRLS weights for the robust terms. The normal equations are
+block-tridiagonal in time (blocks of ``3 + 2B`` parameters per frame; only the temporal term
+couples neighbouring frames), are assembled with batched numpy products (no Python loops over
+frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
+lowers the true robust energy, so ``energy_history`` never increases.
+
+Versus the anchors (anchor-algorithms.md §d): weights are √λ in mm/px instead of λ/N; the
+appearance template is the closest *true* reference; smoothing is in camera coordinates along
+true time order, robust, cut at sequence breaks; bones are exact instead of a quadratic penalty;
+depth bounds exist for every frame; memory is O(N·J) besides the crops (no N×J×128×128 maps).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import LinAlgError, solveh_banded
+
+from .annotation import FrameAnnotation
+from .camera import CameraIntrinsics
+from .skeleton import Skeleton
+
+__all__ = ["RefineResult", "RefineWeights", "refine"]
+
+
+@dataclass(frozen=True)
+class RefineWeights:
+    """Weights λ of the refinement energy; each residual is multiplied by √λ in the stated unit.
+
+    Defaults were chosen on the project's synthetic sequence (``synth.generate_sequence``,
+    MSRA-21 skeleton, 220 mm crops at 128 px, references every 20th frame with exact simulated 2D),
+    starting from propagation-like perturbed ground truth (smooth 5-10 mm offsets, outlier frames,
+    bone violations), see ``benchmarks/bench_refine.py``:
+
+    * ``appearance`` (per mm² per patch sample, 49 samples per joint): 0.02 — the patch term then
+      weighs about one mm² per joint, comparable to the temporal term, strong enough to pull a joint
+      back onto its finger but not so strong that silhouette mismatches dominate. Samples are
+      Huber-robust with ``appearance_huber_mm``; relative depths are clipped at
+      ``appearance_clip_mm`` (background and far-away surfaces become a constant).
+    * ``temporal`` (per mm² per joint and frame pair): 1.0 with Huber scale ``temporal_huber_mm``
+      = 6 mm: removes jitter and pulls isolated outlier frames to their neighbours, while real
+      motion (a few mm per frame) costs little, and true jumps beyond the scale only grow linearly.
+    * ``reprojection`` (per px² on reference frames' annotated 2D): 4.0 — with exact annotations
+      the references are anchored to about a pixel; lower it for noisy annotators.
+    * ``depth_band`` (per mm² of violation of Eq. 3's band, eps = ``eps_mm`` = 15 mm): 1.0.
+    * ``angle`` (per degree² outside ``skeleton.angle_limits``): 0.05 — a soft guard only.
+    * ``init`` (per mm² to the initialization, Huber 10 mm): 0.0 by default (off): the data terms
+      suffice on the synthetic data; a small value adds a prior for frames without good data.
+    """
+
+    appearance: float = 0.02
+    appearance_huber_mm: float = 10.0
+    appearance_clip_mm: float = 40.0
+    appearance_visible_only: bool = True
+    appearance_robust: str = "huber"
+    temporal: float = 1.0
+    temporal_huber_mm: float = 6.0
+    reprojection: float = 4.0
+    depth_band: float = 1.0
+    depth_band_scale_mm: float = 10.0
+    eps_mm: float = 15.0
+    angle: float = 0.05
+    init: float = 0.0
+    init_huber_mm: float = 10.0
+    patch_size: int = 7
+    patch_spacing_px: float = 2.0
+
+
+@dataclass
+class RefineResult:
+    """Output of :func:`refine`.
+
+    ``joints_mm`` (N, J, 3) refined joints in mm; ``energy_history`` total energy before the first
+    and after every iteration (non-increasing); ``bone_violation_max_mm`` max |‖bone‖ − L| over all
+    frames and bones; ``terms`` final energy per term; ``iterations`` LM iterations run.
+    """
+
+    joints_mm: np.ndarray
+    energy_history: list[float]
+    bone_violation_max_mm: float
+    terms: dict[str, float]
+    iterations: int = 0
+    converged: bool = False
+    time_s: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------------------
+# robust helpers
+# ------------------------------------------------------------------------------------------------
+def _huber(r_abs: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Huber cost ρ(r) (½r² inside) and IRLS weight ψ(r)/r for absolute residuals."""
+    inside = r_abs <= delta
+    cost = np.where(inside, 0.5 * r_abs**2, delta * (r_abs - 0.5 * delta))
+    weight = np.where(inside, 1.0, delta / np.maximum(r_abs, 1e-12))
+    return cost, weight
+
+
+def _welsch(r_abs: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Welsch (redescending) cost ``(c²/2)(1 − exp(−(r/c)²))`` and its IRLS weight ``exp(−(r/c)²)``.
+
+    ≈ ½r² for small r; violations much larger than ``scale`` stop pulling (they are taken as the
+    joint projecting onto a different surface, e.g. the palm behind a fingertip).
+    """
+    e = np.exp(-((r_abs / scale) ** 2))
+    return 0.5 * scale**2 * (1.0 - e), e
+
+
+def _bilinear(flat: np.ndarray, size: int, base: np.ndarray, x: np.ndarray, y: np.ndarray):
+    """Sample images stored flat (N·S·S,) at crop px (x, y); ``base`` = frame·S·S (broadcast).
+
+    Returns value, d/dx, d/dy (gradient of the bilinear interpolant) and a foreground flag (all
+    four neighbours inside the crop and strictly inside (-1, 1), i.e. real depth). Outside the
+    crop the value is +1 (background) with zero gradient.
+    """
+    inside = (x >= 0) & (x <= size - 1) & (y >= 0) & (y <= size - 1)
+    xc = np.clip(x, 0.0, size - 1.000001)
+    yc = np.clip(y, 0.0, size - 1.000001)
+    x0 = xc.astype(np.int64)
+    y0 = yc.astype(np.int64)
+    fx = (xc - x0).astype(np.float32)
+    fy = (yc - y0).astype(np.float32)
+    i00 = base + y0 * size + x0
+    c00 = flat[i00].astype(np.float32)
+    c01 = flat[i00 + 1].astype(np.float32)
+    c10 = flat[i00 + size].astype(np.float32)
+    c11 = flat[i00 + size + 1].astype(np.float32)
+    top = c00 + fx * (c01 - c00)
+    bot = c10 + fx * (c11 - c10)
+    val = top + fy * (bot - top)
+    gx = (1 - fy) * (c01 - c00) + fy * (c11 - c10)
+    gy = (1 - fx) * (c10 - c00) + fx * (c11 - c01)
+    hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11))
+    lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11))
+    fg = inside & (hi < 0.999) & (lo > -0.999)
+    val = np.where(inside, val, np.float32(1.0))
+    gx = np.where(inside, gx, np.float32(0.0))
+    gy = np.where(inside, gy, np.float32(0.0))
+    return val, gx, gy, fg
+
+
+_BLAS_SETTERS: list | None = None
+
+
+def _openblas_thread_setters() -> list:
+    """(get, set) function pairs of the OpenBLAS libraries loaded in this process (Linux only)."""
+    global _BLAS_SETTERS
+    if _BLAS_SETTERS is not None:
+        return _BLAS_SETTERS
+    setters = []
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = {ln.split()[-1] for ln in fh if "openblas" in ln.lower() and ".so" in ln}
+    except OSError:
+        paths = set()
+    for path in sorted(paths):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for pre in ("scipy_", ""):
+            for suf in ("64_", ""):
+                get = getattr(lib, f"{pre}openblas_get_num_threads{suf}", None)
+                put = getattr(lib, f"{pre}openblas_set_num_threads{suf}", None)
+                if get is not None and put is not None:
+                    get.restype = ctypes.c_int
+                    setters.append((get, put))
+                    break
+            else:
+                continue
+            break
+    _BLAS_SETTERS = setters
+    return setters
+
+
+@contextlib.contextmanager
+def _single_blas_thread():
+    """Run the banded solves with one OpenBLAS thread.
+
+    The band solve is memory-bound; on a small shared machine OpenBLAS's spinning worker threads
+    made it 5-15× slower (measured: 0.27 s vs 1.4-6.8 s for N=3040 under load).
+    """
+    setters = _openblas_thread_setters()
+    old = [get() for get, _ in setters]
+    for _, put in setters:
+        put(1)
+    try:
+        yield
+    finally:
+        for (_, put), n in zip(setters, old, strict=True):
+            put(n)
+
+
+# ------------------------------------------------------------------------------------------------
+# kinematic parameterization
+# ------------------------------------------------------------------------------------------------
+class _Kinematics:
+    """Root + unit bone directions with fixed lengths; joints and their Jacobian per frame."""
+
+    def __init__(self, skeleton: Skeleton, bone_lengths_mm: np.ndarray):
+        self.parents = skeleton.parent_array
+        self.bones = skeleton.bones
+        self.root = skeleton.root
+        j = skeleton.num_joints
+        b = len(self.bones)
+        self.lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
+        if self.lengths.shape != (b,) or not np.all(np.isfinite(self.lengths)):
+            raise ValueError(f"bone_lengths_mm must be ({b},) finite, got {self.lengths.shape}")
+        bone_of_child = np.full(j, -1)
+        bone_of_child[self.bones[:, 1]] = np.arange(b)
+        # ancestor[k, b] = 1 if bone b lies on the path root -> k
+        anc = np.zeros((j, b))
+        for k in range(j):
+            q = k
+            while self.parents[q] >= 0:
+                anc[k, bone_of_child[q]] = 1.0
+                q = self.parents[q]
+        self.ancestor_lengths = anc * self.lengths[None, :]  # (J, B)
+        self.num_params = 3 + 2 * b
+
+    def joints(self, root: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """root (N,3), u (N,B,3) -> joints (N,J,3)."""
+        return root[:, None, :] + np.einsum("kb,nbc->nkc", self.ancestor_lengths, u)
+
+    @staticmethod
+    def tangents(u: np.ndarray) -> np.ndarray:
+        """Orthonormal tangent bases (N,B,3,2) of the unit vectors u (N,B,3)."""
+        a = np.zeros_like(u)
+        use_x = np.abs(u[..., 0]) < 0.9
+        a[use_x, 0] = 1.0
+        a[~use_x, 1] = 1.0
+        t1 = np.cross(u, a)
+        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
+        t2 = np.cross(u, t1)
+        return np.stack([t1, t2], axis=-1)
+
+    def jacobian(self, u: np.ndarray) -> np.ndarray:
+        """dX/dθ (N, J·3, P) with θ = (root, tangent steps of each bone)."""
+        n, b = u.shape[:2]
+        j = self.ancestor_lengths.shape[0]
+        t = self.tangents(u)
+        m = np.empty((n, j, 3, self.num_params))
+        m[..., :3] = np.eye(3)
+        m[..., 3:] = np.einsum("kb,nbcd->nkcbd", self.ancestor_lengths, t).reshape(n, j, 3, 2 * b)
+        return m.reshape(n, j * 3, self.num_params)
+
+    def retract(self, root, u, step: np.ndarray):
+        """Apply a step (N, P) to (root, u): root += step[:3]; u <- normalize(u + T·δ)."""
+        n, b = u.shape[:2]
+        t = self.tangents(u)
+        delta = step[:, 3:].reshape(n, b, 2)
+        v = u + np.einsum("nbcd,nbd->nbc", t, delta)
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        return root + step[:, :3], v
+
+    def fit(self, target: np.ndarray, iterations: int = 8):
+        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN)."""
+        n = target.shape[0]
+        root = target[:, self.root].copy()
+        bv = target[:, self.bones[:, 1]] - target[:, self.bones[:, 0]]
+        norm = np.linalg.norm(bv, axis=-1, keepdims=True)
+        u = np.where(norm > 1e-9, bv / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
+        for _ in range(iterations):
+            r = (self.joints(root, u) - target).reshape(n, -1)
+            m = self.jacobian(u)
+            h = np.matmul(m.transpose(0, 2, 1), m) + 1e-6 * np.eye(self.num_params)
+            g = np.einsum("nrp,nr->np", m, r)
+            step = -np.linalg.solve(h, g[..., None])[..., 0]
+            root, u = self.retract(root, u, step)
+            if np.max(np.abs(step)) < 1e-7:
+                break
+        return root, u
+
+
+# ------------------------------------------------------------------------------------------------
+# the problem
+# ------------------------------------------------------------------------------------------------
+class _Problem:
+    def __init__(
+        self,
+        init_mm,
+        crops,
+        boxes,
+        centres_mm,
+        camera: CameraIntrinsics,
+        skeleton: Skeleton,
+        kin: _Kinematics,
+        reference_frames,
+        reference_annotations,
+        closest_reference,
+        sequence_breaks,
+        weights: RefineWeights,
+        cube_mm: float,
+        chunk: int,
+    ):
+        self.w = weights
+        self.cam = camera
+        self.skel = skeleton
+        self.kin = kin
+        self.init = init_mm
+        n, j = init_mm.shape[:2]
+        self.n, self.j = n, j
+        self.chunk = chunk
+        self.size = int(crops.shape[-1])
+        self.flat = crops.reshape(-1)
+        self.boxes = np.asarray(boxes, dtype=np.float64)
+        self.zc = np.asarray(centres_mm, dtype=np.float64)[:, 2]
+        self.half = 0.5 * cube_mm
+        self.offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+        g = weights.patch_size
+        o = (np.arange(g) - (g - 1) / 2) * weights.patch_spacing_px
+        gy, gx = np.meshgrid(o, o, indexing="ij")
+        self.grid = np.stack([gx.ravel(), gy.ravel()], axis=-1)  # (G,2)
+
+        # temporal pairs (i, i+1) not crossing a break
+        pair_ok = np.ones(max(n - 1, 0), dtype=bool)
+        for b in sequence_breaks:
+            if 0 < b < n:
+                pair_ok[b - 1] = False
+        self.pair_ok = pair_ok
+
+        # references: projection targets and appearance templates
+        refs = np.asarray(sorted(set(int(r) for r in reference_frames)), dtype=np.int64)
+        self.refs = refs
+        self.ref_uv = np.full((len(refs), j, 2), np.nan)
+        self.ref_visible = np.ones((len(refs), j), dtype=bool)
+        for a, r in enumerate(refs):
+            ann: FrameAnnotation | None = reference_annotations.get(int(r))
+            if ann is None:
+                continue
+            self.ref_uv[a] = np.asarray(ann.uv_px, dtype=np.float64)
+            self.ref_visible[a] = np.asarray(ann.visible, dtype=bool)
+        self.ref_has = np.all(np.isfinite(self.ref_uv), axis=-1)
+        pos = np.full(n, -1, dtype=np.int64)
+        pos[refs] = np.arange(len(refs))
+        cr = np.asarray(closest_reference, dtype=np.int64)
+        if cr.shape != (n,):
+            raise ValueError(f"closest_reference must be ({n},), got {cr.shape}")
+        self.tmpl_of = np.where((cr >= 0) & (cr < n), pos[np.clip(cr, 0, n - 1)], -1)
+        self.visible = np.where(
+            self.tmpl_of[:, None] >= 0, self.ref_visible[np.maximum(self.tmpl_of, 0)], True
+        )
+        self.templates, self.tmpl_valid = self._templates()
+
+    # -------------------------------------------------------------------- geometry
+    def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
+        """joints (n,J,3) -> crop px (n,J,2) and d(crop px)/dX (n,J,2,3)."""
+        b = self.boxes[frames]
+        uv = self.cam.project(x)
+        pj = self.cam.projection_jacobian(x)
+        sx = b[:, None, 2]
+        sy = b[:, None, 3]
+        cx = (uv[..., 0] - b[:, None, 0] + 0.5) / sx - 0.5
+        cy = (uv[..., 1] - b[:, None, 1] + 0.5) / sy - 0.5
+        jac = pj / np.stack([sx, sy], axis=-1)[..., None]
+        return np.stack([cx, cy], axis=-1), jac, uv, pj
+
+    def _templates(self):
+        """Reference patches (K,J,G) in mm relative to the reference joint's depth."""
+        k = len(self.refs)
+        j, gsz = self.j, len(self.grid)
+        out = np.zeros((k, j, gsz), np.float32)
+        valid = np.zeros((k, j), dtype=bool)
+        if k == 0:
+            return out, valid
+        x = self.init[self.refs]
+        xy, _, uv, _ = self._crop_xy(x, self.refs)
+        b = self.boxes[self.refs]
+        ann_xy = np.stack(
+            [
+                (self.ref_uv[..., 0] - b[:, None, 0] + 0.5) / b[:, None, 2] - 0.5,
+                (self.ref_uv[..., 1] - b[:, None, 1] + 0.5) / b[:, None, 3] - 0.5,
+            ],
+            axis=-1,
+        )
+        xy = np.where(self.ref_has[..., None], ann_xy, xy)
+        px = xy[..., None, 0] + self.grid[:, 0]
+        py = xy[..., None, 1] + self.grid[:, 1]
+        base = (self.refs * self.size * self.size)[:, None, None]
+        val, _, _, _ = _bilinear(self.flat, self.size, base, px, py)
+        rel = self.zc[self.refs][:, None, None] + self.half * val - x[..., 2:3]
+        clip = self.w.appearance_clip_mm
+        out[:] = np.clip(rel, -clip, clip)
+        valid[:] = np.all(np.isfinite(xy), axis=-1) & np.all(np.isfinite(x), axis=-1)
+        return out, valid
+
+    # -------------------------------------------------------------------- evaluation
+    def evaluate(self, root, u, want_jac: bool):
+        """Energy terms at (root, u); with want_jac also X-space normal-equation pieces."""
+        w = self.w
+        n, j = self.n, self.j
+        x = self.kin.joints(root, u)
+        terms = dict.fromkeys(("appearance", "temporal", "reprojection", "depth_band", "angle", "init"), 0.0)
+        if want_jac:
+            hd = np.zeros((n, j, 3, 3))
+            gx = np.zeros((n, j, 3))
+        clip = w.appearance_clip_mm
+        # ---------------- per-frame terms, chunked over frames (memory ~ chunk·J·G)
+        for a in range(0, n, self.chunk):
+            fr = np.arange(a, min(n, a + self.chunk))
+            xc = x[fr]
+            xy, dxy, uv, pj = self._crop_xy(xc, fr)
+            zc = self.zc[fr][:, None]
+            base = (fr * self.size * self.size)[:, None]
+            # depth band (observed depth D from the crop at the joint's projection)
+            val, _, _, fg = _bilinear(self.flat, self.size, base, xy[..., 0], xy[..., 1])
+            d_obs = zc + self.half * val
+            lo = d_obs + self.offsets
+            z = xc[..., 2]
+            below = np.where(fg, np.maximum(lo - z, 0.0), 0.0)
+            above = np.where(fg & self.visible[fr], np.maximum(z - (lo + w.eps_mm), 0.0), 0.0)
+            cost_below, w_below = _welsch(below, w.depth_band_scale_mm)
+            cost_above, w_above = _welsch(above, w.depth_band_scale_mm)
+            terms["depth_band"] += w.depth_band * float(np.sum(cost_below) + np.sum(cost_above))
+            if want_jac:
+                # D treated as constant: residual depends on Z only
+                hz = w.depth_band * (w_below * (below > 0) + w_above * (above > 0))
+                gz = w.depth_band * (-w_below * below + w_above * above)
+                hd[fr, :, 2, 2] += hz
+                gx[fr, :, 2] += gz
+            # appearance
+            tpos = self.tmpl_of[fr]
+            has_t = (tpos >= 0)[:, None] & self.tmpl_valid[np.maximum(tpos, 0)]
+            if w.appearance_visible_only:
+                has_t &= self.visible[fr]
+            if w.appearance > 0 and np.any(has_t):
+                px = xy[..., None, 0] + self.grid[:, 0]
+                py = xy[..., None, 1] + self.grid[:, 1]
+                v, vx, vy, _ = _bilinear(self.flat, self.size, base[..., None], px, py)
+                rel = zc[..., None] + self.half * v - z[..., None]
+                inside = np.abs(rel) < clip
+                rel = np.clip(rel, -clip, clip)
+                tm = self.templates[np.maximum(tpos, 0)]
+                r = np.where(has_t[..., None], rel - tm, 0.0)
+                if w.appearance_robust == "welsch":
+                    cost, wr = _welsch(np.abs(r), w.appearance_huber_mm)
+                else:
+                    cost, wr = _huber(np.abs(r), w.appearance_huber_mm)
+                terms["appearance"] += w.appearance * float(np.sum(cost))
+                if want_jac:
+                    # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
+                    gxy = self.half * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
+                    ja = np.matmul(gxy, dxy)  # (n,J,G,3)
+                    ja[..., 2] -= 1.0
+                    ja *= inside[..., None]
+                    ww = w.appearance * wr * has_t[..., None]
+                    jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
+                    hd[fr] += np.matmul(jw, ja)
+                    gx[fr] += np.matmul(jw, r[..., None])[..., 0]
+        # ---------------- reprojection on reference frames
+        if len(self.refs):
+            xr = x[self.refs]
+            uv = self.cam.project(xr)
+            res = np.where(self.ref_has[..., None], uv - self.ref_uv, 0.0)
+            terms["reprojection"] = w.reprojection * 0.5 * float(np.sum(res**2))
+            if want_jac:
+                pj = self.cam.projection_jacobian(xr) * self.ref_has[..., None, None]
+                hd[self.refs] += w.reprojection * np.einsum("nkac,nkad->nkcd", pj, pj)
+                gx[self.refs] += w.reprojection * np.einsum("nkac,nka->nkc", pj, res)
+        # ---------------- optional prior to the initialization
+        if w.init > 0:
+            dvec = x - self.init
+            dn = np.linalg.norm(dvec, axis=-1)
+            cost, wi = _huber(dn, w.init_huber_mm)
+            terms["init"] = w.init * float(np.sum(cost))
+            if want_jac:
+                hd += (w.init * wi)[..., None, None] * np.eye(3)
+                gx += (w.init * wi)[..., None] * dvec
+        # ---------------- temporal smoothness (Huber on the per-joint displacement)
+        wt = None
+        if n > 1 and w.temporal > 0:
+            dvec = x[1:] - x[:-1]
+            dn = np.linalg.norm(dvec, axis=-1)
+            cost, wt = _huber(dn, w.temporal_huber_mm)
+            wt = w.temporal * wt * self.pair_ok[:, None]
+            terms["temporal"] = w.temporal * float(np.sum(cost * self.pair_ok[:, None]))
+            if want_jac:
+                eye = np.eye(3)
+                hd[:-1] += wt[..., None, None] * eye
+                hd[1:] += wt[..., None, None] * eye
+                gx[:-1] -= wt[..., None] * dvec
+                gx[1:] += wt[..., None] * dvec
+        # ---------------- joint-angle limits
+        ang = None
+        if w.angle > 0 and self.skel.flexion_limits_deg is not None:
+            viol = self._angle_violation(x)
+            terms["angle"] = w.angle * 0.5 * float(np.sum(viol**2))
+            if want_jac:
+                active = np.flatnonzero(np.any(viol > 0, axis=1))
+                if len(active):
+                    ang = (active, *self._angle_jacobian(x[active]))
+        if not want_jac:
+            return terms, x
+        return terms, x, hd, gx, wt, ang
+
+    def _angle_violation(self, x: np.ndarray) -> np.ndarray:
+        """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
+        flex, abd = self.skel.joint_angles(x)
+        fl, al = self.skel.angle_limits()
+        v = np.concatenate(
+            [
+                np.maximum(flex - fl[:, 1], 0) + np.maximum(fl[:, 0] - flex, 0),
+                np.maximum(abd - al[:, 1], 0) + np.maximum(al[:, 0] - abd, 0),
+            ],
+            axis=-1,
+        )
+        return np.nan_to_num(v)
+
+    def _angle_jacobian(self, x: np.ndarray):
+        """Violations (m,2A) and an approximate d(violation)/dX (m,2A,J·3) for frames x (m,J,3).
+
+        Gauss-Newton approximation: the angle's frame (incoming bone, palm normal) is held fixed,
+        so only the outgoing bone b = X_c − X_k moves the angle (exact derivative in b). Steps are
+        accepted on the true energy, so the approximation only affects the step direction.
+        """
+        m, j = x.shape[:2]
+        sk = self.skel
+        k = sk.angle_joints
+        p = sk.parent_array[k]
+        c = sk.angle_children
+        a = x[:, k] - x[:, p]
+        b = x[:, c] - x[:, k]
+        nrm = sk.palm_normal(x)[:, None, :]
+        a_hat = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-9)
+        n_perp = nrm - np.sum(nrm * a_hat, axis=-1, keepdims=True) * a_hat
+        n_perp /= np.maximum(np.linalg.norm(n_perp, axis=-1, keepdims=True), 1e-9)
+        lat = np.cross(a_hat, n_perp)
+        al = np.sum(b * a_hat, -1, keepdims=True)
+        tw = np.sum(b * n_perp, -1, keepdims=True)
+        sd = np.sum(b * lat, -1, keepdims=True)
+        r2 = np.maximum(al**2 + tw**2, 1e-9)
+        rr = np.sqrt(r2)
+        deg = 180.0 / np.pi
+        d_flex = deg * (al * n_perp - tw * a_hat) / r2
+        d_abd = deg * (rr * lat - sd * (al * a_hat + tw * n_perp) / rr) / (r2 + sd**2)
+        flex, abd = sk.joint_angles(x)
+        fl, alim = sk.angle_limits()
+        sf = (flex > fl[:, 1]).astype(float) - (flex < fl[:, 0])
+        sa = (abd > alim[:, 1]).astype(float) - (abd < alim[:, 0])
+        v0 = self._angle_violation(x)
+        na = len(k)
+        jac = np.zeros((m, 2 * na, j, 3))
+        rows = np.arange(na)
+        gf = sf[..., None] * d_flex
+        ga = sa[..., None] * d_abd
+        jac[:, rows, c] += gf
+        jac[:, rows, k] -= gf
+        jac[:, na + rows, c] += ga
+        jac[:, na + rows, k] -= ga
+        return v0, jac.reshape(m, 2 * na, j * 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# block-tridiagonal system in θ-space
+# ------------------------------------------------------------------------------------------------
+def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarray):
+    """θ-space diagonal blocks (N,P,P), super-diagonal blocks (N-1,P,P) and gradient (N,P)."""
+    n, j = problem.n, problem.j
+    p = m.shape[-1]
+    m4 = m.reshape(n, j, 3, p)
+    hm = np.matmul(hd, m4)  # (n,j,3,p)
+    diag = np.matmul(m.transpose(0, 2, 1), hm.reshape(n, j * 3, p))
+    grad = np.einsum("nrp,nr->np", m, gx.reshape(n, j * 3))
+    if ang is not None:
+        frames, v0, jac = ang
+        jm = np.matmul(jac, m[frames])  # (a, 2A, P)
+        wa = problem.w.angle
+        diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
+        grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
+    if n > 1:
+        if wt is None:
+            off = np.zeros((n - 1, p, p))
+        else:
+            wrep = np.repeat(wt, 3, axis=1)  # (n-1, J*3)
+            off = -np.matmul((m[:-1] * wrep[..., None]).transpose(0, 2, 1), m[1:])
+    else:
+        off = np.zeros((0, p, p))
+    if np.any(fixed):
+        diag[fixed] = np.eye(p)
+        grad[fixed] = 0.0
+        off[fixed[:-1]] = 0.0
+        off[fixed[1:]] = 0.0
+    return diag, off, grad
+
+
+def _banded(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Upper banded storage (u+1, N·P), u = 2P-1, of the symmetric block-tridiagonal matrix.
+
+    ``ab[u + r - c, c] = A[r, c]`` for r <= c; filled one (block-)diagonal at a time (2P slices).
+    """
+    n, p = diag.shape[:2]
+    u = 2 * p - 1
+    ab = np.zeros((u + 1, n, p))
+    for d in range(p):  # inside the diagonal blocks: A[ip+k, ip+k+d]
+        ab[u - d, :, d:] = np.diagonal(diag, offset=d, axis1=1, axis2=2)
+    if n > 1:
+        for s in range(1, 2 * p):  # block (i, i+1): A[ip+a, (i+1)p+b] with p+b-a = s
+            o = s - p  # b - a
+            vals = np.diagonal(off, offset=o, axis1=1, axis2=2)  # (n-1, p-|o|)
+            if o >= 0:
+                ab[u - s, 1:, o:] = vals
+            else:
+                ab[u - s, 1:, : p + o] = vals
+    return ab.reshape(u + 1, n * p)
+
+
+# ------------------------------------------------------------------------------------------------
+# public API
+# ------------------------------------------------------------------------------------------------
+def refine(
+    init_mm: np.ndarray,
+    *,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    depth_of: Callable[[int], np.ndarray] | None,
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    reference_frames: Iterable[int],
+    reference_annotations: dict[int, FrameAnnotation],
+    closest_reference: np.ndarray,
+    sequence_breaks: Iterable[int] = (),
+    weights: RefineWeights | None = None,
+    iterations: int = 30,
+    progress: Callable[[int, float], None] | None = None,
+    fixed_frames: Iterable[int] | None = None,
+    cube_mm: float = 220.0,
+    tol: float = 1e-5,
+    chunk_frames: int = 256,
+) -> RefineResult:
+    """Refine all frames' joints jointly (see the module docstring for the energy).
+
+    Parameters
+    ----------
+    init_mm : (N, J, 3) float mm
+        Initialization (lifted references + propagated frames). Frames with NaN joints start
+        from their closest reference's pose.
+    crops : (N, S, S) normalized depth crops (float16 memmap is fine; not copied)
+        ``(d − z_c)/(cube_mm/2)``, background +1; observed depths are read from them.
+    boxes : (N, 4) crop boxes ``[u_left, v_top, sx, sy]`` (``crops.crop_boxes``).
+    centres_mm : (N, 3) crop centres in mm.
+    depth_of : callable(frame) -> (H, W) mm
+        Accepted for API symmetry; unused because the crops already hold the depth inside the cube.
+    camera, skeleton : intrinsics and layout.
+    bone_lengths_mm : (B,) fixed bone lengths (hard constraints).
+    reference_frames : (K,) reference frame indices; reference_annotations their 2D annotations.
+    closest_reference : (N,) int, for each frame the reference frame whose crop is its
+        appearance template (and whose visibility flags it uses); -1 for none.
+    sequence_breaks : frames where an unrelated sequence starts (no temporal term across).
+    weights : :class:`RefineWeights`.
+    iterations : maximum LM iterations. ``progress(iteration, energy)`` is called after each.
+    fixed_frames : frames kept at their initialization (returned unchanged).
+
+    Returns
+    -------
+    RefineResult with ``joints_mm`` (N, J, 3) mm, the non-increasing ``energy_history``,
+    ``bone_violation_max_mm`` and the final energy per term in ``terms``.
+    """
+    t0 = time.perf_counter()
+    w = weights or RefineWeights()
+    init = np.array(init_mm, dtype=np.float64)
+    if init.ndim != 3 or init.shape[2] != 3 or init.shape[1] != skeleton.num_joints:
+        raise ValueError(f"init_mm must be (N, {skeleton.num_joints}, 3), got {init.shape}")
+    n = init.shape[0]
+    if crops.shape[0] != n or boxes.shape != (n, 4) or np.shape(centres_mm) != (n, 3):
+        raise ValueError("crops, boxes and centres_mm must have one row per frame")
+    closest = np.asarray(closest_reference, dtype=np.int64)
+    # frames without a usable initialization start from their closest reference's pose
+    bad = ~np.all(np.isfinite(init), axis=(1, 2))
+    if np.any(bad):
+        src = closest[bad]
+        ok = (src >= 0) & np.all(np.isfinite(init[np.clip(src, 0, n - 1)]), axis=(1, 2))
+        if not np.all(ok):
+            raise ValueError(f"frames {np.flatnonzero(bad)[~ok][:10].tolist()} have no finite initialization")
+        init[bad] = init[src]
+    fixed = np.zeros(n, dtype=bool)
+    if fixed_frames is not None:
+        fixed[np.asarray(list(fixed_frames), dtype=np.int64)] = True
+
+    kin = _Kinematics(skeleton, bone_lengths_mm)
+    root, u = kin.fit(init)
+    flat = crops if crops.flags.c_contiguous else np.ascontiguousarray(crops)
+    problem = _Problem(
+        init,
+        flat,
+        boxes,
+        centres_mm,
+        camera,
+        skeleton,
+        kin,
+        reference_frames,
+        reference_annotations,
+        closest,
+        list(sequence_breaks),
+        w,
+        cube_mm,
+        chunk_frames,
+    )
+    p = kin.num_params
+    terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
+    energy = sum(terms.values())
+    history = [energy]
+    lam = 1e-3
+    converged = False
+    it = 0
+    for it in range(1, iterations + 1):
+        m = kin.jacobian(u)
+        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, fixed)
+        dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
+        ab0 = _banded(diag, off)
+        accepted = False
+        for _ in range(12):
+            ab = ab0.copy()
+            ab[-1] += lam * dscale
+            try:
+                with _single_blas_thread():
+                    step = solveh_banded(ab, -grad.reshape(-1), lower=False, check_finite=False)
+            except (LinAlgError, ValueError):
+                lam *= 10.0
+                continue
+            step = step.reshape(n, p)
+            step[fixed] = 0.0
+            root_n, u_n = kin.retract(root, u, step)
+            terms_n, _ = problem.evaluate(root_n, u_n, want_jac=False)
+            e_new = sum(terms_n.values())
+            if np.isfinite(e_new) and e_new < energy:
+                accepted = True
+                break
+            lam *= 4.0
+        if not accepted:
+            history.append(energy)
+            if progress is not None:
+                progress(it, energy)
+            converged = True
+            break
+        decrease = (energy - e_new) / max(energy, 1e-12)
+        root, u = root_n, u_n
+        lam = max(lam / 3.0, 1e-7)
+        terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
+        energy = sum(terms.values())
+        history.append(energy)
+        if progress is not None:
+            progress(it, energy)
+        if decrease < tol:
+            converged = True
+            break
+    joints = kin.joints(root, u)
+    viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
+    joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
+    return RefineResult(
+        joints_mm=joints,
+        energy_history=history,
+        bone_violation_max_mm=viol,
+        terms=terms,
+        iterations=it,
+        converged=converged,
+        time_s=time.perf_counter() - t0,
+        info={"lambda": lam},
+    )

@@ -1,0 +1,890 @@
+"""Synthetic depth videos of an articulated right hand, with exact ground truth.
+
+The benchmark data every stage is measured on. A right hand in the MSRA 21-joint layout is posed by
+forward kinematics from joint angles (flexion/abduction inside anatomical limits), moved through a
+sequence of gestures (open, fist, point, pinch, thumbs-up, spread, counting ...) with holds, revisits
+of earlier gestures and global poses, and a global rotation that shows the palm and the back of the
+hand. Each frame is rendered by exact ray casting of capsules (finger bones, palm, forearm) and an
+ellipsoid (palm) at the MSRA camera, then corrupted by sensor-like noise: ~1 mm Gaussian depth noise,
+dropout at depth discontinuities and a few small holes. Background is 0 (no measurement).
+
+Output: the MSRA-2015 layout (``%06d_depth.bin`` + ``joint.txt``) plus ``camera.json`` and
+``synth.json`` (the keyframe schedule: which gesture when, which keyframes are revisits).
+
+Local hand frame (before the global rotation): origin at the wrist, ``+y`` towards the fingers,
+``+x`` towards the thumb/index side, ``+z`` the palm normal of :meth:`Skeleton.palm_normal` (out of
+the palm). Joint angles are parameterised exactly as :func:`chain_joint_angles` measures them, so the
+generated poses satisfy the skeleton's limits by construction (checked in the tests).
+
+Also here: the simulated annotator used by benchmarks (:func:`simulate_annotation`,
+:func:`simulate_annotations`), which is allowed to read ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from .annotation import FrameAnnotation
+from .camera import MSRA_CAMERA, CameraIntrinsics
+from .skeleton import MSRA21, Skeleton
+
+# ---------------------------------------------------------------------------- parameters
+#: articulation parameter layout (degrees): 4 per finger (index, middle, ring, little):
+#: MCP flexion, MCP abduction, PIP flexion, DIP flexion; then the thumb: CMC flexion, CMC
+#: abduction, MCP flexion, MCP abduction, IP flexion.
+PARAM_NAMES: tuple[str, ...] = tuple(
+    f"{f}_{p}"
+    for f in ("index", "middle", "ring", "little")
+    for p in ("mcp_flex", "mcp_abd", "pip_flex", "dip_flex")
+) + ("thumb_cmc_flex", "thumb_cmc_abd", "thumb_mcp_flex", "thumb_mcp_abd", "thumb_ip_flex")
+NUM_PARAMS = len(PARAM_NAMES)
+
+# Limits used for generation: inside MSRA21.angle_limits() with a 1.5 degree margin (fingers:
+# MCP 0-90, PIP 0-110, DIP 0-90, MCP abduction +-15; thumb ranges of its own, narrower than the
+# skeleton's, to stay natural).
+_FINGER_LO = (0.0, -13.5, 0.0, 0.0)
+_FINGER_HI = (88.5, 13.5, 108.5, 88.5)
+_THUMB_LO = (-25.0, -45.0, -15.0, -15.0, -15.0)
+_THUMB_HI = (75.0, 50.0, 70.0, 15.0, 85.0)
+PARAM_LO = np.array(_FINGER_LO * 4 + _THUMB_LO)
+PARAM_HI = np.array(_FINGER_HI * 4 + _THUMB_HI)
+
+#: joints of each chain (MSRA21): a chain starts at a joint whose parent is the wrist.
+_CHAINS = ((1, 2, 3, 4), (5, 6, 7, 8), (9, 10, 11, 12), (13, 14, 15, 16), (17, 18, 19, 20))
+#: parameter indices (flexion, abduction or None) of the joints 1..3 of each chain.
+_CHAIN_PARAMS = tuple(
+    ((4 * f, 4 * f + 1), (4 * f + 2, None), (4 * f + 3, None)) for f in range(4)
+) + (((16, 17), (18, 19), (20, None)),)
+
+#: finger surface radii (mm) of the proximal, middle and distal bone; the distal capsule ends one
+#: radius before the tip, so its cap reaches the tip joint (tips lie on the surface).
+_FINGER_RADII = np.array(
+    [[8.5, 7.5, 6.5], [8.7, 7.7, 6.7], [8.2, 7.3, 6.4], [7.3, 6.5, 5.6], [11.0, 9.5, 8.2]]
+)
+_PALM_HALF_THICKNESS = 12.5
+_FOREARM_RADIUS = 22.0
+_FOREARM_SPREAD = 8.0
+_FOREARM_LENGTH = 150.0
+
+
+@dataclass(frozen=True)
+class HandModel:
+    """A hand's fixed geometry (mm), in the local hand frame (see module docstring)."""
+
+    bone_lengths_mm: np.ndarray  # (20,) MSRA21 bone order
+    local_base: np.ndarray  # (21, 3) wrist, the 4 MCPs and the thumb CMC (other rows unused)
+    palm_centre: np.ndarray  # (3,) rotation centre of the global motion
+    palm_normal: np.ndarray  # (3,) unit, = skeleton palm normal in the local frame (+z)
+
+
+def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
+    """A per-seed hand: template bone lengths times a global scale (0.92-1.08) and +-2.5 % jitter."""
+    rng = np.random.default_rng([seed, 101])
+    template = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    scale = rng.uniform(0.92, 1.08)
+    jitter = np.clip(rng.normal(1.0, 0.025, len(template)), 0.95, 1.05)
+    lengths = template * scale * jitter
+    base = np.zeros((21, 3))
+    # MCPs spread across ~52 mm (scaled), slight transverse arch (middle/ring dorsal, -z).
+    xs = np.array([26.0, 8.0, -10.0, -26.0]) * scale
+    zs = np.array([0.0, -3.0, -2.0, 0.0]) * scale
+    for f, (mcp, bone) in enumerate(zip((1, 5, 9, 13), (0, 4, 8, 12), strict=True)):
+        length = lengths[bone]
+        y = np.sqrt(length**2 - xs[f] ** 2 - zs[f] ** 2)
+        base[mcp] = (xs[f], y, zs[f])
+    cmc_dir = np.array([0.62, 0.68, 0.39])
+    base[17] = cmc_dir / np.linalg.norm(cmc_dir) * lengths[16]
+    n = np.cross(base[1], base[13])
+    n /= np.linalg.norm(n)
+    palm_centre = np.array([0.0, 0.5 * base[[1, 5, 9, 13], 1].mean(), 0.0])
+    return HandModel(lengths, base, palm_centre, n)
+
+
+# ---------------------------------------------------------------------------- kinematics
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _step(
+    a: np.ndarray, lateral: np.ndarray, flex_deg: np.ndarray, abd_deg: np.ndarray
+) -> np.ndarray:
+    """Direction of the outgoing bone from incoming unit direction ``a`` and lateral axis (N, 3)."""
+    n_perp = np.cross(lateral, a)
+    f = np.radians(flex_deg)[..., None]
+    b = np.radians(abd_deg)[..., None]
+    return np.cos(b) * (np.cos(f) * a + np.sin(f) * n_perp) + np.sin(b) * lateral
+
+
+def _transport(lateral: np.ndarray, a: np.ndarray) -> np.ndarray:
+    return _unit(lateral - np.sum(lateral * a, axis=-1, keepdims=True) * a)
+
+
+def local_pose(model: HandModel, params_deg: np.ndarray) -> np.ndarray:
+    """Joint positions ``(N, 21, 3)`` mm in the local hand frame from parameters ``(N, 21)`` deg."""
+    params = np.atleast_2d(np.asarray(params_deg, dtype=np.float64))
+    n_frames = len(params)
+    pose = np.zeros((n_frames, 21, 3))
+    pose[:] = model.local_base
+    normal = np.broadcast_to(model.palm_normal, (n_frames, 3))
+    lengths = model.bone_lengths_mm
+    for chain, pidx in zip(_CHAINS, _CHAIN_PARAMS, strict=True):
+        a = _unit(pose[:, chain[0]] - pose[:, 0])
+        lateral = _unit(np.cross(a, normal - np.sum(normal * a, axis=-1, keepdims=True) * a))
+        for k in range(3):
+            joint, child = chain[k], chain[k + 1]
+            fi, ai = pidx[k]
+            abd = params[:, ai] if ai is not None else np.zeros(n_frames)
+            if k > 0:
+                lateral = _transport(lateral, a)
+            b = _step(a, lateral, params[:, fi], abd)
+            pose[:, child] = pose[:, joint] + lengths[child - 1] * b
+            a = b
+    return pose
+
+
+def chain_joint_angles(
+    poses_mm: np.ndarray, skeleton: Skeleton = MSRA21
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flexion and abduction (deg), each ``(..., A)`` for ``skeleton.angle_joints``, robust to curling.
+
+    Same definition as :meth:`Skeleton.joint_angles` at the first joint of each finger (MCP, thumb
+    CMC). Further along a finger the "towards the palm" direction is transported along the chain
+    (the lateral axis of the parent joint, made perpendicular to the incoming bone) instead of
+    re-projecting the palm normal, which flips sign once a finger has curled past 90 degrees
+    (e.g. the DIP of a fist) and is undefined when a bone points along the palm normal. Where the
+    incoming bone is less than ~90 degrees from the palm plane both definitions agree.
+    """
+    poses = np.asarray(poses_mm, dtype=np.float64)
+    parents = skeleton.parent_array
+    joints = skeleton.angle_joints
+    children = skeleton.angle_children
+    n = skeleton.palm_normal(poses)
+    lateral_of: dict[int, np.ndarray] = {}
+    flex, abd = [], []
+    for k, c in zip(joints, children, strict=True):
+        p = parents[k]
+        a = _unit(poses[..., k, :] - poses[..., p, :])
+        if p in lateral_of:
+            lateral = _transport(lateral_of[p], a)
+        else:
+            n_perp = _unit(n - np.sum(n * a, axis=-1, keepdims=True) * a)
+            lateral = np.cross(a, n_perp)
+        lateral_of[int(k)] = lateral
+        n_perp = np.cross(lateral, a)
+        b = poses[..., c, :] - poses[..., k, :]
+        along = np.sum(b * a, axis=-1)
+        towards = np.sum(b * n_perp, axis=-1)
+        side = np.sum(b * lateral, axis=-1)
+        flex.append(np.degrees(np.arctan2(towards, along)))
+        abd.append(np.degrees(np.arctan2(side, np.hypot(along, towards))))
+    return np.stack(flex, axis=-1), np.stack(abd, axis=-1)
+
+
+def rotation_matrices(yaw_pitch_roll_deg: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` yaw, pitch, roll (deg) -> ``(N, 3, 3)`` local-hand-frame to camera rotations.
+
+    Yaw 0: palm facing the camera, fingers up; yaw 180: back of the hand to the camera. The
+    rotation is ``Rz(roll) Rx(pitch) Ry(yaw) B`` with ``B`` mapping local (x, y, z) to camera
+    (x, -y, -z).
+    """
+    ang = np.radians(np.atleast_2d(yaw_pitch_roll_deg))
+    cy, sy = np.cos(ang[:, 0]), np.sin(ang[:, 0])
+    cp, sp = np.cos(ang[:, 1]), np.sin(ang[:, 1])
+    cr, sr = np.cos(ang[:, 2]), np.sin(ang[:, 2])
+    one, zero = np.ones_like(cy), np.zeros_like(cy)
+    ry = np.stack([cy, zero, sy, zero, one, zero, -sy, zero, cy], -1).reshape(-1, 3, 3)
+    rx = np.stack([one, zero, zero, zero, cp, -sp, zero, sp, cp], -1).reshape(-1, 3, 3)
+    rz = np.stack([cr, -sr, zero, sr, cr, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    base = np.diag([1.0, -1.0, -1.0])
+    return rz @ rx @ ry @ base
+
+
+def forward_kinematics(
+    model: HandModel, params_deg: np.ndarray, rotation: np.ndarray, centre_mm: np.ndarray
+) -> np.ndarray:
+    """Camera-frame joints ``(N, 21, 3)`` mm: parameters ``(N, 21)`` deg, rotations ``(N, 3, 3)``,
+    palm-centre positions ``(N, 3)`` mm."""
+    local = local_pose(model, params_deg) - model.palm_centre
+    return np.einsum("nij,nkj->nki", rotation, local) + np.asarray(centre_mm)[:, None, :]
+
+
+# ---------------------------------------------------------------------------- gestures
+def _fingers(*rows: tuple[float, ...]) -> list[float]:
+    """Rows (mcp_flex, mcp_abd, pip_flex[, dip_flex]) for index..little; DIP defaults to 2/3 PIP."""
+    out: list[float] = []
+    for r in rows:
+        dip = r[3] if len(r) > 3 else 2.0 / 3.0 * r[2]
+        out += [r[0], r[1], r[2], dip]
+    return out
+
+
+_CURLED = (85.0, 0.0, 100.0, 65.0)
+_THUMB_ACROSS = [35.0, -30.0, 30.0, 0.0, 45.0]  # thumb folded over the curled fingers
+_THUMB_OPEN = [-5.0, 20.0, 5.0, 0.0, 5.0]
+_THUMB_IN_PALM = [45.0, -45.0, 45.0, 0.0, 55.0]
+
+#: base gestures: name -> 21 parameters (deg). "pinch" and "ok" get their thumb fitted per hand.
+GESTURES: dict[str, list[float]] = {
+    "open": _fingers((5, 4, 5), (5, 0, 5), (5, -3, 5), (5, -6, 5)) + _THUMB_OPEN,
+    "relaxed": _fingers((12, 3, 18), (16, 0, 24), (20, -3, 30), (26, -5, 36))
+    + [15.0, 5.0, 12.0, 0.0, 15.0],
+    "spread": _fingers((0, 13, 0), (0, 3, 0), (0, -8, 0), (0, -13, 0))
+    + [-15.0, 40.0, 0.0, 0.0, 0.0],
+    "fist": _fingers(_CURLED, _CURLED, _CURLED, _CURLED) + _THUMB_ACROSS,
+    "point": _fingers((3, 2, 3), _CURLED, _CURLED, _CURLED) + _THUMB_ACROSS,
+    "two": _fingers((3, 9, 3), (3, -7, 3), _CURLED, _CURLED) + _THUMB_ACROSS,
+    "three": _fingers((3, 9, 3), (3, 0, 3), (5, -8, 5), _CURLED) + _THUMB_IN_PALM,
+    "four": _fingers((3, 9, 3), (3, 1, 3), (3, -6, 3), (3, -12, 3)) + _THUMB_IN_PALM,
+    "thumbs_up": _fingers(_CURLED, _CURLED, _CURLED, _CURLED) + [5.0, -25.0, 0.0, 0.0, 0.0],
+    "claw": _fingers((15, 6, 80, 60), (15, 0, 80, 60), (15, -5, 80, 60), (15, -9, 80, 60))
+    + [20.0, 20.0, 20.0, 0.0, 40.0],
+    "rock": _fingers((3, 5, 3), _CURLED, _CURLED, (3, -10, 3)) + _THUMB_ACROSS,
+    "call": _fingers(_CURLED, _CURLED, _CURLED, (3, -12, 3)) + [-10.0, 35.0, 0.0, 0.0, 0.0],
+    "grasp": _fingers((45, 3, 55), (48, 0, 60), (50, -3, 60), (52, -6, 60))
+    + [40.0, 0.0, 15.0, 0.0, 20.0],
+    "hook": _fingers((0, 3, 95, 60), (0, 0, 95, 60), (0, -3, 95, 60), (0, -6, 95, 60))
+    + [0.0, 15.0, 10.0, 0.0, 10.0],
+    "pinch": _fingers((35, 0, 40), (30, -2, 45), (35, -5, 55), (40, -8, 60))
+    + [30.0, -10.0, 15.0, 0.0, 15.0],
+    "ok": _fingers((45, 0, 55, 35), (8, 0, 8), (8, -6, 8), (8, -12, 8))
+    + [30.0, -10.0, 15.0, 0.0, 15.0],
+}
+
+
+def _fit_thumb_to_index(model: HandModel, params: np.ndarray, gap_mm: float) -> np.ndarray:
+    """Adjust the thumb parameters so the thumb tip is ``gap_mm`` from the index tip.
+
+    Deterministic batched search (a coarse random batch, then two shrinking batches around the best),
+    preferring small changes from the given thumb parameters.
+    """
+    rng = np.random.default_rng(7)
+    lo, hi = PARAM_LO[16:], PARAM_HI[16:]
+    best = params[16:].copy()
+    spread = (hi - lo) / 2.0
+    for _ in range(4):
+        cand = np.clip(best + rng.uniform(-1, 1, (1500, 5)) * spread, lo, hi)
+        cand[0] = best
+        batch = np.repeat(params[None], len(cand), axis=0)
+        batch[:, 16:] = cand
+        pose = local_pose(model, batch)
+        d = np.linalg.norm(pose[:, 20] - pose[:, 4], axis=-1)
+        cost = (d - gap_mm) ** 2 + 1e-3 * np.sum((cand - params[16:]) ** 2, axis=1)
+        best = cand[int(np.argmin(cost))]
+        spread = spread / 3.0
+    out = params.copy()
+    out[16:] = best
+    return out
+
+
+def gesture_library(model: HandModel) -> dict[str, np.ndarray]:
+    """Gesture parameters ``(21,)`` deg for a hand (pinch/ok thumbs fitted to its bone lengths)."""
+    lib = {
+        k: np.clip(np.asarray(v, dtype=np.float64), PARAM_LO, PARAM_HI) for k, v in GESTURES.items()
+    }
+    lib["pinch"] = _fit_thumb_to_index(model, lib["pinch"], 14.0)
+    lib["ok"] = _fit_thumb_to_index(model, lib["ok"], 12.0)
+    return lib
+
+
+# ---------------------------------------------------------------------------- motion
+@dataclass
+class Keyframe:
+    frame: int  # first frame of the hold at this keyframe
+    gesture: str
+    revisit_of: int  # index of the keyframe it revisits, -1 if new
+    hold: int
+    transition: int  # frames to the next keyframe
+    params: np.ndarray = field(repr=False)  # (21,) deg
+    glob: np.ndarray = field(repr=False)  # (6,) yaw, pitch, roll deg; palm centre x, y, z mm
+
+
+@dataclass
+class SynthMotion:
+    """The full motion of a synthetic sequence (all frames)."""
+
+    model: HandModel
+    params_deg: np.ndarray  # (N, 21)
+    yaw_pitch_roll_deg: np.ndarray  # (N, 3)
+    centre_mm: np.ndarray  # (N, 3) palm centre, camera frame
+    rotation: np.ndarray  # (N, 3, 3)
+    joints_mm: np.ndarray  # (N, 21, 3) camera frame
+    keyframes: list[Keyframe]
+
+
+def _ease(n: int) -> np.ndarray:
+    """``n`` samples of a cosine ease from 0 (exclusive) to 1 (inclusive)."""
+    t = np.arange(1, n + 1) / n
+    return 0.5 - 0.5 * np.cos(np.pi * t)
+
+
+def _sample_glob(rng: np.random.Generator, index: int) -> np.ndarray:
+    if index == 0:
+        yaw = rng.uniform(-25, 20)  # start palm-facing
+    elif index == 1:
+        yaw = rng.uniform(150, 195)  # then turn to show the back of the hand
+    else:
+        yaw = rng.uniform(-70, 200)
+    pitch = rng.uniform(-25, 25)
+    roll = rng.uniform(-30, 30)
+    centre = (rng.uniform(-35, 35), rng.uniform(-25, 30), rng.uniform(350, 400))
+    return np.array([yaw, pitch, roll, *centre])
+
+
+def _segment(
+    a: Keyframe, b_params: np.ndarray, b_glob: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    s = _ease(n)[:, None]
+    return a.params + s * (b_params - a.params), a.glob + s * (b_glob - a.glob)
+
+
+def _max_step_mm(model: HandModel, params: np.ndarray, glob: np.ndarray) -> float:
+    joints = forward_kinematics(model, params, rotation_matrices(glob[:, :3]), glob[:, 3:])
+    return float(np.linalg.norm(np.diff(joints, axis=0), axis=-1).max())
+
+
+def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
+    """Generate the motion (articulation + global pose) of a ``frames``-long sequence.
+
+    Keyframes pick a gesture (random, never the same twice in a row) with a few degrees of
+    variation and a global pose; about 30 % of keyframes after the sixth revisit an earlier
+    keyframe (same gesture, similar global pose). Each keyframe is held 0-40 frames, and the
+    transition to the next one is timed so that the fastest joint moves at a target peak speed of
+    2.5-6 mm/frame (about 1 in 8 transitions is fast: 9-10 mm/frame). A small smooth tremor
+    (about 1 degree, 1 mm) runs throughout.
+    """
+    if frames < 1:
+        raise ValueError("frames must be >= 1")
+    rng = np.random.default_rng([seed, 202])
+    model = make_hand_model(seed)
+    lib = gesture_library(model)
+    names = sorted(lib)
+    keyframes: list[Keyframe] = []
+    params_parts: list[np.ndarray] = []
+    glob_parts: list[np.ndarray] = []
+    total = 0
+
+    def new_keyframe(index: int, previous: str | None) -> tuple[str, int, np.ndarray, np.ndarray]:
+        distinct = [i for i, k in enumerate(keyframes) if k.revisit_of < 0]
+        if index >= 6 and rng.random() < 0.3:
+            j = int(rng.choice([i for i in distinct if keyframes[i].gesture != previous]))
+            src = keyframes[j]
+            params = np.clip(src.params + rng.normal(0, 2.0, NUM_PARAMS), PARAM_LO, PARAM_HI)
+            glob = src.glob + np.concatenate([rng.normal(0, 4.0, 3), rng.normal(0, 4.0, 3)])
+            return src.gesture, j, params, glob
+        if index == 0:
+            name = "open"
+        else:
+            name = str(rng.choice([g for g in names if g != previous]))
+        params = np.clip(lib[name] + rng.normal(0, 3.0, NUM_PARAMS), PARAM_LO, PARAM_HI)
+        return name, -1, params, _sample_glob(rng, index)
+
+    name, rev, params, glob = new_keyframe(0, None)
+    current = Keyframe(0, name, rev, 0, 0, params, glob)
+    while True:
+        hold = int(rng.integers(0, 8)) if not keyframes else int(rng.integers(0, 41))
+        current.hold = hold
+        current.frame = total
+        keyframes.append(current)
+        params_parts.append(np.repeat(current.params[None], hold, axis=0))
+        glob_parts.append(np.repeat(current.glob[None], hold, axis=0))
+        total += hold
+        if total >= frames:
+            break
+        name, rev, params, glob = new_keyframe(len(keyframes), current.gesture)
+        # time the transition for a target peak joint speed (mm/frame)
+        speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+        probe = 60
+        p_probe, g_probe = _segment(current, params, glob, probe)
+        p_probe = np.concatenate([current.params[None], p_probe])
+        g_probe = np.concatenate([current.glob[None], g_probe])
+        step = _max_step_mm(model, p_probe, g_probe)
+        n = max(6, int(np.ceil(probe * step / speed)))
+        current.transition = n
+        p_seg, g_seg = _segment(current, params, glob, n)
+        params_parts.append(p_seg)
+        glob_parts.append(g_seg)
+        total += n
+        current = Keyframe(total, name, rev, 0, 0, params, glob)
+        if total >= frames:
+            current.frame = total
+            keyframes.append(current)
+            break
+
+    params_all = np.concatenate(params_parts)[:frames]
+    glob_all = np.concatenate(glob_parts)[:frames]
+    # smooth tremor: a few slow sinusoids per parameter (own RNG: a shorter sequence is a prefix)
+    rng = np.random.default_rng([seed, 303])
+    t = np.arange(frames)[:, None]
+    tremor_p = np.zeros((frames, NUM_PARAMS))
+    tremor_g = np.zeros((frames, 6))
+    for _ in range(3):
+        period = rng.uniform(25, 90, NUM_PARAMS + 6)
+        phase = rng.uniform(0, 2 * np.pi, NUM_PARAMS + 6)
+        wave = np.sin(2 * np.pi * t / period + phase)
+        tremor_p += 0.6 * wave[:, :NUM_PARAMS]
+        tremor_g += np.array([0.5, 0.5, 0.5, 0.6, 0.6, 0.6]) * wave[:, NUM_PARAMS:]
+    params_all = np.clip(params_all + tremor_p, PARAM_LO, PARAM_HI)
+    glob_all = glob_all + tremor_g
+    rotation = rotation_matrices(glob_all[:, :3])
+    joints = forward_kinematics(model, params_all, rotation, glob_all[:, 3:])
+    keyframes = [k for k in keyframes if k.frame < frames]
+    return SynthMotion(
+        model, params_all, glob_all[:, :3], glob_all[:, 3:], rotation, joints, keyframes
+    )
+
+
+# ---------------------------------------------------------------------------- geometry
+@dataclass
+class Primitives:
+    """Solids in the camera frame (mm): capsules (segment ``a``-``b``, radius) and ellipsoids."""
+
+    cap_a: np.ndarray  # (P, 3)
+    cap_b: np.ndarray  # (P, 3)
+    cap_r: np.ndarray  # (P,)
+    ell_c: np.ndarray  # (E, 3) centres
+    ell_axes: np.ndarray  # (E, 3, 3) columns = unit axes
+    ell_s: np.ndarray  # (E, 3) semi-axes
+
+
+def hand_primitives(model: HandModel, joints_mm: np.ndarray, rotation: np.ndarray) -> Primitives:
+    """Capsules and ellipsoids of the hand, palm and forearm for one frame.
+
+    ``joints_mm`` ``(21, 3)`` camera frame, ``rotation`` ``(3, 3)`` local-to-camera.
+    """
+    j = np.asarray(joints_mm, dtype=np.float64)
+    r_mat = np.asarray(rotation, dtype=np.float64)
+    wrist = j[0]
+    x_ax, y_ax, z_ax = r_mat[:, 0], r_mat[:, 1], r_mat[:, 2]
+    a, b, r = [], [], []
+    for f, chain in enumerate(_CHAINS):
+        for k in range(3):
+            p0, p1 = j[chain[k]], j[chain[k + 1]]
+            rad = _FINGER_RADII[f, k]
+            if k == 2:  # distal bone: cap reaches the tip
+                d = p1 - p0
+                length = np.linalg.norm(d)
+                p1 = p0 + d * max(length - rad, 0.5) / max(length, 1e-9)
+            a.append(p0)
+            b.append(p1)
+            r.append(rad)
+    mcps = j[[1, 5, 9, 13]]
+    palm_r = _PALM_HALF_THICKNESS - 1.5
+    # metacarpals (palm body), knuckle line, heel of the hand, thenar (wrist to thumb CMC/MCP)
+    for m in mcps:
+        a.append(wrist + 0.25 * (m - wrist))
+        b.append(m)
+        r.append(palm_r)
+    a += [mcps[0], mcps[1], mcps[2]]
+    b += [mcps[1], mcps[2], mcps[3]]
+    r += [palm_r + 0.5] * 3
+    a.append(wrist + 14.0 * x_ax + 6.0 * y_ax)
+    b.append(wrist - 14.0 * x_ax + 6.0 * y_ax)
+    r.append(_PALM_HALF_THICKNESS + 1.0)
+    a.append(wrist + 8.0 * x_ax + 8.0 * y_ax)
+    b.append(j[17])
+    r.append(_PALM_HALF_THICKNESS + 1.5)
+    # forearm along the local -y axis: two side-by-side capsules give the flattened cross-section
+    # of a real distal forearm (about 60 mm wide, 44 mm thick) instead of a round 52 mm tube
+    for side in (-1.0, 1.0):
+        a.append(wrist - 18.0 * y_ax + side * _FOREARM_SPREAD * x_ax)
+        b.append(wrist - _FOREARM_LENGTH * y_ax + side * _FOREARM_SPREAD * x_ax)
+        r.append(_FOREARM_RADIUS)
+    # palm slab: ellipsoid over wrist..MCPs
+    centre_local = np.array([0.0, 0.55 * model.local_base[[1, 5, 9, 13], 1].mean(), 0.0])
+    half_width = 0.5 * (model.local_base[1, 0] - model.local_base[13, 0]) + 8.0
+    half_len = 0.5 * model.local_base[[1, 5, 9, 13], 1].mean()
+    wrist_local = model.local_base[0]
+    centre = wrist + r_mat @ (centre_local - wrist_local)
+    return Primitives(
+        cap_a=np.asarray(a),
+        cap_b=np.asarray(b),
+        cap_r=np.asarray(r),
+        ell_c=centre[None],
+        ell_axes=np.stack([x_ax, y_ax, z_ax], axis=1)[None],
+        ell_s=np.array([[half_width, half_len, _PALM_HALF_THICKNESS]]),
+    )
+
+
+_RAY_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _rays(camera: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions ``(H, W, 3)`` through pixel centres and their z components ``(H, W)``."""
+    key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+    if key not in _RAY_CACHE:
+        u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+        d = np.stack(
+            [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1
+        )
+        d = _unit(d)
+        _RAY_CACHE[key] = (d, d[..., 2].copy())
+    return _RAY_CACHE[key]
+
+
+def _bbox(
+    points: np.ndarray, radius: float, camera: CameraIntrinsics
+) -> tuple[int, int, int, int] | None:
+    """Conservative pixel box ``(u0, u1, v0, v1)`` (exclusive ends) of spheres around points."""
+    z = points[:, 2]
+    if np.any(z <= radius + 1.0):
+        return 0, camera.width, 0, camera.height
+    uv = camera.project(points)
+    pad = radius * max(camera.fx, camera.fy) / (z.min() - radius) + 2.0
+    u0 = max(int(np.floor(uv[:, 0].min() - pad)), 0)
+    u1 = min(int(np.ceil(uv[:, 0].max() + pad)) + 1, camera.width)
+    v0 = max(int(np.floor(uv[:, 1].min() - pad)), 0)
+    v1 = min(int(np.ceil(uv[:, 1].max() + pad)) + 1, camera.height)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return u0, u1, v0, v1
+
+
+def render_depth(prims: Primitives, camera: CameraIntrinsics) -> np.ndarray:
+    """Exact ray-cast depth ``(H, W)`` float32 mm (z of the nearest hit; 0 = no hit).
+
+    Each solid is intersected only with the rays in its projected bounding box.
+    """
+    rays, rz = _rays(camera)
+    zbuf = np.full((camera.height, camera.width), np.inf)
+    for pa, pb, rad in zip(prims.cap_a, prims.cap_b, prims.cap_r, strict=True):
+        box = _bbox(np.stack([pa, pb]), rad, camera)
+        if box is None:
+            continue
+        u0, u1, v0, v1 = box
+        rd = rays[v0:v1, u0:u1]
+        ba = pb - pa
+        oa = -pa
+        baba = ba @ ba
+        bard = rd @ ba
+        baoa = ba @ oa
+        rdoa = rd @ oa
+        oaoa = oa @ oa
+        qa = np.maximum(baba - bard * bard, 1e-12)
+        qb = baba * rdoa - baoa * bard
+        qc = baba * oaoa - baoa * baoa - rad * rad * baba
+        h = qb * qb - qa * qc
+        hit = h >= 0
+        sq = np.sqrt(np.where(hit, h, 0.0))
+        t = (-qb - sq) / qa
+        y = baoa + t * bard
+        on_body = hit & (y > 0) & (y < baba)
+        # caps: the sphere at the end the cylinder entry lies beyond
+        oc = np.where((y <= 0)[..., None], oa, -pb)
+        sb = np.sum(rd * oc, axis=-1)
+        sc = np.sum(oc * oc, axis=-1) - rad * rad
+        sh = sb * sb - sc
+        cap_hit = hit & ~on_body & (sh > 0)
+        t_cap = -sb - np.sqrt(np.where(cap_hit, sh, 0.0))
+        t = np.where(on_body, t, np.where(cap_hit, t_cap, np.inf))
+        t = np.where(t > 0, t, np.inf)
+        region = zbuf[v0:v1, u0:u1]
+        np.minimum(region, t * rz[v0:v1, u0:u1], out=region)
+    for c, axes, s in zip(prims.ell_c, prims.ell_axes, prims.ell_s, strict=True):
+        corners = (
+            c[:, None]
+            + (axes * s)
+            @ np.array(
+                [[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64
+            ).T
+        )
+        box = _bbox(corners.T, 0.0, camera)
+        if box is None:
+            continue
+        u0, u1, v0, v1 = box
+        rd = rays[v0:v1, u0:u1]
+        o = (axes.T @ (-c)) / s
+        d = (rd @ axes) / s
+        qa = np.sum(d * d, axis=-1)
+        qb = d @ o
+        qc = o @ o - 1.0
+        h = qb * qb - qa * qc
+        hit = h >= 0
+        t = (-qb - np.sqrt(np.where(hit, h, 0.0))) / qa
+        t = np.where(hit & (t > 0), t, np.inf)
+        region = zbuf[v0:v1, u0:u1]
+        np.minimum(region, t * rz[v0:v1, u0:u1], out=region)
+    return np.where(np.isfinite(zbuf), zbuf, 0.0).astype(np.float32)
+
+
+def add_sensor_noise(
+    depth: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    sigma_mm: float = 1.0,
+    edge_jump_mm: float = 20.0,
+    edge_dropout: float = 0.45,
+    holes: float = 2.0,
+) -> np.ndarray:
+    """Sensor-like corruption of a clean depth map ``(H, W)`` float32 mm (0 = background).
+
+    Gaussian noise (``sigma_mm``); a random ``edge_dropout`` fraction of the pixels whose depth
+    differs by more than ``edge_jump_mm`` from a 4-neighbour (silhouette and self-occlusion edges)
+    set to 0; a Poisson(``holes``) number of small round holes (radius 1-3 px) on the hand.
+    """
+    full = np.asarray(depth, dtype=np.float32)
+    result = np.zeros_like(full)
+    rows_any = np.flatnonzero(full.any(axis=1))
+    if rows_any.size == 0:
+        return result
+    cols_any = np.flatnonzero(full.any(axis=0))
+    # work on the hand's bounding box (plus a margin for the holes), not the whole image
+    r0, r1 = max(rows_any[0] - 1, 0), min(rows_any[-1] + 2, full.shape[0])
+    c0, c1 = max(cols_any[0] - 1, 0), min(cols_any[-1] + 2, full.shape[1])
+    clean = full[r0:r1, c0:c1]
+    valid = clean > 0
+    out = clean + rng.normal(0.0, sigma_mm, clean.shape).astype(np.float32)
+    pad = np.pad(clean, 1)
+    centre = pad[1:-1, 1:-1]
+    jump = np.zeros(clean.shape, dtype=bool)
+    for nb in (pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]):
+        jump |= np.abs(centre - nb) > edge_jump_mm
+    drop = valid & jump & (rng.random(clean.shape) < edge_dropout)
+    keep = valid & ~drop
+    rows, cols = np.nonzero(valid)
+    n_holes = int(rng.poisson(holes))
+    if n_holes:
+        picks = rng.integers(0, rows.size, n_holes)
+        radii = rng.uniform(1.0, 3.0, n_holes)
+        vv, uu = np.mgrid[-3:4, -3:4]
+        for p, rad in zip(picks, radii, strict=True):
+            disk = vv**2 + uu**2 <= rad**2
+            rr = np.clip(rows[p] + vv[disk], 0, clean.shape[0] - 1)
+            cc = np.clip(cols[p] + uu[disk], 0, clean.shape[1] - 1)
+            keep[rr, cc] = False
+    result[r0:r1, c0:c1] = np.where(keep, np.maximum(out, 1.0), 0.0)
+    return result
+
+
+def render_frame(
+    model: HandModel,
+    joints_mm: np.ndarray,
+    rotation: np.ndarray,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    *,
+    noise_seed: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """Depth ``(H, W)`` float32 mm of one hand pose; ``noise_seed=(seed, frame)`` adds sensor noise."""
+    depth = render_depth(hand_primitives(model, joints_mm, rotation), camera)
+    if noise_seed is not None:
+        depth = add_sensor_noise(depth, np.random.default_rng([noise_seed[0], noise_seed[1], 303]))
+    return depth
+
+
+# ---------------------------------------------------------------------------- sequence writer
+def _render_chunk(
+    out_dir: str,
+    frames: np.ndarray,
+    joints: np.ndarray,
+    rotation: np.ndarray,
+    model: HandModel,
+    seed: int,
+    camera_json: str,
+) -> int:
+    from .datasets.msra import write_msra_frame
+
+    camera = CameraIntrinsics.model_validate_json(camera_json)
+    for i, f in enumerate(frames):
+        depth = render_frame(model, joints[i], rotation[i], camera, noise_seed=(seed, int(f)))
+        write_msra_frame(os.path.join(out_dir, f"{int(f):06d}_depth.bin"), depth)
+    return len(frames)
+
+
+def generate_sequence(
+    out_dir: str | Path,
+    frames: int = 3040,
+    seed: int = 0,
+    progress: bool = True,
+    workers: int = 2,
+) -> Path:
+    """Render a synthetic sequence into ``out_dir`` (MSRA layout + ``camera.json`` + ``synth.json``).
+
+    Deterministic for a given ``seed`` whatever ``workers`` (every frame's noise has its own RNG),
+    and a shorter sequence is a prefix of a longer one with the same seed. Frame files numbered
+    ``>= frames`` left in ``out_dir`` by an earlier run are deleted.
+    ``workers`` processes render chunks of frames; ``progress`` shows a one-line tqdm bar.
+    Returns ``out_dir`` as a Path.
+    """
+    from .datasets.msra import write_msra_joints
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # frames left over from an earlier, longer sequence in the same folder would be read back
+    for stale in out.glob("*_depth.bin"):
+        stem = stale.name[: -len("_depth.bin")]
+        if stem.isdigit() and int(stem) >= frames:
+            stale.unlink()
+    motion = synthesize_motion(frames, seed)
+    camera = MSRA_CAMERA
+    camera.to_json(out / "camera.json")
+    write_msra_joints(out / "joint.txt", motion.joints_mm)
+    (out / "synth.json").write_text(json.dumps(describe_motion(motion, seed), indent=1))
+
+    chunk = 40
+    starts = range(0, frames, chunk)
+    jobs = [
+        (
+            str(out),
+            np.arange(s, min(s + chunk, frames)),
+            motion.joints_mm[s : s + chunk],
+            motion.rotation[s : s + chunk],
+            motion.model,
+            seed,
+            camera.model_dump_json(),
+        )
+        for s in starts
+    ]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=frames, desc=f"synth {out.name}", unit="frame", leave=True)
+    try:
+        if workers <= 1 or len(jobs) == 1:
+            for job in jobs:
+                done = _render_chunk(*job)
+                if bar is not None:
+                    bar.update(done)
+        else:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+                futures = [pool.submit(_render_chunk, *job) for job in jobs]
+                for fut in futures:
+                    done = fut.result()
+                    if bar is not None:
+                        bar.update(done)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
+
+def describe_motion(motion: SynthMotion, seed: int) -> dict:
+    """JSON-able summary: seed, bone lengths, the keyframe schedule, yaw and depth ranges."""
+    normal_z = MSRA21.palm_normal(motion.joints_mm)[:, 2]
+    return {
+        "seed": seed,
+        "frames": len(motion.joints_mm),
+        "bone_lengths_mm": [round(float(x), 3) for x in motion.model.bone_lengths_mm],
+        "yaw_range_deg": [
+            float(motion.yaw_pitch_roll_deg[:, 0].min()),
+            float(motion.yaw_pitch_roll_deg[:, 0].max()),
+        ],
+        "palm_facing_fraction": float(np.mean(normal_z < 0)),
+        "joint_depth_range_mm": [
+            float(motion.joints_mm[..., 2].min()),
+            float(motion.joints_mm[..., 2].max()),
+        ],
+        "keyframes": [
+            {
+                "frame": k.frame,
+                "gesture": k.gesture,
+                "revisit_of": k.revisit_of,
+                "hold": k.hold,
+                "transition": k.transition,
+                "yaw_pitch_roll_deg": [round(float(x), 2) for x in k.glob[:3]],
+                "centre_mm": [round(float(x), 2) for x in k.glob[3:]],
+            }
+            for k in motion.keyframes
+        ],
+    }
+
+
+# ---------------------------------------------------------------------------- simulated annotator
+def simulate_annotation(
+    gt_joints_mm: np.ndarray,
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton: Skeleton = MSRA21,
+    noise_px: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> FrameAnnotation:
+    """What a careful annotator would click for one frame, from ground truth (benchmarks only).
+
+    * ``uv_px``: projection of the ground-truth joints ``(J, 3)`` plus Gaussian noise of std
+      ``noise_px`` per coordinate;
+    * ``visible``: the observed depth ``D`` (minimum valid depth in the 3x3 window at the rounded
+      projected pixel) satisfies ``D >= z - surface_offset - 10 mm`` (nothing much closer in front of
+      the joint); no valid depth there (or off the image) -> False;
+    * ``depth_order``: +1 if ``z > z_parent + 10 mm``, -1 if ``z < z_parent - 10 mm``, else 0 (root 0);
+    * ``xyz_mm``: all NaN.
+    """
+    gt = np.asarray(gt_joints_mm, dtype=np.float64)
+    depth = np.asarray(depth)
+    j = skeleton.num_joints
+    if gt.shape != (j, 3):
+        raise ValueError(f"ground truth must be ({j}, 3), got {gt.shape}")
+    uv = camera.project(gt)
+    noisy = uv.copy()
+    if noise_px > 0:
+        rng = rng if rng is not None else np.random.default_rng()
+        noisy = uv + rng.normal(0.0, noise_px, uv.shape)
+    h, w = depth.shape
+    pad = np.pad(np.where(depth > 0, depth, np.inf).astype(np.float64), 1, constant_values=np.inf)
+    col = np.rint(uv[:, 0])
+    row = np.rint(uv[:, 1])
+    inside = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    ci = np.where(inside, col, 0).astype(np.int64)
+    ri = np.where(inside, row, 0).astype(np.int64)
+    window = np.stack([pad[ri + dy, ci + dx] for dy in range(3) for dx in range(3)], axis=1)
+    observed = window.min(axis=1)
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    visible = inside & np.isfinite(observed) & (observed >= gt[:, 2] - offsets - 10.0)
+    parents = skeleton.parent_array
+    order = np.zeros(j, dtype=np.int8)
+    has_parent = parents >= 0
+    dz = gt[:, 2] - gt[np.where(has_parent, parents, 0), 2]
+    order[has_parent & (dz > 10.0)] = 1
+    order[has_parent & (dz < -10.0)] = -1
+    return FrameAnnotation(
+        uv_px=noisy, visible=visible, depth_order=order, xyz_mm=np.full((j, 3), np.nan)
+    ).validate(j)
+
+
+def simulate_annotations(
+    sequence, frames, noise_px: float = 0.0, seed: int = 0
+) -> dict[int, FrameAnnotation]:
+    """Simulated annotations for ``frames`` of a sequence with ground truth (benchmarks only).
+
+    Each frame's 2D noise comes from its own RNG (``seed``, frame), so a frame's annotation does not
+    depend on which other frames are requested.
+    """
+    gt = sequence.ground_truth
+    if gt is None:
+        raise ValueError(f"{sequence.path}: the simulated annotator needs ground truth")
+    out: dict[int, FrameAnnotation] = {}
+    for f in frames:
+        f = int(f)
+        rng = np.random.default_rng([seed, f, 404])
+        out[f] = simulate_annotation(
+            gt.joints_mm[f], sequence.depth(f), sequence.camera, sequence.skeleton, noise_px, rng
+        )
+    return out
+
+
+__all__ = [
+    "GESTURES",
+    "PARAM_NAMES",
+    "HandModel",
+    "Primitives",
+    "SynthMotion",
+    "add_sensor_noise",
+    "chain_joint_angles",
+    "forward_kinematics",
+    "generate_sequence",
+    "gesture_library",
+    "hand_primitives",
+    "local_pose",
+    "make_hand_model",
+    "render_depth",
+    "render_frame",
+    "rotation_matrices",
+    "simulate_annotation",
+    "simulate_annotations",
+    "synthesize_motion",
+]

@@ -1,0 +1,176 @@
+"""End-to-end: the annotation view in real Chromium, every step asserted on the session files.
+
+One in-process server per module (on a free port) over a 40-frame 320x240 synthetic session.
+The browser camera is set by the server to the depth sensor's pose ("Sensor view"), and click
+targets are projected through the browser's own camera (viser_helpers.screen_of).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from viser_helpers import browser, drag, open_app, screen_of, wait_camera_still, wait_until
+
+from app.server import AnnoServer, serve
+from handanno_core.session import JOURNAL_FILE, Session
+
+SCREENSHOT = Path(__file__).resolve().parents[2] / "static" / "screenshots" / "annotate.png"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def journal(folder: Path) -> list[dict]:
+    path = folder / JOURNAL_FILE
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def reopen(folder: Path) -> Session:
+    """The session as a restarted server would see it (snapshot + journal replay); read-only use."""
+    return Session.open(folder)
+
+
+@dataclass
+class Ctx:
+    app: AnnoServer
+    page: object
+    folder: Path
+
+    @property
+    def view(self):
+        views = self.app.annotate_views()
+        assert len(views) == 1, f"expected one connected browser, got {len(views)}"
+        return views[0]
+
+    def image_point(self, uv) -> tuple[float, float]:
+        """Page position of depth-image pixel ``uv`` (on the image plane)."""
+        geo = self.view._frame_data.geometry
+        return screen_of(self.page, "/annotate", geo.pixel_to_scene(np.asarray(uv, float)))
+
+    def joint_point(self, k: int) -> tuple[float, float]:
+        return screen_of(self.page, "/annotate/joints", self.view._joint_positions_scene()[k])
+
+
+@pytest.fixture(scope="module")
+def ctx(session_folder):
+    app = serve(session_folder, port=free_port(), block=False)
+    try:
+        with browser() as b:
+            page = open_app(b, app.url)
+            wait_until(lambda: app.annotate_views(), what="the view of the browser")
+            wait_camera_still(page)
+            yield Ctx(app, page, session_folder)
+    finally:
+        app.stop()
+
+
+def hand_pixels(ctx: Ctx) -> tuple[np.ndarray, np.ndarray]:
+    """Two pixels on the hand: its centre and one 25 px to the side that has depth."""
+    geo = ctx.view._frame_data.geometry
+    cam = ctx.app.session.camera
+    centre = cam.project(geo.centre_mm)
+    depth = ctx.view._frame_data.depth
+    for du in (25, -25, 0):
+        for dv in (0, 20, -20):
+            uv = np.round(centre + (du, dv))
+            if (du or dv) and depth[int(uv[1]), int(uv[0])] > 0:
+                return np.round(centre), uv
+    raise AssertionError("no second hand pixel found")
+
+
+def test_annotate_flow(ctx: Ctx):
+    page, folder, view = ctx.page, ctx.folder, ctx.view
+    frame = view.frame
+    assert frame == 0 and view.state.joint == 0
+    assert page.get_by_text("0 of 4 reference frames annotated").is_visible()
+
+    # 1. Click on the depth image: the selected joint (wrist) gets that 2D position, joint 1 is next.
+    uv0, uv1 = hand_pixels(ctx)
+    page.mouse.click(*ctx.image_point(uv0))
+    entries = wait_until(lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_2d"], what="a 2D edit in the journal")
+    cmd = entries[-1]["command"]
+    assert (cmd["frame"], cmd["joint"]) == (frame, 0)
+    assert np.allclose(cmd["uv_px"], uv0, atol=1.5), (cmd["uv_px"], uv0)
+    wait_until(lambda: view.state.joint == 1, what="auto-advance to joint 1")
+    page.mouse.click(*ctx.image_point(uv1))
+    wait_until(lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 2, what="second 2D edit")
+    ann = reopen(folder).annotation(frame)
+    assert np.allclose(ann.uv_px[0], uv0, atol=1.5) and np.allclose(ann.uv_px[1], uv1, atol=1.5)
+    assert page.get_by_text("✓ saved").is_visible()
+
+    # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
+    before = view._joint_positions_mm()[0].copy()
+    start = ctx.joint_point(0)
+    drag(page, start, (start[0] + 60, start[1]))
+    entries = wait_until(lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_3d"], what="a 3D drag edit")
+    cmd = entries[-1]["command"]
+    assert (cmd["frame"], cmd["joint"]) == (frame, 0)
+    moved = np.asarray(cmd["xyz_mm"]) - before
+    assert moved[0] > 10.0, f"dragged right but x moved {moved}"
+    ann = reopen(folder).annotation(frame)
+    assert np.allclose(ann.xyz_mm[0], cmd["xyz_mm"], atol=0.01)
+    assert view.state.joint == 0  # a drag selects the dragged joint, no auto-advance
+
+    # 3. Toggle visibility of the selected joint with the panel button.
+    page.get_by_role("button", name="Visibility: visible (V)").click()
+    wait_until(lambda: journal(folder)[-1]["command"]["kind"] == "set_visible", what="a visibility edit")
+    assert journal(folder)[-1]["command"] == {"frame": frame, "kind": "set_visible", "joint": 0, "visible": False}
+    assert not reopen(folder).annotation(frame).visible[0]
+    wait_until(lambda: page.get_by_role("button", name="Visibility: occluded (V)").is_visible(), what="button label")
+
+    # 4. Undo with Ctrl+Z (hotkey through viser's command layer): visibility is back, journaled as undo.
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    n = len(journal(folder))
+    page.keyboard.press("Control+z")
+    wait_until(lambda: len(journal(folder)) > n and journal(folder)[-1]["action"] == "undo", what="an undo entry")
+    assert reopen(folder).annotation(frame).visible[0]
+    # ... and redo with Ctrl+Shift+Z.
+    page.keyboard.press("Control+Shift+z")
+    wait_until(lambda: journal(folder)[-1]["action"] == "redo", what="a redo entry")
+    assert not reopen(folder).annotation(frame).visible[0]
+
+    # 5. Next frame by hotkey N: the view moves to the next reference frame.
+    page.keyboard.press("n")
+    wait_until(lambda: view.frame == 10, what="next reference frame")
+    wait_until(lambda: page.get_by_text("Frame 10", exact=True).is_visible(), what="the panel showing frame 10")
+    wait_camera_still(page)
+
+
+def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
+    """An edit by another client on the frame shown is drawn (and lifted); README screenshot."""
+    from handanno_core.synth import simulate_annotation
+
+    app, view = ctx.app, ctx.view
+    session = app.session
+    frame = view.frame
+    seq = session.open_sequence()
+    ann = simulate_annotation(seq.ground_truth.joints_mm[frame], seq.depth(frame), session.camera, session.skeleton)
+    from handanno_core.session import SetFrameAnnotation
+
+    entry = session.execute(SetFrameAnnotation(frame=frame, annotation=ann.to_json()), client="another-annotator")
+    wait_until(lambda: ctx.page.get_by_text("Frame edited elsewhere").is_visible(), what="the notification")
+    wait_until(
+        lambda: view.last_skeleton_update is not None and view.last_skeleton_update[0] >= entry.seq,
+        timeout_s=30,
+        what="the lifted skeleton",
+    )
+    assert np.allclose(view._annotation.uv_px, ann.uv_px, atol=1e-3, equal_nan=True)
+    gt = seq.ground_truth.joints_mm[frame]
+    err = np.linalg.norm(view._lifted.joints_mm - gt, axis=1)
+    assert np.median(err) < 15.0, f"lifted skeleton far from ground truth: {err}"
+    ctx.page.wait_for_timeout(1500)
+    ctx.page.get_by_role("button", name="Sensor view").click()
+    ctx.page.wait_for_timeout(1500)
+    SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+    ctx.page.screenshot(path=str(SCREENSHOT))
+    assert SCREENSHOT.stat().st_size > 10_000

@@ -1,0 +1,101 @@
+"""End-to-end: edits made in the page survive a SIGKILL of the server (journal fsynced before "saved")."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+from viser_helpers import browser, open_app, save_screenshot, screen_of, wait_camera_still, wait_until
+
+from app.frames import FrameStore
+from handanno_core.session import JOURNAL_FILE, Session
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(folder: Path, port: int) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.server", str(folder), "--port", str(port)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+    def up() -> bool:
+        if proc.poll() is not None:
+            raise AssertionError(f"server exited with {proc.returncode}: {proc.stdout.read()}")
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1) as r:
+                return r.status == 200
+        except OSError:
+            return False
+
+    wait_until(up, timeout_s=30, interval_s=0.2, what="the server to answer HTTP")
+    return proc
+
+
+def journal(folder: Path) -> list[dict]:
+    path = folder / JOURNAL_FILE
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+
+
+def test_sigkill_loses_no_acknowledged_edit(session_folder: Path):
+    port = free_port()
+    geo = FrameStore(Session.open(session_folder)).get(0).geometry  # same geometry the server computes
+    camera = Session.open(session_folder).camera
+    uv = np.round(camera.project(geo.centre_mm))
+    proc = start_server(session_folder, port)
+    try:
+        with browser() as b:
+            page = open_app(b, f"http://127.0.0.1:{port}/")
+            wait_camera_still(page)
+            page.mouse.click(*screen_of(page, "/annotate", geo.pixel_to_scene(uv)))  # wrist, 2D
+            wait_until(lambda: page.get_by_text("(edit #1)").is_visible(), what="saved #1")
+            page.keyboard.press("v")  # joint 1 (auto-selected) -> occluded
+            wait_until(lambda: page.get_by_text("(edit #2)").is_visible(), what="saved #2")
+            page.keyboard.press("d")  # joint 1 depth order -> closer
+            wait_until(lambda: page.get_by_text("(edit #3)").is_visible(), what="saved #3")
+            os.kill(proc.pid, signal.SIGKILL)  # no chance to snapshot or close anything
+            proc.wait(10)
+        assert proc.returncode == -signal.SIGKILL
+        kinds = [e["command"]["kind"] for e in journal(session_folder)]
+        assert kinds == ["set_2d", "set_visible", "set_depth_order"]
+
+        proc = start_server(session_folder, port)  # the restart replays the journal
+        reopened = Session.open(session_folder)
+        ann = reopened.annotation(0)
+        assert np.allclose(ann.uv_px[0], uv, atol=1.5)
+        assert not ann.visible[1] and ann.depth_order[1] == -1
+        with browser() as b:
+            page = open_app(b, f"http://127.0.0.1:{port}/")
+            try:
+                # The view opens on the first unplaced joint (1), whose saved state is shown.
+                wait_until(lambda: page.get_by_text("Visibility: occluded (V)").is_visible(), what="joint 1 occluded")
+                assert page.get_by_text("Depth vs parent: closer (D)").is_visible()
+            except AssertionError:
+                save_screenshot(page, "test_sigkill_restart.png")
+                raise
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        time.sleep(0.1)

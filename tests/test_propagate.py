@@ -1,0 +1,187 @@
+"""Tests for handanno_core.propagate on a tiny rendered sequence (exact ground truth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from handanno_core.crops import compute_crops, crop_boxes, crop_depth, locate_hands
+from handanno_core.datasets import open_sequence
+from handanno_core.datasets.base import FrameError
+from handanno_core.propagate import descendants, propagate, propagation_order
+from handanno_core.synth import generate_sequence
+
+N = 24
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = generate_sequence(tmp_path_factory.mktemp("seq") / "s", frames=N, seed=3, progress=False, workers=1)
+    seq = open_sequence(path)
+    centres = locate_hands(seq)
+    crops = compute_crops(seq, centres, None)
+    boxes = crop_boxes(centres, seq.camera)
+    gt = seq.ground_truth.joints_mm
+    bones = seq.skeleton.estimate_bone_lengths(gt)
+    return dict(seq=seq, centres=centres, crops=crops, boxes=boxes, gt=gt, bones=bones)
+
+
+def chain_forest() -> np.ndarray:
+    """References 0 and 12; chains 1..11 and 13..23, with a branch 5 <- 2 (so 3, 4 are siblings)."""
+    parent = np.arange(-1, N - 1)
+    parent[0] = -1
+    parent[12] = -1
+    parent[5] = 2
+    return parent
+
+
+def run(data, parent, refs, **kw):
+    seq = data["seq"]
+    kw.setdefault("depth_of", seq.depth)
+    return propagate(
+        parent,
+        {r: data["gt"][r] for r in refs},
+        kw.pop("crops", data["crops"]),
+        kw.pop("boxes", data["boxes"]),
+        kw.pop("centres", data["centres"]),
+        kw.pop("depth_of"),
+        seq.camera,
+        seq.skeleton,
+        data["bones"],
+        **kw,
+    )
+
+
+def errors(result, gt, frames):
+    return np.linalg.norm(result.joints_mm[frames] - gt[frames], axis=-1)
+
+
+class NoisyCopy:
+    """Frame 1 = frame 0's depth with 0.5 mm noise on the valid pixels."""
+
+    def __init__(self, seq):
+        self.seq = seq
+        d = seq.depth(0)
+        rng = np.random.default_rng(0)
+        self.copy = np.where(d > 0, d + rng.normal(0, 0.5, d.shape), 0).astype(np.float32)
+
+    def __call__(self, i):
+        return self.seq.depth(0) if i == 0 else self.copy
+
+
+def test_near_identical_frame_gives_nearly_identical_joints(data):
+    seq = data["seq"]
+    depth_of = NoisyCopy(seq)
+    c = data["centres"][[0, 0]]
+    crops = np.stack([data["crops"][0], crop_depth(depth_of(1), seq.camera, c[1]).astype(np.float16)])
+    res = run(
+        data,
+        np.array([-1, 0]),
+        [0],
+        crops=crops,
+        boxes=data["boxes"][[0, 0]],
+        centres=c,
+        depth_of=depth_of,
+    )
+    moved = np.linalg.norm(res.joints_mm[1] - data["gt"][0], axis=-1)
+    assert moved.mean() < 2.5, moved
+    assert moved.max() < 8.0, moved
+    # bone lengths are restored exactly (to the fit's tolerance)
+    lengths = seq.skeleton.bone_lengths(res.joints_mm[1])
+    np.testing.assert_allclose(lengths, data["bones"], atol=0.05)
+    assert res.confidence[1].min() > 0.5
+    assert res.skipped == []
+
+
+def test_chain_propagation_is_accurate_and_confident_where_right(data):
+    parent = chain_forest()
+    res = run(data, parent, [0, 12])
+    nonref = np.flatnonzero(parent >= 0)
+    err = errors(res, data["gt"], nonref)
+    assert np.isfinite(err).all()
+    assert err.mean() < 12.0
+    assert np.all((res.confidence[nonref] >= 0) & (res.confidence[nonref] <= 1))
+    assert np.all(np.isnan(res.joints_mm[[0, 12]]))  # references are not recomputed
+    assert res.frame_score.shape == (N,)
+
+
+def test_parents_are_processed_before_children(data):
+    parent = chain_forest()
+    seen: list[int] = []
+    res = run(data, parent, [0, 12], on_result=lambda f, j, c: seen.append(f))
+    assert sorted(seen) == sorted(np.flatnonzero(parent >= 0).tolist())
+    done = {0, 12}
+    for f in seen:
+        assert parent[f] in done, (f, parent[f])
+        done.add(f)
+    # the same holds for the order of the parallel run's tasks
+    res2 = run(data, parent, [0, 12], workers=2)
+    pos = {f: i for i, f in enumerate(res2.order)}
+    for f in res2.order:
+        if parent[f] >= 0 and parent[f] not in (0, 12):
+            assert pos[parent[f]] < pos[f]
+    np.testing.assert_array_equal(res.joints_mm, res2.joints_mm)
+    np.testing.assert_array_equal(res.confidence, res2.confidence)
+
+
+def test_frame_without_depth_is_skipped_and_reported(data):
+    seq = data["seq"]
+
+    def depth_of(i):
+        if i == 3:
+            return np.zeros_like(seq.depth(0))
+        if i == 7:
+            raise FrameError("frame7.bin", 7, "truncated file")
+        return seq.depth(i)
+
+    parent = np.arange(-1, N - 1)
+    parent[0] = -1
+    res = run(data, parent, [0], depth_of=depth_of, frames=np.arange(1, 12))
+    assert res.skipped == [3, 7]
+    assert "no depth" in res.reasons[3] and "truncated" in res.reasons[7]
+    assert np.all(np.isnan(res.joints_mm[[3, 7]]))
+    # descendants go on from the nearest valid ancestor
+    assert res.source[4] == 2 and res.source[8] == 6
+    assert np.isfinite(res.joints_mm[[1, 2, 4, 5, 6, 8, 9, 10, 11]]).all()
+    assert errors(res, data["gt"], [4, 8]).mean() < 20.0
+    # frames outside the subset are untouched
+    assert np.all(np.isnan(res.joints_mm[12:]))
+
+
+def test_descendants_and_incremental_recompute(data):
+    parent = chain_forest()
+    assert descendants(parent, [2]).tolist() == [2, 3, 4, 5, 6, 7, 8, 9, 10, 11]
+    assert descendants(parent, [4]).tolist() == [4]
+    assert descendants(parent, [0, 12]).tolist() == list(range(N))
+    order = propagation_order(parent, [0])[0]
+    assert order[:2].tolist() == [1, 2] and set(order.tolist()) == set(range(1, 12))
+    full = run(data, parent, [0, 12])
+    sub = descendants(parent, [5])
+    part = run(data, parent, [0, 12], frames=sub, initial_mm=full.joints_mm, initial_confidence=full.confidence)
+    np.testing.assert_array_equal(part.joints_mm[sub], full.joints_mm[sub])
+    np.testing.assert_array_equal(part.confidence[sub], full.confidence[sub])
+    others = np.setdiff1d(np.arange(N), sub)
+    assert np.all(np.isnan(part.joints_mm[others]))
+
+
+def test_every_aligner_runs(data):
+    parent = np.array([-1, 0, 1, 2] + [-1] * (N - 4))
+    for name in ("sift", "ncc"):
+        res = run(data, parent, [0], aligner=name, frames=[1, 2, 3])
+        err = errors(res, data["gt"], [1, 2, 3])
+        assert np.isfinite(err).all() and err.mean() < 15.0, (name, err.mean())
+    with pytest.raises(ValueError, match="aligner"):
+        run(data, parent, [0], aligner="raft")
+
+
+def test_dask_cluster_matches_local_processes(data):
+    distributed = pytest.importorskip("dask.distributed")
+    parent = chain_forest()
+    local = run(data, parent, [0, 12], workers=2)
+    with distributed.LocalCluster(
+        n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
+    ) as cluster:
+        remote = run(data, parent, [0, 12], scheduler=cluster.scheduler_address)
+    np.testing.assert_array_equal(local.joints_mm, remote.joints_mm)
+    np.testing.assert_array_equal(local.confidence, remote.confidence)
+    assert local.skipped == remote.skipped

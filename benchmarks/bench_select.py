@@ -84,9 +84,7 @@ def quality_and_speed(crops, gt, breaks) -> dict:
         for fraction in FRACTIONS:
             for strategy in STRATEGIES:
                 t0 = time.perf_counter()
-                sel = select_references(
-                    x, strategy, ref_fraction=fraction, sequence_breaks=breaks
-                )
+                sel = select_references(x, strategy, ref_fraction=fraction, sequence_breaks=breaks)
                 t_sel = time.perf_counter() - t0
                 stats = forest_stats(gt, sel)
                 t, frac = coverage_curve(gt, sel)
@@ -145,9 +143,7 @@ def make_large_crops(base: np.ndarray, frames: int, path: Path, seed: int = 0) -
             f = done + j
             a = cv2.getRotationMatrix2D((s / 2 - 0.5, s / 2 - 0.5), rot[f], scale[f])
             a[:, 2] += (dx[f], dy[f])
-            w = cv2.warpAffine(
-                chunk[j], a, (s, s), flags=cv2.INTER_LINEAR, borderValue=1.0
-            )
+            w = cv2.warpAffine(chunk[j], a, (s, s), flags=cv2.INTER_LINEAR, borderValue=1.0)
             hand = w < 0.999
             w[hand] += rng.normal(0, 0.01, int(hand.sum())).astype(np.float32)
             out[f] = np.clip(w, -1, 1)
@@ -160,6 +156,7 @@ def make_large_crops(base: np.ndarray, frames: int, path: Path, seed: int = 0) -
 def large_worker(path: str, kind: str, strategy: str, fraction: float) -> None:
     """Run in a fresh process: descriptors + selection on a memmap, print JSON."""
     crops = np.load(path, mmap_mode="r")
+    c0 = time.process_time()
     t0 = time.perf_counter()
     x = compute_descriptors(crops, kind)
     t_desc = time.perf_counter() - t0
@@ -182,6 +179,7 @@ def large_worker(path: str, kind: str, strategy: str, fraction: float) -> None:
                 "knn_s": round(t_knn, 2),
                 "select_total_s": round(t_sel, 2),
                 "total_s": round(t_desc + t_sel, 2),
+                "cpu_s": round(time.process_time() - c0, 2),
                 "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                 "depth_max": int(sel.depths().max()),
             }

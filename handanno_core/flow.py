@@ -160,13 +160,13 @@ def dense_sift(
 # SIFT Flow: data cost and belief propagation on one level
 # ---------------------------------------------------------------------------------------------
 def _data_cost(s1: np.ndarray, s2: np.ndarray, offset: np.ndarray, radius: int, trunc: float) -> np.ndarray:
-    """Truncated L1 descriptor cost ``(h, w, S, S)`` (axes: dv, du) around integer ``offset``."""
+    """Truncated L1 descriptor cost ``(S, S, h, w)`` (label axes dv, du first) around ``offset``."""
     h, w, c = s1.shape
     size = 2 * radius + 1
     s1f = s1.reshape(h * w, c)
     s2f = s2.reshape(h * w, c)
     ys, xs = np.mgrid[0:h, 0:w]
-    cost = np.empty((h, w, size, size), np.float32)
+    cost = np.empty((size, size, h, w), np.float32)
     # targets outside the image read the replicated border (crops have background there)
     for iv in range(size):
         yy = np.clip(ys + offset[..., 1] + (iv - radius), 0, h - 1)
@@ -174,65 +174,68 @@ def _data_cost(s1: np.ndarray, s2: np.ndarray, offset: np.ndarray, radius: int, 
             xx = np.clip(xs + offset[..., 0] + (iu - radius), 0, w - 1)
             diff = cv2.absdiff(s1f, s2f[(yy * w + xx).ravel()])
             l1 = cv2.reduce(diff, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32F).reshape(h, w)
-            cost[:, :, iv, iu] = np.minimum(l1, trunc)
+            np.minimum(l1, trunc, out=cost[iv, iu])
     return cost
 
 
+def _take(f: np.ndarray, axis: int, i: int) -> np.ndarray:
+    return f[i] if axis == 0 else f[:, i]
+
+
 def _l1_transform(f: np.ndarray, axis: int, alpha: float) -> None:
-    """In-place lower envelope ``min_l f(l) + alpha |x - l|`` along label ``axis`` (-1 or -2)."""
+    """In-place lower envelope ``min_l f(l) + alpha |x - l|`` along label ``axis`` (0 or 1)."""
     n = f.shape[axis]
-    sl = [slice(None)] * f.ndim
     for i in range(1, n):
-        cur, prev = list(sl), list(sl)
-        cur[axis], prev[axis] = i, i - 1
-        np.minimum(f[tuple(cur)], f[tuple(prev)] + alpha, out=f[tuple(cur)])
+        cur = _take(f, axis, i)
+        np.minimum(cur, _take(f, axis, i - 1) + alpha, out=cur)
     for i in range(n - 2, -1, -1):
-        cur, nxt = list(sl), list(sl)
-        cur[axis], nxt[axis] = i, i + 1
-        np.minimum(f[tuple(cur)], f[tuple(nxt)] + alpha, out=f[tuple(cur)])
+        cur = _take(f, axis, i)
+        np.minimum(cur, _take(f, axis, i + 1) + alpha, out=cur)
 
 
-def _shift_labels(
-    f: np.ndarray, delta: np.ndarray | None, axis: int, alpha: float
-) -> np.ndarray:
-    """Evaluate a distance transform at labels shifted by the per-pixel integer ``delta``.
+def _label_min(f: np.ndarray, axis: int) -> np.ndarray:
+    """Minimum over a short label axis as a chain of elementwise minima (fast for S ~ 5)."""
+    out = _take(f, axis, 0).copy()
+    for i in range(1, f.shape[axis]):
+        np.minimum(out, _take(f, axis, i), out=out)
+    return np.expand_dims(out, axis)
 
-    Outside the window the lower envelope continues with slope ``alpha`` (exact for L1).
-    """
+
+def _shift_labels(f: np.ndarray, delta: np.ndarray | None, axis: int, alpha: float) -> np.ndarray:
+    """Evaluate a lower envelope at labels ``l + delta`` (``delta (h, w)`` int per pixel).
+
+    Outside the window the envelope continues with slope ``alpha`` (exact for the L1 part)."""
     if delta is None:
         return f
-    idx, excess = delta
-    out = np.take_along_axis(f, idx, axis=axis)
-    out += alpha * excess
+    n = f.shape[axis]
+    out = f.copy()
+    for dv in np.unique(delta):
+        if dv == 0:
+            continue
+        sel = delta == dv
+        for i in range(n):
+            src = min(max(i + int(dv), 0), n - 1)
+            excess = abs(i + int(dv) - src)
+            dst = _take(out, axis, i)
+            np.copyto(dst, _take(f, axis, src) + alpha * excess, where=sel)
     return out
 
 
 def _message(h: np.ndarray, shifts, alpha: float, d: float) -> np.ndarray:
-    """Min-sum message for the truncated-L1 smoothness, separable in u (axis -1) and v (axis -2)."""
+    """Min-sum message for the truncated-L1 smoothness, separable in u (axis 1) and v (axis 0).
+
+    ``h``: ``(S, S, h, w)`` sender belief without the receiver's message; ``shifts``: per-pixel
+    label offsets (receiver window minus sender window) for u and v, or None where all zero."""
     g = h.copy()
-    _l1_transform(g, -1, alpha)
-    g = _shift_labels(g, shifts[0], -1, alpha)
-    np.minimum(g, h.min(axis=-1, keepdims=True) + d, out=g)
+    _l1_transform(g, 1, alpha)
+    g = _shift_labels(g, shifts[0], 1, alpha)
+    np.minimum(g, _label_min(h, 1) + d, out=g)
     g2 = g.copy()
-    _l1_transform(g2, -2, alpha)
-    g2 = _shift_labels(g2, shifts[1], -2, alpha)
-    np.minimum(g2, g.min(axis=-2, keepdims=True) + d, out=g2)
-    g2 -= g2.min(axis=(-2, -1), keepdims=True)
+    _l1_transform(g2, 0, alpha)
+    g2 = _shift_labels(g2, shifts[1], 0, alpha)
+    np.minimum(g2, _label_min(g, 0) + d, out=g2)
+    g2 -= _label_min(_label_min(g2, 0), 1)
     return g2
-
-
-def _label_shift(delta: np.ndarray, radius: int, axis: int):
-    """Index/excess arrays for evaluating labels at ``l + delta`` (delta ``(h, w)`` int)."""
-    if not np.any(delta):
-        return None
-    size = 2 * radius + 1
-    lab = np.arange(size)
-    target = lab[None, None, :] + delta[..., None]  # (h, w, S)
-    idx = np.clip(target, 0, size - 1)
-    excess = np.abs(target - idx).astype(np.float32)
-    if axis == -1:
-        return idx[:, :, None, :], excess[:, :, None, :]
-    return idx[:, :, :, None], excess[:, :, :, None]
 
 
 def _bp_level(
@@ -252,7 +255,9 @@ def _bp_level(
     top_level: int,
     subpixel: bool,
 ) -> np.ndarray:
-    """One coarse-to-fine level of SIFT Flow: discrete search around ``init``, loopy BP."""
+    """One coarse-to-fine level of SIFT Flow: discrete search around ``init``, loopy BP.
+
+    Arrays are ``(S, S, h, w)`` (label axes first, so label loops touch contiguous images)."""
     is_top = level == top_level
     r = radius_top if is_top else radius
     n_iter = top_iterations if is_top else iterations
@@ -263,44 +268,48 @@ def _bp_level(
     lab = np.arange(-r, r + 1)
     g = gamma * 2.0**level  # the small-displacement weight grows with the level as in SIFT Flow
     cost += g * (
-        np.abs(offset[..., 1, None, None] + lab[None, None, :, None])
-        + np.abs(offset[..., 0, None, None] + lab[None, None, None, :])
+        np.abs(offset[None, None, :, :, 1] + lab[:, None, None, None])
+        + np.abs(offset[None, None, :, :, 0] + lab[None, :, None, None])
     ).astype(np.float32)
     # messages into each pixel from its left, right, upper and lower neighbour
     m_left = np.zeros_like(cost)
     m_right = np.zeros_like(cost)
     m_up = np.zeros_like(cost)
     m_down = np.zeros_like(cost)
-    # label shifts between neighbouring windows: evaluating the sender's transform at the
-    # receiver's labels means l_sender = l_receiver + (o_receiver - o_sender)
+
+    # evaluating the sender's envelope at the receiver's labels: l_s = l_r + (o_r - o_s)
+    def shifts(du, dv):
+        return (du if np.any(du) else None, dv if np.any(dv) else None)
+
     du_x = offset[:, 1:, 0] - offset[:, :-1, 0]  # receiver right of sender
     dv_x = offset[:, 1:, 1] - offset[:, :-1, 1]
     du_y = offset[1:, :, 0] - offset[:-1, :, 0]  # receiver below sender
     dv_y = offset[1:, :, 1] - offset[:-1, :, 1]
-    sh_to_right = (_label_shift(du_x, r, -1), _label_shift(dv_x, r, -2))
-    sh_to_left = (_label_shift(-du_x, r, -1), _label_shift(-dv_x, r, -2))
-    sh_to_down = (_label_shift(du_y, r, -1), _label_shift(dv_y, r, -2))
-    sh_to_up = (_label_shift(-du_y, r, -1), _label_shift(-dv_y, r, -2))
+    sh_right, sh_left = shifts(du_x, dv_x), shifts(-du_x, -dv_x)
+    sh_down, sh_up = shifts(du_y, dv_y), shifts(-du_y, -dv_y)
     for _ in range(n_iter):
         belief = cost + m_left + m_right + m_up + m_down
         new_left = np.zeros_like(cost)
-        new_left[:, 1:] = _message((belief - m_right)[:, :-1], sh_to_right, alpha, d)
+        new_left[..., 1:] = _message((belief - m_right)[..., :-1], sh_right, alpha, d)
         new_right = np.zeros_like(cost)
-        new_right[:, :-1] = _message((belief - m_left)[:, 1:], sh_to_left, alpha, d)
+        new_right[..., :-1] = _message((belief - m_left)[..., 1:], sh_left, alpha, d)
         new_up = np.zeros_like(cost)
-        new_up[1:] = _message((belief - m_down)[:-1], sh_to_down, alpha, d)
+        new_up[..., 1:, :] = _message((belief - m_down)[..., :-1, :], sh_down, alpha, d)
         new_down = np.zeros_like(cost)
-        new_down[:-1] = _message((belief - m_up)[1:], sh_to_up, alpha, d)
+        new_down[..., :-1, :] = _message((belief - m_up)[..., 1:, :], sh_up, alpha, d)
         m_left, m_right, m_up, m_down = new_left, new_right, new_up, new_down
-    belief = (cost + m_left + m_right + m_up + m_down).reshape(h, w, size * size)
-    best = np.argmin(belief, axis=-1)
+    belief = (cost + m_left + m_right + m_up + m_down).reshape(size * size, h, w)
+    best = np.argmin(belief, axis=0)
     bv, bu = np.divmod(best, size)
     flow = np.stack([offset[..., 0] + bu - r, offset[..., 1] + bv - r], axis=-1).astype(np.float32)
     if subpixel:
         # Sub-pixel: a fit through the data cost aggregated over a small window (the beliefs
         # are piecewise linear near their minimum and would bias the fit).
-        agg = cv2.blur(cost.reshape(h, w, size * size), (5, 5), borderType=cv2.BORDER_REFLECT)
-        agg = agg.reshape(h, w, size, size)
+        agg = cv2.blur(
+            np.ascontiguousarray(cost.reshape(size * size, h, w).transpose(1, 2, 0)),
+            (5, 5),
+            borderType=cv2.BORDER_REFLECT,
+        ).reshape(h, w, size, size)
         yy, xx = np.mgrid[0:h, 0:w]
         f0 = agg[yy, xx, bv, bu]
         for comp, lab_i in ((0, bu), (1, bv)):

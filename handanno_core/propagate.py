@@ -42,6 +42,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,14 +111,16 @@ class PropagationResult:
     @property
     def frame_score(self) -> np.ndarray:
         """``(N,)`` mean joint confidence per frame (NaN where not computed)."""
-        with np.errstate(all="ignore"):
-            return np.nanmean(self.confidence, axis=1) if self.confidence.size else np.zeros(0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmean(self.confidence, axis=1)
 
     @property
     def frame_min(self) -> np.ndarray:
         """``(N,)`` minimum joint confidence per frame."""
-        with np.errstate(all="ignore"):
-            return np.nanmin(self.confidence, axis=1) if self.confidence.size else np.zeros(0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmin(self.confidence, axis=1)
 
 
 # ---------------------------------------------------------------------------------------------

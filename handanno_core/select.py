@@ -375,9 +375,7 @@ def select_references(
         return _select_coverage(x, need_graph(coverage_k), target, rho)
     if strategy == "uniform":
         return _select_uniform(n, breaks, target, rho)
-    return _select_forest(
-        x, need_graph(graph_k), breaks, target, rho, hop_cost, temporal_weight
-    )
+    return _select_forest(x, need_graph(graph_k), breaks, target, rho, hop_cost, temporal_weight)
 
 
 def _clean_breaks(sequence_breaks, n: int) -> np.ndarray:
@@ -637,9 +635,7 @@ def knn_graph_matrix(
     return sp.csr_matrix((www, (key // n, key % n)), shape=(n, n))
 
 
-def _select_forest(
-    x, graph: KnnGraph, breaks, target, rho, hop_cost, temporal_weight
-) -> Selection:
+def _select_forest(x, graph: KnnGraph, breaks, target, rho, hop_cost, temporal_weight) -> Selection:
     from scipy.sparse.csgraph import dijkstra
 
     n = len(x)

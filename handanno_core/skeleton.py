@@ -11,6 +11,9 @@ with ``a = X_k - X_p`` (incoming bone) and ``b = X_c - X_k`` (outgoing bone),
   (positive = bending towards the palm side);
 * ``abduction`` = angle of ``b`` out of that plane (sideways), signed along ``a x n_perp``.
 
+Along a finger the reference plane is carried from joint to joint (see :meth:`Skeleton.joint_angles`),
+so a curled finger keeps measuring positive flexion.
+
 The palm normal of a right hand is ``normalize((index_mcp - wrist) x (little_mcp - wrist))`` in the
 OpenCV camera frame and points out of the palm; it is negated for a left hand.
 """
@@ -121,29 +124,46 @@ class Skeleton:
         return n if right_hand else -n
 
     def joint_angles(self, poses_mm: np.ndarray, right_hand: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``."""
+        """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``.
+
+        At the first joint of a finger (MCP, thumb CMC) the towards-the-palm direction is the palm
+        normal made perpendicular to the incoming bone. Further along the finger the lateral axis is
+        transported along the chain (the parent joint's lateral axis made perpendicular to the
+        incoming bone) rather than re-projecting the palm normal, which would flip sign once a
+        finger curls past 90 degrees (the DIP of a fist) and is undefined when a bone points along
+        the palm normal.
+        """
         poses = np.asarray(poses_mm, dtype=np.float64)
-        k = self.angle_joints
-        p = self.parent_array[k]
-        c = self.angle_children
-        n = self.palm_normal(poses, right_hand)[..., None, :]
-        a = poses[..., k, :] - poses[..., p, :]
-        b = poses[..., c, :] - poses[..., k, :]
-        a_hat = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-9)
-        n_perp = n - np.sum(n * a_hat, axis=-1, keepdims=True) * a_hat
-        n_perp = n_perp / np.maximum(np.linalg.norm(n_perp, axis=-1, keepdims=True), 1e-9)
-        lateral = np.cross(a_hat, n_perp)
-        along = np.sum(b * a_hat, axis=-1)
-        towards_palm = np.sum(b * n_perp, axis=-1)
-        side = np.sum(b * lateral, axis=-1)
-        flexion = np.degrees(np.arctan2(towards_palm, along))
-        abduction = np.degrees(np.arctan2(side, np.hypot(along, towards_palm)))
-        return flexion, abduction
+        parents = self.parent_array
+        normal = self.palm_normal(poses, right_hand)
+        lateral_of: dict[int, np.ndarray] = {}
+        flexion, abduction = [], []
+        for k, c in zip(self.angle_joints, self.angle_children, strict=True):
+            p = int(parents[k])
+            a = _unit(poses[..., k, :] - poses[..., p, :])
+            if p in lateral_of:
+                lateral = _unit(lateral_of[p] - np.sum(lateral_of[p] * a, axis=-1, keepdims=True) * a)
+            else:
+                n_perp = _unit(normal - np.sum(normal * a, axis=-1, keepdims=True) * a)
+                lateral = np.cross(a, n_perp)
+            lateral_of[int(k)] = lateral
+            n_perp = np.cross(lateral, a)
+            b = poses[..., c, :] - poses[..., k, :]
+            along = np.sum(b * a, axis=-1)
+            towards_palm = np.sum(b * n_perp, axis=-1)
+            side = np.sum(b * lateral, axis=-1)
+            flexion.append(np.degrees(np.arctan2(towards_palm, along)))
+            abduction.append(np.degrees(np.arctan2(side, np.hypot(along, towards_palm))))
+        return np.stack(flexion, axis=-1), np.stack(abduction, axis=-1)
 
     def angle_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """``(A, 2)`` flexion and abduction limits in degrees for ``angle_joints``."""
         k = self.angle_joints
         return np.asarray(self.flexion_limits_deg)[k], np.asarray(self.abduction_limits_deg)[k]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
 _NAN = (float("nan"), float("nan"))

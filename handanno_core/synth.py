@@ -13,7 +13,7 @@ Output: the MSRA-2015 layout (``%06d_depth.bin`` + ``joint.txt``) plus ``camera.
 
 Local hand frame (before the global rotation): origin at the wrist, ``+y`` towards the fingers,
 ``+x`` towards the thumb/index side, ``+z`` the palm normal of :meth:`Skeleton.palm_normal` (out of
-the palm). Joint angles are parameterised exactly as :func:`chain_joint_angles` measures them, so the
+the palm). Joint angles are parameterised exactly as :meth:`Skeleton.joint_angles` measures them, so the
 generated poses satisfy the skeleton's limits by construction (checked in the tests).
 
 Also here: the simulated annotator used by benchmarks (:func:`simulate_annotation`,
@@ -147,44 +147,6 @@ def local_pose(model: HandModel, params_deg: np.ndarray) -> np.ndarray:
             pose[:, child] = pose[:, joint] + lengths[child - 1] * b
             a = b
     return pose
-
-
-def chain_joint_angles(
-    poses_mm: np.ndarray, skeleton: Skeleton = MSRA21
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flexion and abduction (deg), each ``(..., A)`` for ``skeleton.angle_joints``, robust to curling.
-
-    Same definition as :meth:`Skeleton.joint_angles` at the first joint of each finger (MCP, thumb
-    CMC). Further along a finger the "towards the palm" direction is transported along the chain
-    (the lateral axis of the parent joint, made perpendicular to the incoming bone) instead of
-    re-projecting the palm normal, which flips sign once a finger has curled past 90 degrees
-    (e.g. the DIP of a fist) and is undefined when a bone points along the palm normal. Where the
-    incoming bone is less than ~90 degrees from the palm plane both definitions agree.
-    """
-    poses = np.asarray(poses_mm, dtype=np.float64)
-    parents = skeleton.parent_array
-    joints = skeleton.angle_joints
-    children = skeleton.angle_children
-    n = skeleton.palm_normal(poses)
-    lateral_of: dict[int, np.ndarray] = {}
-    flex, abd = [], []
-    for k, c in zip(joints, children, strict=True):
-        p = parents[k]
-        a = _unit(poses[..., k, :] - poses[..., p, :])
-        if p in lateral_of:
-            lateral = _transport(lateral_of[p], a)
-        else:
-            n_perp = _unit(n - np.sum(n * a, axis=-1, keepdims=True) * a)
-            lateral = np.cross(a, n_perp)
-        lateral_of[int(k)] = lateral
-        n_perp = np.cross(lateral, a)
-        b = poses[..., c, :] - poses[..., k, :]
-        along = np.sum(b * a, axis=-1)
-        towards = np.sum(b * n_perp, axis=-1)
-        side = np.sum(b * lateral, axis=-1)
-        flex.append(np.degrees(np.arctan2(towards, along)))
-        abd.append(np.degrees(np.arctan2(side, np.hypot(along, towards))))
-    return np.stack(flex, axis=-1), np.stack(abd, axis=-1)
 
 
 def rotation_matrices(yaw_pitch_roll_deg: np.ndarray) -> np.ndarray:
@@ -874,7 +836,6 @@ __all__ = [
     "Primitives",
     "SynthMotion",
     "add_sensor_noise",
-    "chain_joint_angles",
     "forward_kinematics",
     "generate_sequence",
     "gesture_library",

@@ -26,6 +26,12 @@ def data(tmp_path_factory):
     return dict(seq=seq, centres=centres, crops=crops, boxes=boxes, gt=gt, bones=bones)
 
 
+@pytest.fixture(scope="module")
+def local_processes(data):
+    """The chain forest propagated by two local processes (shared: a pool start is slow)."""
+    return run(data, chain_forest(), [0, 12], workers=2)
+
+
 def chain_forest() -> np.ndarray:
     """References 0 and 12; chains 1..11 and 13..23, with a branch 5 <- 2 (so 3, 4 are siblings)."""
     parent = np.arange(-1, N - 1)
@@ -105,7 +111,7 @@ def test_chain_propagation_is_accurate_and_confident_where_right(data):
     assert res.frame_score.shape == (N,)
 
 
-def test_parents_are_processed_before_children(data):
+def test_parents_are_processed_before_children(data, local_processes):
     parent = chain_forest()
     seen: list[int] = []
     res = run(data, parent, [0, 12], on_result=lambda f, j, c: seen.append(f))
@@ -115,7 +121,7 @@ def test_parents_are_processed_before_children(data):
         assert parent[f] in done, (f, parent[f])
         done.add(f)
     # the same holds for the order of the parallel run's tasks
-    res2 = run(data, parent, [0, 12], workers=2)
+    res2 = local_processes
     pos = {f: i for i, f in enumerate(res2.order)}
     for f in res2.order:
         if parent[f] >= 0 and parent[f] not in (0, 12):
@@ -165,19 +171,19 @@ def test_descendants_and_incremental_recompute(data):
 
 
 def test_every_aligner_runs(data):
-    parent = np.array([-1, 0, 1, 2] + [-1] * (N - 4))
+    parent = np.array([-1, 0, 1] + [-1] * (N - 3))
     for name in ("sift", "ncc"):
-        res = run(data, parent, [0], aligner=name, frames=[1, 2, 3])
-        err = errors(res, data["gt"], [1, 2, 3])
+        res = run(data, parent, [0], aligner=name, frames=[1, 2])
+        err = errors(res, data["gt"], [1, 2])
         assert np.isfinite(err).all() and err.mean() < 15.0, (name, err.mean())
     with pytest.raises(ValueError, match="aligner"):
         run(data, parent, [0], aligner="raft")
 
 
-def test_dask_cluster_matches_local_processes(data):
+def test_dask_cluster_matches_local_processes(data, local_processes):
     distributed = pytest.importorskip("dask.distributed")
     parent = chain_forest()
-    local = run(data, parent, [0, 12], workers=2)
+    local = local_processes
     with distributed.LocalCluster(
         n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
     ) as cluster:

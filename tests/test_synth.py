@@ -41,7 +41,7 @@ def _files(folder: Path) -> dict[str, bytes]:
 # ---------------------------------------------------------------------------- kinematics
 def test_joint_angles_within_limits_on_every_frame(motion):
     flex_lim, abd_lim = MSRA21.angle_limits()
-    flex, abd = synth.chain_joint_angles(motion.joints_mm)
+    flex, abd = MSRA21.joint_angles(motion.joints_mm)
     tol = 0.5
     assert np.all(flex >= flex_lim[:, 0] - tol) and np.all(flex <= flex_lim[:, 1] + tol)
     assert np.all(abd >= abd_lim[:, 0] - tol) and np.all(abd <= abd_lim[:, 1] + tol)
@@ -50,35 +50,11 @@ def test_joint_angles_within_limits_on_every_frame(motion):
     assert np.abs(abd[:, 0]).max() > 10.0  # index MCP abduction
 
 
-def test_chain_angles_match_skeleton_definition_where_it_is_well_defined(motion):
-    # Skeleton.joint_angles re-projects the palm normal at every joint, which flips once a finger
-    # has curled past 90 degrees (fist DIPs) and tilts with MCP abduction; chain_joint_angles
-    # transports the joint frame along the finger. They agree at the first joint of every chain
-    # and along a planar finger that is not curled past the palm normal.
-    poses = motion.joints_mm
-    flex_s, abd_s = MSRA21.joint_angles(poses)
-    flex_c, abd_c = synth.chain_joint_angles(poses)
-    first = np.isin(MSRA21.angle_joints, [1, 5, 9, 13, 17])
-    assert np.allclose(flex_s[:, first], flex_c[:, first], atol=1e-6)
-    assert np.allclose(abd_s[:, first], abd_c[:, first], atol=1e-6)
-    # planar fingers (no MCP abduction), not curled past the palm normal at the PIP
-    rng = np.random.default_rng(3)
-    params = rng.uniform(synth.PARAM_LO, synth.PARAM_HI, (200, synth.NUM_PARAMS))
-    params[:, [1, 5, 9, 13]] = 0.0
-    params[:, [0, 4, 8, 12]] = rng.uniform(0, 70, (200, 4))
-    pose = synth.local_pose(motion.model, params)
-    flex_s, abd_s = MSRA21.joint_angles(pose)
-    flex_c, abd_c = synth.chain_joint_angles(pose)
-    pips = [1, 4, 7, 10]
-    assert np.allclose(flex_s[:, pips], flex_c[:, pips], atol=1e-6)
-    assert np.allclose(abd_s[:, pips], abd_c[:, pips], atol=1e-6)
-
-
 def test_fk_parameters_are_the_measured_angles():
     model = synth.make_hand_model(2)
     rng = np.random.default_rng(0)
     params = rng.uniform(synth.PARAM_LO, synth.PARAM_HI, (50, synth.NUM_PARAMS))
-    flex, abd = synth.chain_joint_angles(synth.local_pose(model, params))
+    flex, abd = MSRA21.joint_angles(synth.local_pose(model, params))
     flex_idx = [0, 2, 3, 4, 6, 7, 8, 10, 11, 12, 14, 15, 16, 18, 20]
     assert np.allclose(flex, params[:, flex_idx], atol=1e-6)
     assert np.allclose(abd[:, [0, 3, 6, 9, 12, 13]], params[:, [1, 5, 9, 13, 17, 19]], atol=1e-6)

@@ -8,13 +8,14 @@ targets are projected through the browser's own camera (viser_helpers.screen_of)
 from __future__ import annotations
 
 import json
+import re
 import socket
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-from viser_helpers import browser, drag, open_app, screen_of, wait_camera_still, wait_until
+from viser_helpers import browser, dismiss_webgl_toast, drag, open_app, screen_of, wait_camera_still, wait_until
 
 from app.server import AnnoServer, serve
 from handanno_core.session import JOURNAL_FILE, Session
@@ -106,7 +107,7 @@ def test_annotate_flow(ctx: Ctx):
     wait_until(lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 2, what="second 2D edit")
     ann = reopen(folder).annotation(frame)
     assert np.allclose(ann.uv_px[0], uv0, atol=1.5) and np.allclose(ann.uv_px[1], uv1, atol=1.5)
-    assert page.get_by_text("✓ saved").is_visible()
+    assert page.get_by_text(re.compile(r"✓ saved \d\d:\d\d:\d\d \(edit #2\)")).is_visible()
 
     # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
     before = view._joint_positions_mm()[0].copy()
@@ -170,7 +171,9 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
     assert np.median(err) < 15.0, f"lifted skeleton far from ground truth: {err}"
     ctx.page.wait_for_timeout(1500)
     ctx.page.get_by_role("button", name="Sensor view").click()
-    ctx.page.wait_for_timeout(1500)
+    wait_camera_still(ctx.page)
+    dismiss_webgl_toast(ctx.page)
+    ctx.page.wait_for_timeout(500)
     SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
     ctx.page.screenshot(path=str(SCREENSHOT))
     assert SCREENSHOT.stat().st_size > 10_000

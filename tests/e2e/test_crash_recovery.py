@@ -13,7 +13,14 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
-from viser_helpers import browser, open_app, save_screenshot, screen_of, wait_camera_still, wait_until
+from viser_helpers import (
+    browser,
+    open_app,
+    save_screenshot,
+    screen_of,
+    wait_camera_still,
+    wait_until,
+)
 
 from app.frames import FrameStore
 from handanno_core.session import JOURNAL_FILE, Session
@@ -52,12 +59,16 @@ def start_server(folder: Path, port: int) -> subprocess.Popen:
 
 def journal(folder: Path) -> list[dict]:
     path = folder / JOURNAL_FILE
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+    return (
+        [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+    )
 
 
 def test_sigkill_loses_no_acknowledged_edit(session_folder: Path):
     port = free_port()
-    geo = FrameStore(Session.open(session_folder)).get(0).geometry  # same geometry the server computes
+    geo = (
+        FrameStore(Session.open(session_folder)).get(0).geometry
+    )  # same geometry the server computes
     camera = Session.open(session_folder).camera
     uv = np.round(camera.project(geo.centre_mm))
     proc = start_server(session_folder, port)
@@ -73,20 +84,23 @@ def test_sigkill_loses_no_acknowledged_edit(session_folder: Path):
             wait_until(lambda: page.get_by_text("(edit #3)").is_visible(), what="saved #3")
             os.kill(proc.pid, signal.SIGKILL)  # no chance to snapshot or close anything
             proc.wait(10)
-        assert proc.returncode == -signal.SIGKILL
-        kinds = [e["command"]["kind"] for e in journal(session_folder)]
-        assert kinds == ["set_2d", "set_visible", "set_depth_order"]
+            assert proc.returncode == -signal.SIGKILL
+            kinds = [e["command"]["kind"] for e in journal(session_folder)]
+            assert kinds == ["set_2d", "set_visible", "set_depth_order"]
 
-        proc = start_server(session_folder, port)  # the restart replays the journal
-        reopened = Session.open(session_folder)
-        ann = reopened.annotation(0)
-        assert np.allclose(ann.uv_px[0], uv, atol=1.5)
-        assert not ann.visible[1] and ann.depth_order[1] == -1
-        with browser() as b:
+            proc = start_server(session_folder, port)  # the restart replays the journal
+            reopened = Session.open(session_folder)
+            ann = reopened.annotation(0)
+            assert np.allclose(ann.uv_px[0], uv, atol=1.5)
+            assert not ann.visible[1] and ann.depth_order[1] == -1
+            page.close()
             page = open_app(b, f"http://127.0.0.1:{port}/")
             try:
                 # The view opens on the first unplaced joint (1), whose saved state is shown.
-                wait_until(lambda: page.get_by_text("Visibility: occluded (V)").is_visible(), what="joint 1 occluded")
+                wait_until(
+                    lambda: page.get_by_text("Visibility: occluded (V)").is_visible(),
+                    what="joint 1 occluded",
+                )
                 assert page.get_by_text("Depth vs parent: closer (D)").is_visible()
             except AssertionError:
                 save_screenshot(page, "test_sigkill_restart.png")

@@ -94,19 +94,27 @@ class AnnotateState:
     def _execute(self, command) -> JournalEntry:
         return self.session.execute(command, client=self.client)
 
-    def place_2d(self, uv_px: np.ndarray, joint: int | None = None, advance: bool = True) -> JournalEntry:
+    def place_2d(
+        self, uv_px: np.ndarray, joint: int | None = None, advance: bool = True
+    ) -> JournalEntry:
         """Set the (selected) joint's 2D position; the next unplaced joint becomes selected."""
         j = self.joint if joint is None else int(joint)
         uv = np.asarray(uv_px, dtype=np.float64)
         cam = self.session.camera
         uv = np.clip(uv, [0.0, 0.0], [cam.width - 1.0, cam.height - 1.0])
-        entry = self._execute(SetJoint2D(frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))))
+        entry = self._execute(
+            SetJoint2D(
+                frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))
+            )
+        )
         self.joint = j
         if advance:
             self.advance_joint()
         return entry
 
-    def place_3d(self, xyz_mm: np.ndarray, joint: int | None = None, advance: bool = True) -> JournalEntry:
+    def place_3d(
+        self, xyz_mm: np.ndarray, joint: int | None = None, advance: bool = True
+    ) -> JournalEntry:
         """Place the (selected) joint in 3D (mm, camera frame)."""
         j = self.joint if joint is None else int(joint)
         xyz = tuple(round(float(x), 2) for x in np.asarray(xyz_mm, dtype=np.float64))
@@ -133,7 +141,9 @@ class AnnotateState:
         if self.session.skeleton.parent_array[self.joint] < 0:
             return None  # the root has no parent to compare with
         order = int(self.annotation().depth_order[self.joint])
-        return self._execute(SetDepthOrder(frame=self.frame, joint=self.joint, order=DEPTH_ORDER_CYCLE[order]))
+        return self._execute(
+            SetDepthOrder(frame=self.frame, joint=self.joint, order=DEPTH_ORDER_CYCLE[order])
+        )
 
     def undo(self) -> JournalEntry | None:
         return self.session.undo(self.client)

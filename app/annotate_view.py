@@ -55,7 +55,13 @@ def load_colours() -> dict[str, Any]:
     except (OSError, ValueError):
         return {
             "root": [240, 240, 240],
-            "chains": [[230, 60, 60], [240, 160, 40], [70, 190, 80], [60, 140, 230], [190, 80, 220]],
+            "chains": [
+                [230, 60, 60],
+                [240, 160, 40],
+                [70, 190, 80],
+                [60, 140, 230],
+                [190, 80, 220],
+            ],
             "selected": [255, 255, 0],
             "handle_2d": [255, 255, 255],
             "occluded_opacity": 0.35,
@@ -74,6 +80,21 @@ def joint_colours(parents: np.ndarray, colours: dict[str, Any]) -> np.ndarray:
             k = int(parents[k])
         out[j] = colours["root"] if parents[j] < 0 else chains[root_children.index(k) % len(chains)]
     return out
+
+
+def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
+    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
+    cmds = [entry.command]
+    if entry.command.get("kind") == "batch":
+        cmds = list(entry.command.get("commands", []))
+    out: set[int] = set()
+    for c in cmds:
+        kind = c.get("kind")
+        if kind in ("set_2d", "set_3d"):
+            out.add(int(c["joint"]))
+        elif kind == "set_frame":
+            out.update(range(num_joints))
+    return sorted(out)
 
 
 def short_name(name: str) -> str:
@@ -99,11 +120,15 @@ class AnnotateView:
         self._frame_data: FrameData | None = None
         self._annotation: FrameAnnotation = FrameAnnotation.empty(self.skeleton.num_joints)
         self._lifted: LiftOutcome | None = None
+        #: joint -> journal seq of an edit the current lift result does not include yet.
+        self._stale: dict[int, int] = {}
         self._drag_offset: np.ndarray | None = None
         self._drag_depth_offset = np.zeros(3)
         self._dragging: int | None = None
         #: (journal_seq, perf_counter) of the last lift assigned to the skeleton handle (latency).
         self.last_skeleton_update: tuple[int, float] | None = None
+        #: (journal_seq, perf_counter) when an edit was first drawn (from the annotation, before lifting).
+        self.last_edit_drawn: tuple[int, float] | None = None
         self.colours = load_colours()
         self.base_colours = joint_colours(self.skeleton.parent_array, self.colours)
         self._build_scene()
@@ -119,34 +144,64 @@ class AnnotateView:
         ident = np.tile([1.0, 0.0, 0.0, 0.0], (j, 1))
         zeros = np.zeros((j, 3))
         self.cloud = scene.add_point_cloud(
-            f"{ROOT}/cloud", points=np.zeros((1, 3), np.float32), colors=(0, 0, 0), point_size=0.002,
+            f"{ROOT}/cloud",
+            points=np.zeros((1, 3), np.float32),
+            colors=(0, 0, 0),
+            point_size=0.002,
             point_shape="rounded",
         )
         self.image = scene.add_image(
-            f"{ROOT}/image", np.zeros((cam.height, cam.width, 3), np.uint8), render_width=0.3, render_height=0.2,
-            format="jpeg", jpeg_quality=90, cast_shadow=False, receive_shadow=False,
+            f"{ROOT}/image",
+            np.zeros((cam.height, cam.width, 3), np.uint8),
+            render_width=0.3,
+            render_height=0.2,
+            format="jpeg",
+            jpeg_quality=90,
+            cast_shadow=False,
+            receive_shadow=False,
         )
         sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
         self.handles2d = scene.add_batched_meshes_simple(
-            f"{ROOT}/handles2d", vertices=sphere.vertices, faces=sphere.faces, batched_wxyzs=ident,
-            batched_positions=zeros, batched_scales=np.zeros(j), batched_colors=self.base_colours,
-            cast_shadow=False, receive_shadow=False, lod="off",
+            f"{ROOT}/handles2d",
+            vertices=sphere.vertices,
+            faces=sphere.faces,
+            batched_wxyzs=ident,
+            batched_positions=zeros,
+            batched_scales=np.zeros(j),
+            batched_colors=self.base_colours,
+            cast_shadow=False,
+            receive_shadow=False,
+            lod="off",
         )
         self.joints = scene.add_batched_meshes_simple(
-            f"{ROOT}/joints", vertices=sphere.vertices, faces=sphere.faces, batched_wxyzs=ident,
-            batched_positions=zeros, batched_scales=np.zeros(j), batched_colors=self.base_colours,
-            batched_opacities=np.ones(j, np.float32), cast_shadow=False, receive_shadow=False, lod="off",
+            f"{ROOT}/joints",
+            vertices=sphere.vertices,
+            faces=sphere.faces,
+            batched_wxyzs=ident,
+            batched_positions=zeros,
+            batched_scales=np.zeros(j),
+            batched_colors=self.base_colours,
+            batched_opacities=np.ones(j, np.float32),
+            cast_shadow=False,
+            receive_shadow=False,
+            lod="off",
         )
         bones = self.skeleton.bones
         self.bones = scene.add_line_segments(
-            f"{ROOT}/bones", points=np.zeros((len(bones), 2, 3), np.float32),
-            colors=np.repeat(self.base_colours[bones[:, 1]][:, None, :], 2, axis=1), thickness=3.0,
+            f"{ROOT}/bones",
+            points=np.zeros((len(bones), 2, 3), np.float32),
+            colors=np.repeat(self.base_colours[bones[:, 1]][:, None, :], 2, axis=1),
+            thickness=3.0,
             thickness_units="screen",
         )
         self.labels = [
             scene.add_label(
-                f"{ROOT}/labels/{k}", short_name(self.skeleton.joint_names[k]), position=(0.0, 0.0, 0.0),
-                visible=False, font_screen_scale=0.7, anchor="bottom-left",
+                f"{ROOT}/labels/{k}",
+                short_name(self.skeleton.joint_names[k]),
+                position=(0.0, 0.0, 0.0),
+                visible=False,
+                font_screen_scale=0.7,
+                anchor="bottom-left",
             )
             for k in range(j)
         ]
@@ -169,7 +224,9 @@ class AnnotateView:
         def _(event: viser.SceneNodePointerEvent) -> None:
             k = event.instance_index
             if k is None:
-                k = self._joint_near_ray(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+                k = self._joint_near_ray(
+                    np.asarray(event.ray_origin), np.asarray(event.ray_direction)
+                )
             if k is not None:
                 self.select_joint(int(k))
 
@@ -189,22 +246,39 @@ class AnnotateView:
         self.progress_bar = gui.add_progress_bar(0.0)
         n = len(self.state.frames)
         self.frame_slider = gui.add_slider(
-            "Reference", min=0, max=max(n - 1, 1), step=1, initial_value=self.state.index, disabled=n < 2
+            "Reference",
+            min=0,
+            max=max(n - 1, 1),
+            step=1,
+            initial_value=self.state.index,
+            disabled=n < 2,
         )
         self.nav = gui.add_button_group("Frame", ("◀ Prev (P)", "Next (N) ▶"))
         self.joint_dropdown = gui.add_dropdown(
-            "Joint", tuple(f"{k} {self.skeleton.joint_names[k]}" for k in range(j)), initial_value=f"0 {self.skeleton.joint_names[0]}"
+            "Joint",
+            tuple(f"{k} {self.skeleton.joint_names[k]}" for k in range(j)),
+            initial_value=f"0 {self.skeleton.joint_names[0]}",
         )
-        self.visibility_button = gui.add_button("Visibility: visible (V)", hint="Toggle visible / occluded")
-        self.depth_button = gui.add_button("Depth vs parent: unknown (D)", hint="Cycle unknown → closer → farther")
+        self.visibility_button = gui.add_button(
+            "Visibility: visible (V)", hint="Toggle visible / occluded"
+        )
+        self.depth_button = gui.add_button(
+            "Depth vs parent: unknown (D)", hint="Cycle unknown → closer → farther"
+        )
         self.click_mode = gui.add_dropdown(
-            "Click places", ("2D on image", "3D on cloud"), initial_value="2D on image",
+            "Click places",
+            ("2D on image", "3D on cloud"),
+            initial_value="2D on image",
             hint="Shift+click always snaps to the cloud",
         )
         self.edit_buttons = gui.add_button_group("Edit", ("Undo", "Redo", "Clear joint"))
-        self.camera_button = gui.add_button("Sensor view", hint="Look from the depth camera (image and cloud line up)")
+        self.camera_button = gui.add_button(
+            "Sensor view", hint="Look from the depth camera (image and cloud line up)"
+        )
         self.follow_sensor = gui.add_checkbox(
-            "Sensor view on frame change", True, hint="Put the camera at the depth sensor whenever the frame changes"
+            "Sensor view on frame change",
+            True,
+            hint="Put the camera at the depth sensor whenever the frame changes",
         )
         self.saved_md = gui.add_markdown("*no edits yet in this browser*")
         self.lift_md = gui.add_markdown("")
@@ -241,7 +315,9 @@ class AnnotateView:
 
         @self.edit_buttons.on_click
         def _(event: Any) -> None:
-            {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[event.target.value]()
+            {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[
+                event.target.value
+            ]()
 
         @self.camera_button.on_click
         def _(_: Any) -> None:
@@ -289,15 +365,20 @@ class AnnotateView:
     def show_frame(self, frame: int, reset_camera: bool = False) -> None:
         """Load ``frame`` (the state's current frame) into the existing handles."""
         data = self.app.frames.get(frame)
-        annotation = self.session.annotation(frame) or FrameAnnotation.empty(self.skeleton.num_joints)
+        annotation = self.session.annotation(frame) or FrameAnnotation.empty(
+            self.skeleton.num_joints
+        )
         lifted = self.app.worker.latest.get(frame)
         geo = data.geometry
         with self._lock, self.client.atomic():
             self._frame_data = data
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
+            self._stale = {}
             has_cloud = len(geo.cloud_mm) > 0
-            self.cloud.points = geo.to_scene(geo.cloud_mm if has_cloud else geo.centre_mm[None]).astype(np.float32)
+            self.cloud.points = geo.to_scene(
+                geo.cloud_mm if has_cloud else geo.centre_mm[None]
+            ).astype(np.float32)
             self.cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
             self.cloud.point_size = float(1.6 * geo.centre_mm[2] / self.session.camera.fx / 1000.0)
             self.cloud.visible = has_cloud
@@ -310,7 +391,9 @@ class AnnotateView:
         if reset_camera:
             self.reset_camera()
         if data.error:
-            self.client.add_notification("Frame problem", data.error, color="yellow", auto_close_seconds=8.0)
+            self.client.add_notification(
+                "Frame problem", data.error, color="yellow", auto_close_seconds=8.0
+            )
         if self._lifted is None and annotation.annotated.any():
             self.app.worker.submit(frame)
         self._render()
@@ -393,18 +476,27 @@ class AnnotateView:
             self._edit(lambda: self.state.place_3d(xyz, joint=k, advance=False))
 
     def _on_handle2d_drag(self, event: viser.SceneNodeDragEvent) -> None:
+        """Drag a 2D marker within the image plane: it follows the pointer, the edit is on release."""
         k = event.instance_index
         data = self._frame_data
-        if k is None or data is None or data.depth is None or event.phase != "end":
-            if k is not None and event.phase == "start":
-                self.state.select_joint(k)
+        if k is None or data is None or data.depth is None:
+            return
+        if event.phase == "start":
+            self.state.select_joint(k)
             return
         # The drag point lies on a camera-aligned plane: cast the ray from the browser camera.
         origin = np.asarray(self.client.camera.position, dtype=np.float64)
         direction = np.asarray(event.end_position) - origin
         uv = data.geometry.ray_to_pixel(origin, direction)
-        if uv is not None:
-            self._edit(lambda: self.state.place_2d(uv, joint=k, advance=False))
+        if uv is None:
+            return
+        if event.phase == "update":
+            with self._lock:
+                positions = np.asarray(self.handles2d.batched_positions, dtype=np.float64).copy()
+                positions[k] = data.geometry.pixel_to_scene(uv, offset_mm=2.0)
+                self.handles2d.batched_positions = positions.astype(np.float32)
+            return
+        self._edit(lambda: self.state.place_2d(uv, joint=k, advance=False))
 
     # ================================================================== edits
     def toggle_visibility(self) -> JournalEntry | None:
@@ -446,10 +538,14 @@ class AnnotateView:
             entry = action()
         except SessionError as exc:
             self.saved_md.content = f"**⚠ NOT saved:** {exc}"
-            self.client.add_notification("Edit NOT saved", str(exc), color="red", with_close_button=True)
+            self.client.add_notification(
+                "Edit NOT saved", str(exc), color="red", with_close_button=True
+            )
             return None
         except ValueError as exc:
-            self.client.add_notification("Edit refused", str(exc), color="yellow", auto_close_seconds=5.0)
+            self.client.add_notification(
+                "Edit refused", str(exc), color="yellow", auto_close_seconds=5.0
+            )
             return None
         if entry is not None:
             stamp = time.strftime("%H:%M:%S", time.localtime(entry.time))
@@ -465,7 +561,11 @@ class AnnotateView:
             if entry.client != self.state.client:
                 self._update_panel()  # progress may have changed
             return
-        self._annotation = self.session.annotation(frame) or FrameAnnotation.empty(self.skeleton.num_joints)
+        self._annotation = self.session.annotation(frame) or FrameAnnotation.empty(
+            self.skeleton.num_joints
+        )
+        for joint in edited_joints(entry, self.skeleton.num_joints):
+            self._stale[joint] = entry.seq
         if entry.client != self.state.client:
             self.client.add_notification(
                 "Frame edited elsewhere",
@@ -473,7 +573,7 @@ class AnnotateView:
                 color="blue",
                 auto_close_seconds=4.0,
             )
-            self._render()
+        self._render(edit_seq=entry.seq)
 
     def on_lift(self, outcome: LiftOutcome) -> None:
         """The worker lifted ``outcome.frame`` (worker thread)."""
@@ -483,6 +583,7 @@ class AnnotateView:
             self.lift_md.content = f"*skeleton: {outcome.error}*"
             return
         self._lifted = outcome
+        self._stale = {j: seq for j, seq in self._stale.items() if seq > outcome.journal_seq}
         self._render(lift=outcome)
 
     # ================================================================== drawing
@@ -493,6 +594,10 @@ class AnnotateView:
         out = np.full((self.skeleton.num_joints, 3), np.nan)
         if self._lifted is not None and self._lifted.joints_mm is not None:
             out[:] = self._lifted.joints_mm
+            # Joints edited after that lift follow the annotation at once (instant feedback);
+            # the next lift result moves the whole skeleton.
+            stale = [j for j in self._stale if ann.annotated[j]]
+            out[stale] = np.nan
         if data is None:
             return out
         missing = ~np.all(np.isfinite(out), axis=1)
@@ -541,7 +646,7 @@ class AnnotateView:
         out[ok] *= scale[:, None]
         return out
 
-    def _render(self, lift: LiftOutcome | None = None) -> None:
+    def _render(self, lift: LiftOutcome | None = None, edit_seq: int | None = None) -> None:
         """Assign the joints, bones, labels, 2D handles and panel from the current state."""
         data = self._frame_data
         if data is None:
@@ -556,7 +661,9 @@ class AnnotateView:
         scales[sel] *= 1.6
         colours = self.base_colours.copy()
         colours[sel] = self.colours["selected"]
-        opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(np.float32)
+        opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(
+            np.float32
+        )
         has2d = ann.has_2d
         h2d = geo.pixel_to_scene(np.where(has2d[:, None], ann.uv_px, 0.0), offset_mm=2.0)
         h2d_scales = np.where(has2d, HANDLE2D_RADIUS_M, 0.0)
@@ -579,6 +686,8 @@ class AnnotateView:
                 if shown[k]:
                     label.position = tuple(float(x) for x in pos_f[k])
                 label.visible = bool(shown[k])
+            if edit_seq is not None:
+                self.last_edit_drawn = (edit_seq, time.perf_counter())
             if lift is not None:
                 self.last_skeleton_update = (lift.journal_seq, time.perf_counter())
                 self.lift_md.content = f"*skeleton lifted in {1000 * lift.duration_s:.0f} ms*"
@@ -595,7 +704,11 @@ class AnnotateView:
         complete = self.session.is_annotated(st.frame)
         progress_text = st.progress_text()
         with self._lock:
-            where = f"reference {st.index + 1} of {len(st.frames)}" if st.has_selection else f"frame {st.index + 1} of {len(st.frames)}"
+            where = (
+                f"reference {st.index + 1} of {len(st.frames)}"
+                if st.has_selection
+                else f"frame {st.index + 1} of {len(st.frames)}"
+            )
             status = "✓ complete" if complete else "in progress"
             self.frame_md.content = f"**Frame {st.frame}** ({where}), {status}"
             self.progress_md.content = progress_text
@@ -607,7 +720,9 @@ class AnnotateView:
                 self.joint_dropdown.value = label
             self.visibility_button.label = f"Visibility: {vis} (V)"
             self.depth_button.label = f"Depth vs parent: {order} (D)"
-            self.message_md.content = f"**⚠ {data.error}**" if data is not None and data.error else ""
+            self.message_md.content = (
+                f"**⚠ {data.error}**" if data is not None and data.error else ""
+            )
             if not self.app.worker.available:
                 self.lift_md.content = "*live lifting unavailable (handanno_core.lift missing)*"
 

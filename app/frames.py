@@ -76,7 +76,9 @@ class FrameStore:
         try:
             depth = np.asarray(self.session.open_sequence().depth(frame), dtype=np.float32)
         except Exception as exc:  # FrameError, SessionError, OSError: show, don't break
-            return FrameData(frame, None, empty_geometry(camera), error=f"frame {frame}: no depth ({exc})")
+            return FrameData(
+                frame, None, empty_geometry(camera), error=f"frame {frame}: no depth ({exc})"
+            )
         if depth.shape != (camera.height, camera.width):
             return FrameData(
                 frame,
@@ -85,6 +87,8 @@ class FrameStore:
                 error=f"frame {frame}: depth is {depth.shape}, camera expects {(camera.height, camera.width)}",
             )
         centre = self.centre_of(frame, depth)
-        geometry = build_frame_geometry(depth, camera, centre, cube_mm=self.session.model.settings.cube_mm)
+        geometry = build_frame_geometry(
+            depth, camera, centre, cube_mm=self.session.model.settings.cube_mm
+        )
         error = None if len(geometry.cloud_mm) else f"frame {frame}: no hand found in the depth map"
         return FrameData(frame, depth, geometry, error)

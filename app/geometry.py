@@ -111,7 +111,9 @@ class FrameGeometry:
         uv = self.camera.project(o + t * d)
         if not np.all(np.isfinite(uv)):
             return None
-        if not (-0.5 <= uv[0] <= self.camera.width - 0.5 and -0.5 <= uv[1] <= self.camera.height - 0.5):
+        if not (
+            -0.5 <= uv[0] <= self.camera.width - 0.5 and -0.5 <= uv[1] <= self.camera.height - 0.5
+        ):
             return None
         return uv
 

@@ -27,16 +27,31 @@ class Hotkey:
     def keys_text(self) -> str:
         names = {"arrowleft": "←", "arrowright": "→", "arrowup": "↑", "arrowdown": "↓"}
         key = names.get(self.key, self.key.upper() if len(self.key) == 1 else self.key)
-        mod = {None: "", "cmd/ctrl": "Ctrl/⌘ + ", "cmd/ctrl+shift": "Ctrl/⌘ + Shift + ", "shift": "Shift + "}
+        mod = {
+            None: "",
+            "cmd/ctrl": "Ctrl/⌘ + ",
+            "cmd/ctrl+shift": "Ctrl/⌘ + Shift + ",
+            "shift": "Shift + ",
+        }
         return mod.get(self.modifier, f"{self.modifier} + ") + key
 
 
 HOTKEYS: tuple[Hotkey, ...] = (
     Hotkey("next_frame", "Next reference frame", "N", description="go to the next reference frame"),
-    Hotkey("prev_frame", "Previous reference frame", "P", description="go to the previous reference frame"),
+    Hotkey(
+        "prev_frame",
+        "Previous reference frame",
+        "P",
+        description="go to the previous reference frame",
+    ),
     Hotkey("next_joint", "Next joint", "arrowright", description="select the next joint"),
     Hotkey("prev_joint", "Previous joint", "arrowleft", description="select the previous joint"),
-    Hotkey("toggle_visibility", "Toggle visibility", "V", description="selected joint: visible ⇄ occluded"),
+    Hotkey(
+        "toggle_visibility",
+        "Toggle visibility",
+        "V",
+        description="selected joint: visible ⇄ occluded",
+    ),
     Hotkey(
         "cycle_depth_order",
         "Cycle depth order",
@@ -44,7 +59,12 @@ HOTKEYS: tuple[Hotkey, ...] = (
         description="selected joint vs its parent: unknown → closer → farther",
     ),
     Hotkey("clear_joint", "Clear joint", "X", description="remove the selected joint's placement"),
-    Hotkey("toggle_click_mode", "Toggle click mode", "M", description="clicks place 2D on the image ⇄ 3D on the cloud"),
+    Hotkey(
+        "toggle_click_mode",
+        "Toggle click mode",
+        "M",
+        description="clicks place 2D on the image ⇄ 3D on the cloud",
+    ),
     Hotkey("undo", "Undo", "Z", "cmd/ctrl", "undo your last edit"),
     Hotkey("redo", "Redo", "Z", "cmd/ctrl+shift", "redo your last undone edit"),
 )
@@ -59,7 +79,10 @@ def bind(gui: Any, hotkey: Hotkey, callback: Callable[[Any], None]) -> Any | Non
         return None
     try:
         handle = add_command(
-            hotkey.label, description=hotkey.description or None, hotkey=hotkey.key, modifier=hotkey.modifier
+            hotkey.label,
+            description=hotkey.description or None,
+            hotkey=hotkey.key,
+            modifier=hotkey.modifier,
         )
     except (TypeError, ValueError) as exc:
         log.warning("cannot bind hotkey %s: %s", hotkey.keys_text, exc)

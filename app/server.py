@@ -33,6 +33,7 @@ from .annotate_state import entry_frame
 from .annotate_view import STATIC, AnnotateView
 from .frames import FrameStore
 from .hotkeys import hotkey_table_markdown
+from .review_view import ReviewView  # issue 8 (review helper)
 from .worker import LiftFunction, LiftOutcome, LiftWorker
 
 
@@ -49,6 +50,9 @@ class AnnoServer:
     #: (tab label, view class). A view class takes ``(app, client)`` and may define
     #: ``on_entry(entry, frame)``, ``on_lift(outcome)`` and ``close()``.
     view_classes: list[tuple[str, type]] = [("Annotate", AnnotateView)]
+    # --- issue 8 (review helper): the Review tab ---
+    view_classes = [*view_classes, ("Review", ReviewView)]
+    # --- end issue 8 ---
 
     def __init__(
         self,
@@ -69,7 +73,10 @@ class AnnoServer:
         self.skeleton_listeners: list[Callable[[Any, LiftOutcome], None]] = []
         self.server = viser.ViserServer(host=host, port=port, label="handanno", verbose=verbose)
         self.server.gui.configure_theme(
-            show_share_button=False, control_layout="floating", control_width="medium", dark_mode=False
+            show_share_button=False,
+            control_layout="floating",
+            control_width="medium",
+            dark_mode=False,
         )
         self.server.scene.set_up_direction("-y")
         self.worker.start()
@@ -109,7 +116,9 @@ class AnnoServer:
                 views[label] = cls(self, client)
         except Exception as exc:  # show it in the page, keep the server up
             traceback.print_exc()
-            client.add_notification("The view failed to load", f"{type(exc).__name__}: {exc}", color="red")
+            client.add_notification(
+                "The view failed to load", f"{type(exc).__name__}: {exc}", color="red"
+            )
         with self._views_lock:
             self.views[client.client_id] = views
 
@@ -155,6 +164,11 @@ class AnnoServer:
     # ------------------------------------------------------------------ lifetime
     def stop(self) -> None:
         self._unsubscribe()
+        # --- issue 8 (review helper): stop the review runner before the session closes ---
+        hub = getattr(self, "review_hub", None)
+        if hub is not None:
+            hub.stop()
+        # --- end issue 8 ---
         self.worker.stop()
         self.server.stop()
         self.session.close()
@@ -191,15 +205,26 @@ def serve(
     app = AnnoServer(session, host=host, port=port, lift_fn=lift_fn)
     done, total = session.progress()
     print(f"handanno: session {session.model.name}: {total} reference frames, {done} annotated")
-    print(f"handanno: annotate at {app.url}  (Ctrl+C to stop; every edit is saved as you make it)", flush=True)
+    print(
+        f"handanno: annotate at {app.url}  (Ctrl+C to stop; every edit is saved as you make it)",
+        flush=True,
+    )
     if not app.worker.available:
-        print("handanno: warning: live lifting unavailable (handanno_core.lift missing)", file=sys.stderr)
+        print(
+            "handanno: warning: live lifting unavailable (handanno_core.lift missing)",
+            file=sys.stderr,
+        )
     if block:
         app.wait()
     return app
 
 
-def demo(sessions_dir: Path = Path("sessions"), host: str = "127.0.0.1", port: int = 8080, block: bool = True) -> AnnoServer:
+def demo(
+    sessions_dir: Path = Path("sessions"),
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    block: bool = True,
+) -> AnnoServer:
     """Create ``sessions_dir/demo`` from a synthetic sequence once, then serve it."""
     from handanno_core.pipeline import ensure_demo_session
 
@@ -208,7 +233,9 @@ def demo(sessions_dir: Path = Path("sessions"), host: str = "127.0.0.1", port: i
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m app.server", description="Serve a handanno session.")
+    parser = argparse.ArgumentParser(
+        prog="python -m app.server", description="Serve a handanno session."
+    )
     parser.add_argument("session", type=Path, help="session folder")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8080)

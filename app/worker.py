@@ -172,7 +172,9 @@ class LiftWorker:
                 return fail(f"skeleton {skeleton.name} has no template bone lengths")
             bones = skeleton.template_bone_lengths_mm
         previous = self.latest.get(frame)
-        init = previous.joints_mm if previous is not None and previous.joints_mm is not None else None
+        init = (
+            previous.joints_mm if previous is not None and previous.joints_mm is not None else None
+        )
         try:
             result = self.lift_fn(
                 annotation,
@@ -201,11 +203,14 @@ class LiftWorker:
         if not lifted:
             return
         try:
-            current = self.session.load_results()
-            lifted_mm, conf = current["lifted_mm"], current["confidence"]
-            for f, o in lifted.items():
-                lifted_mm[f] = o.joints_mm
-                conf[f] = o.confidence
-            self.session.save_results(lifted_mm=lifted_mm, confidence=conf)
+            # issue 8 (review helper): read-modify-write under the session lock, so a concurrent
+            # propagation save (review runner) is never overwritten with stale arrays.
+            with self.session.lock:
+                current = self.session.load_results()
+                lifted_mm, conf = current["lifted_mm"], current["confidence"]
+                for f, o in lifted.items():
+                    lifted_mm[f] = o.joints_mm
+                    conf[f] = o.confidence
+                self.session.save_results(lifted_mm=lifted_mm, confidence=conf)
         except Exception:
             traceback.print_exc()

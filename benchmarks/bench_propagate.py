@@ -44,7 +44,10 @@ def summary(pred: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None) 
     try:
         from handanno_core.evaluate import error_summary
 
-        return {k: (float(v) if isinstance(v, int | float | np.floating) else v) for k, v in error_summary(pred, gt, frames=frames).items()}
+        return {
+            k: (float(v) if isinstance(v, int | float | np.floating) else v)
+            for k, v in error_summary(pred, gt, frames=frames).items()
+        }
     except ImportError:
         e = np.linalg.norm(pred - gt, axis=-1)
         if frames is not None:
@@ -57,7 +60,9 @@ def summary(pred: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None) 
         }
 
 
-def prepare(seq_path: str, ref_fraction: float, lift_mode: str, cache_dir: Path, strategy: str | None):
+def prepare(
+    seq_path: str, ref_fraction: float, lift_mode: str, cache_dir: Path, strategy: str | None
+):
     """Sequence, crops, boxes, centres, selection parent, reference joints, bone lengths."""
     seq = open_sequence(seq_path)
     n = len(seq)
@@ -83,7 +88,9 @@ def prepare(seq_path: str, ref_fraction: float, lift_mode: str, cache_dir: Path,
     strategy = strategy or DEFAULT_STRATEGY
     t = time.perf_counter()
     desc = compute_descriptors(crops)
-    sel = select_references(desc, strategy, ref_fraction=ref_fraction, sequence_breaks=seq.sequence_breaks)
+    sel = select_references(
+        desc, strategy, ref_fraction=ref_fraction, sequence_breaks=seq.sequence_breaks
+    )
     t_select = time.perf_counter() - t
     refs = [int(f) for f in sel.reference_frames]
 
@@ -137,23 +144,70 @@ def prepare(seq_path: str, ref_fraction: float, lift_mode: str, cache_dir: Path,
     )
 
 
-def per_frame_ms(p: dict, aligner: str, frames: int = 60) -> float:
-    """Single-process time per propagated frame (ms), on the first ``frames`` frames of the forest."""
-    parent = p["parent"]
-    nonref = np.flatnonzero(parent >= 0)
-    # a connected sample: children of references, breadth-first, so every frame has its parent
+def bfs_sample(p: dict, frames: int) -> np.ndarray:
+    """The first ``frames`` frames of the forests, breadth-first (every parent included)."""
     from handanno_core.propagate import propagation_order
 
-    order = np.concatenate(propagation_order(parent, p["refs"]))[:frames]
-    keep = np.zeros(len(parent), bool)
-    keep[order] = True
-    assert keep[nonref].sum() == len(order)
-    t = time.perf_counter()
-    propagate(
-        parent, p["ref_joints"], p["crops"], p["boxes"], p["centres"], p["seq"].depth,
-        p["seq"].camera, p["seq"].skeleton, p["bones"], aligner=aligner, frames=order,
+    levels = propagation_order(p["parent"], p["refs"])
+    # interleave the references' subtrees so the sample spans the whole sequence
+    order = []
+    depth = 0
+    while len(order) < frames and any(depth < len(x) for x in levels):
+        for x in levels:
+            if depth < len(x):
+                order.append(int(x[depth]))
+        depth += 1
+    order = np.asarray(order[:frames])
+    # keep it closed under parents
+    keep = set(order.tolist()) | set(p["refs"])
+    order = np.asarray([f for f in order if p["parent"][f] in keep])
+    return np.sort(order)
+
+
+def run_once(p: dict, aligner: str, frames=None, workers: int = 1):
+    return propagate(
+        p["parent"], p["ref_joints"], p["crops"], p["boxes"], p["centres"], p["seq"].depth,
+        p["seq"].camera, p["seq"].skeleton, p["bones"], aligner=aligner, frames=frames,
+        workers=workers,
     )  # fmt: skip
-    return 1000.0 * (time.perf_counter() - t) / len(order)
+
+
+def timed(p: dict, aligner: str, frames) -> tuple[float, float]:
+    """(wall ms, CPU ms) per frame of a single-process run over ``frames``."""
+    t, c = time.perf_counter(), time.process_time()
+    run_once(p, aligner, frames)
+    return (
+        1000.0 * (time.perf_counter() - t) / len(frames),
+        1000.0 * (time.process_time() - c) / len(frames),
+    )
+
+
+def memory_scaling(p: dict, aligner: str, sizes: list[int]) -> list[dict]:
+    """Peak traced Python/numpy memory of propagating N frames (crops are memory-mapped)."""
+    import tracemalloc
+
+    out = []
+    for n in sizes:
+        frames = bfs_sample(p, n)
+        tracemalloc.start()
+        run_once(p, aligner, frames)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        out.append({"frames": int(len(frames)), "peak_traced_mb": peak / 2**20})
+        print(f"memory: {len(frames)} frames -> peak {peak / 2**20:.1f} MB")
+    return out
+
+
+def score_vs_error(res, pred, gt, frames) -> float | None:
+    """Spearman correlation between the frame score and the frame's mean error (want < 0)."""
+    err = np.nanmean(np.linalg.norm(pred - gt, axis=-1), axis=1)[frames]
+    score = res.frame_score[frames]
+    ok = np.isfinite(err) & np.isfinite(score)
+    if ok.sum() <= 3:
+        return None
+    ra = np.argsort(np.argsort(err[ok]))
+    rb = np.argsort(np.argsort(score[ok]))
+    return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def main() -> None:
@@ -165,7 +219,13 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--lift", choices=("lift", "gt"), default="lift")
     ap.add_argument("--full-aligners", default="dis,ncc", help="aligners run on the full sequence")
-    ap.add_argument("--sample-frames", type=int, default=300, help="frames for aligners not run in full")
+    ap.add_argument(
+        "--sample-frames", type=int, default=300, help="BFS sample scored for every aligner"
+    )
+    ap.add_argument("--timing-frames", type=int, default=100, help="frames timed in one process")
+    ap.add_argument(
+        "--no-memory", dest="memory", action="store_false", help="skip the memory scaling"
+    )
     ap.add_argument("--cache", default="/tmp/handanno_bench_propagate")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/propagate.json"))
     args = ap.parse_args()
@@ -187,7 +247,9 @@ def main() -> None:
         "strategy": p["strategy"],
         "ref_fraction": args.ref_fraction,
         "references": len(p["refs"]),
-        "reference_joints": "lifted from simulated exact 2D" if args.lift == "lift" else "ground truth",
+        "reference_joints": "lifted from simulated exact 2D"
+        if args.lift == "lift"
+        else "ground truth",
         "bones": p["bones_src"],
         "lift": summary(ref_pred, gt, np.asarray(p["refs"])),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores "
@@ -197,45 +259,35 @@ def main() -> None:
     }
     print(f"{n} frames, {len(p['refs'])} references ({p['strategy']}), lift: {doc['lift']}")
     full = set(args.full_aligners.split(","))
+    sample = bfs_sample(p, args.sample_frames)
+    timing_sample = sample[: args.timing_frames]
+    doc["sample_frames"] = int(len(sample))
     for name in args.aligners.split(","):
         row: dict = {}
-        row["ms_per_frame_1core"] = per_frame_ms(p, name)
-        if name in full:
-            frames = None
-            scored = nonref
-        else:
-            from handanno_core.propagate import propagation_order
-
-            order = np.concatenate(propagation_order(p["parent"], p["refs"]))
-            frames = np.sort(order[: args.sample_frames])
-            scored = frames
-        t = time.perf_counter()
-        res = propagate(
-            p["parent"], p["ref_joints"], p["crops"], p["boxes"], p["centres"], p["seq"].depth,
-            p["seq"].camera, p["seq"].skeleton, p["bones"], aligner=name,
-            workers=args.workers if frames is None else 1, frames=frames,
-        )  # fmt: skip
-        wall = time.perf_counter() - t
+        wall_ms, cpu_ms = timed(p, name, timing_sample)
+        row["ms_per_frame_wall_1proc"] = wall_ms
+        row["ms_per_frame_cpu_1proc"] = cpu_ms
+        res = run_once(p, name, sample)
         pred = res.joints_mm.copy()
-        for f, v in p["ref_joints"].items():
-            pred[f] = v
-        row["frames_scored"] = "all" if frames is None else f"first {len(scored)} frames of the forests (BFS)"
-        row["wall_s"] = wall
-        row["workers"] = args.workers if frames is None else 1
-        row["skipped"] = len(res.skipped)
-        row["init_non_reference"] = summary(pred, gt, scored)
-        if frames is None:
+        row["sample_non_reference"] = summary(pred, gt, sample)
+        row["sample_spearman_score_vs_error"] = score_vs_error(res, pred, gt, sample)
+        if name in full:
+            t = time.perf_counter()
+            res = run_once(p, name, None, workers=args.workers)
+            row["full_wall_s"] = time.perf_counter() - t
+            row["full_workers"] = args.workers
+            pred = res.joints_mm.copy()
+            for f, v in p["ref_joints"].items():
+                pred[f] = v
+            row["skipped"] = len(res.skipped)
+            row["init_non_reference"] = summary(pred, gt, nonref)
             row["init_all"] = summary(pred, gt)
-        # does the confidence rank errors? Spearman between frame score and frame error
-        err = np.nanmean(np.linalg.norm(pred - gt, axis=-1), axis=1)[scored]
-        score = res.frame_score[scored]
-        ok = np.isfinite(err) & np.isfinite(score)
-        if ok.sum() > 3:
-            ra = np.argsort(np.argsort(err[ok]))
-            rb = np.argsort(np.argsort(score[ok]))
-            row["spearman_score_vs_error"] = float(np.corrcoef(ra, rb)[0, 1])
+            row["spearman_score_vs_error"] = score_vs_error(res, pred, gt, nonref)
         doc["aligners"][name] = row
         print(name, json.dumps(row, indent=None))
+    if args.memory:
+        sizes = [250, 1000, len(nonref)]
+        doc["memory_scaling_dis"] = memory_scaling(p, "dis", sizes)
     doc["peak_rss_mb"] = peak_rss_mb()
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(doc, indent=1))

@@ -24,21 +24,14 @@ from scipy.ndimage import gaussian_filter1d
 
 from handanno_core.crops import compute_crops, crop_boxes, locate_hands
 from handanno_core.datasets import open_sequence
+from handanno_core.evaluate import error_summary
 from handanno_core.refine import RefineWeights, refine
 from handanno_core.synth import generate_sequence, simulate_annotations
 
 
-try:
-    from handanno_core.evaluate import error_summary
-except ImportError:  # evaluate.py not there yet
-
-    def error_summary(pred, gt, frames=None):
-        e = np.linalg.norm(pred - gt, axis=-1)
-        e = e if frames is None else e[frames]
-        return {"mean_mm": float(e.mean()), "median_mm": float(np.median(e)), "max_mm": float(e.max())}
-
-
-def perturb(gt: np.ndarray, refs: np.ndarray, breaks: list[int], skeleton, seed: int = 0) -> np.ndarray:
+def perturb(
+    gt: np.ndarray, refs: np.ndarray, breaks: list[int], skeleton, seed: int = 0
+) -> np.ndarray:
     """Propagation-like errors on ground truth (N,J,3) mm (see the module docstring)."""
     rng = np.random.default_rng(seed)
     n, j, _ = gt.shape
@@ -91,7 +84,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=3040)
     ap.add_argument("--ref-step", type=int, default=20)
     ap.add_argument("--init", default="perturbed", choices=["perturbed", "file"])
-    ap.add_argument("--init-file", default=None, help="npz/npy with init_mm (N,J,3) e.g. propagation")
+    ap.add_argument("--init-file", default=None, help="npz: init_mm (N,J,3), refs, closest, bones")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--json", default="benchmarks/results/refine.json")
     ap.add_argument("--weights", default="{}", help="JSON overrides of RefineWeights")
@@ -110,23 +103,36 @@ def main() -> None:
         centres = locate_hands(seq)
         np.save(cache / "centres.npy", centres)
     crops_path = cache / "crops.npy"
-    crops = np.load(crops_path, mmap_mode="r") if crops_path.exists() else compute_crops(seq, centres, crops_path)
+    crops = (
+        np.load(crops_path, mmap_mode="r")
+        if crops_path.exists()
+        else compute_crops(seq, centres, crops_path)
+    )
     boxes = crop_boxes(centres, seq.camera)
     gt = seq.ground_truth.joints_mm
     skel = seq.skeleton
     breaks = list(seq.sequence_breaks)
     refs = np.arange(0, n, args.ref_step)
-    anns = simulate_annotations(seq, refs)
     if args.init == "perturbed":
         init = perturb(gt, refs, breaks, skel)
+        bones = skel.estimate_bone_lengths(init[refs])
+        closest = closest_in_time(n, refs, breaks)
     else:
+        # npz from the real pipeline: init_mm, refs, closest (root reference of the forest), bones
         data = np.load(args.init_file)
-        init = data["init_mm"] if hasattr(data, "files") else data
-    bones = skel.estimate_bone_lengths(init[refs])
-    closest = closest_in_time(n, refs, breaks)
+        init = data["init_mm"]
+        refs = np.asarray(data["refs"])
+        bones = np.asarray(data["bones"])
+        closest = np.asarray(data["closest"])
+        for f in refs:  # the references' own entries are their lifted poses
+            if not np.all(np.isfinite(init[f])) and "lifted_mm" in data.files:
+                init[f] = data["lifted_mm"][f]
+    anns = simulate_annotations(seq, refs)
     weights = RefineWeights(**json.loads(args.weights))
 
     hist = []
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu0 = r0.ru_utime + r0.ru_stime
     t0 = time.perf_counter()
     res = refine(
         init,
@@ -146,6 +152,8 @@ def main() -> None:
         progress=lambda it, e: hist.append((it, e, time.perf_counter() - t0)),
     )
     elapsed = time.perf_counter() - t0
+    cpu = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = cpu.ru_utime + cpu.ru_stime - cpu0
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     before = error_summary(init, gt)
     after = error_summary(res.joints_mm, gt)
@@ -160,6 +168,7 @@ def main() -> None:
         "after": after,
         "after_non_reference": error_summary(res.joints_mm, gt, frames=nonref),
         "time_s": elapsed,
+        "cpu_s": cpu_s,
         "iterations": res.iterations,
         "peak_rss_mb": rss_mb,
         "bone_violation_max_mm": res.bone_violation_max_mm,

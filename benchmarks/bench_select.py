@@ -153,6 +153,10 @@ def make_large_crops(base: np.ndarray, frames: int, path: Path, seed: int = 0) -
     del out
 
 
+def _peak_mb() -> float:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+
 def large_worker(path: str, kind: str, strategy: str, fraction: float) -> None:
     """Run in a fresh process: descriptors + selection on a memmap, print JSON."""
     crops = np.load(path, mmap_mode="r")
@@ -160,9 +164,11 @@ def large_worker(path: str, kind: str, strategy: str, fraction: float) -> None:
     t0 = time.perf_counter()
     x = compute_descriptors(crops, kind)
     t_desc = time.perf_counter() - t0
+    rss_desc = _peak_mb()
     t1 = time.perf_counter()
     g = knn(x, 32 if strategy.startswith("chain") else 200 if strategy == "coverage" else 5)
     t_knn = time.perf_counter() - t1
+    rss_knn = _peak_mb()
     sel = select_references(x, strategy, ref_fraction=fraction, graph=g)
     t_sel = time.perf_counter() - t1
     sel.validate()
@@ -180,7 +186,9 @@ def large_worker(path: str, kind: str, strategy: str, fraction: float) -> None:
                 "select_total_s": round(t_sel, 2),
                 "total_s": round(t_desc + t_sel, 2),
                 "cpu_s": round(time.process_time() - c0, 2),
-                "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                "peak_rss_mb": _peak_mb(),
+                "peak_rss_mb_after_descriptors": rss_desc,
+                "peak_rss_mb_after_knn": rss_knn,
                 "depth_max": int(sel.depths().max()),
             }
         )
@@ -235,6 +243,18 @@ def main() -> None:
             result["large"]["runs"].append(run)
     result["load_avg_end"] = os.getloadavg()
     out = RESULTS / "select.json"
+    if out.exists():  # keep the parts of an earlier run that were skipped this time
+        old = json.loads(out.read_text())
+        for key in ("synthetic_3040", "large"):
+            if key not in result and key in old:
+                result[key] = old[key]
+        if "large" in result and "large" in old and not args.skip_large:
+            done = {(r.get("descriptor"), r.get("strategy")) for r in result["large"]["runs"]}
+            result["large"]["runs"] += [
+                r
+                for r in old["large"].get("runs", [])
+                if (r.get("descriptor"), r.get("strategy")) not in done
+            ]
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out}")
 

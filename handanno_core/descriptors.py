@@ -19,7 +19,7 @@ Two kinds:
     each crop, a fixed map keeps depth steps comparable across frames). Crops of another size are
     area-resampled to 128 x 128 first.
 ``"downsampled"``
-    The crop area-resampled to ``size x size`` (default 24 -> 576-D; 16, 24 and 32 select equally well on the synthetic benchmark), mean-subtracted per frame
+    The crop area-resampled to ``size x size`` (default 16 -> 256-D; 16, 24 and 32 select equally well on the synthetic benchmark, and kNN cost grows with D), mean-subtracted per frame
     before normalizing so the +1 background does not dominate the cosine (unlike the thesis fork,
     which used the raw 16384-D crops; see anchor-algorithms.md, h.12).
 """
@@ -30,7 +30,7 @@ import numpy as np
 
 KINDS = ("hog", "downsampled")
 #: Default descriptor, chosen by benchmarks/bench_select.py: as good as HOG for selection on the
-#: synthetic benchmark (better parents for the chain), several times cheaper, 576-D instead of 1764.
+#: synthetic benchmark (better parents for the chain), several times cheaper, 256-D instead of 1764.
 DEFAULT_KIND = "downsampled"
 
 _HOG_WIN = 128
@@ -44,7 +44,7 @@ def compute_descriptors(
     crops: np.ndarray,
     kind: str = DEFAULT_KIND,
     *,
-    size: int = 24,
+    size: int = 16,
     chunk: int = 512,
     progress=None,
 ) -> np.ndarray:

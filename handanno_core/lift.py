@@ -303,19 +303,48 @@ class _Problem:
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
         self.nfev = 0
+        self.elastic = False
+        self.el_lo = np.flatnonzero(np.isfinite(lo))
+        self.el_hi = np.flatnonzero(np.isfinite(hi))
+        self.w_elastic = 1.0
 
-    # -- variables: x (3J,) = (X - x0) / 1 cm
+    def set_elastic(self, on: bool, weight: float = 1.0) -> None:
+        """Elastic mode: depth intervals become ``z >= lo - s``, ``z <= hi + s`` with slacks
+        ``s >= 0`` (one per joint with an interval) costing ``weight`` px^2 per mm (exact L1
+        penalty: intervals that can be met are met exactly)."""
+        self.elastic = on
+        self.w_elastic = weight
+        self.el_joints = np.union1d(self.el_lo, self.el_hi) if on else np.zeros(0, dtype=np.int64)
+        self.slot = np.full(self.j, -1)
+        self.slot[self.el_joints] = np.arange(len(self.el_joints))
+
+    @property
+    def n_slack(self) -> int:
+        return len(self.el_joints) if self.elastic else 0
+
+    @property
+    def n_var(self) -> int:
+        return 3 * self.j + self.n_slack
+
+    # -- variables: x (3J [+ S],) = (X - x0) / 1 cm [, slacks / 1 cm]
     def pose(self, x: np.ndarray) -> np.ndarray:
-        return self.x0 + _CM * x.reshape(self.j, 3)
+        return self.x0 + _CM * x[: 3 * self.j].reshape(self.j, 3)
 
-    def bounds(self) -> list[tuple[float | None, float | None]]:
+    def bounds(self, trust_mm: float = 150.0) -> list[tuple[float | None, float | None]]:
+        t = trust_mm / _CM
         b: list[tuple[float | None, float | None]] = []
         for k in range(self.j):
-            b.append((None, None))
-            b.append((None, None))
-            lo = (self.z_lo[k] - self.x0[k, 2]) / _CM if np.isfinite(self.z_lo[k]) else None
-            hi = (self.z_hi[k] - self.x0[k, 2]) / _CM if np.isfinite(self.z_hi[k]) else None
+            b.append((-t, t))
+            b.append((-t, t))
+            lo, hi = -t, t
+            if not self.elastic:
+                if np.isfinite(self.z_lo[k]):
+                    lo = max(lo, (self.z_lo[k] - self.x0[k, 2]) / _CM)
+                if np.isfinite(self.z_hi[k]):
+                    hi = min(hi, (self.z_hi[k] - self.x0[k, 2]) / _CM)
+                hi = max(hi, lo)
             b.append((lo, hi))
+        b.extend([(0.0, t)] * self.n_slack)
         return b
 
     # -- objective
@@ -353,7 +382,12 @@ class _Problem:
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
-        return f, _CM * g.ravel()
+        grad = _CM * g.ravel()
+        if self.elastic:
+            sl = x[3 * self.j :]
+            f += self.w_elastic * _CM * float(np.sum(sl))
+            grad = np.concatenate([grad, np.full(len(sl), self.w_elastic * _CM)])
+        return f, grad
 
     # -- constraints (in mm), Jacobians w.r.t. joints (rows, J, 3)
     def _bone_eq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -371,7 +405,10 @@ class _Problem:
         return self._bone_eq(self.pose(x))[0]
 
     def eq_jac(self, x: np.ndarray) -> np.ndarray:
-        return _CM * self._bone_eq(self.pose(x))[1].reshape(len(self.d), -1)
+        jac = _CM * self._bone_eq(self.pose(x))[1].reshape(len(self.d), -1)
+        if self.n_slack:
+            jac = np.hstack([jac, np.zeros((len(jac), self.n_slack))])
+        return jac
 
     def _ineq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         vals = []
@@ -476,14 +513,35 @@ class _Problem:
         return val, jac
 
     def ineq(self, x: np.ndarray) -> np.ndarray:
-        return self._ineq(self.pose(x))[0]
+        val = self._ineq(self.pose(x))[0]
+        if self.elastic:
+            X = self.pose(x)
+            sl = _CM * x[3 * self.j :]
+            lo = X[self.el_lo, 2] - self.z_lo[self.el_lo] + sl[self.slot[self.el_lo]]
+            hi = self.z_hi[self.el_hi] - X[self.el_hi, 2] + sl[self.slot[self.el_hi]]
+            val = np.concatenate([val, lo, hi])
+        return val
 
     def ineq_jac(self, x: np.ndarray) -> np.ndarray:
         jac = self._ineq(self.pose(x))[1]
-        return _CM * jac.reshape(jac.shape[0], -1)
+        jac = _CM * jac.reshape(jac.shape[0], -1)
+        if self.elastic:
+            ns = self.n_slack
+            jac = np.hstack([jac, np.zeros((len(jac), ns))])
+            nl, nh = len(self.el_lo), len(self.el_hi)
+            extra = np.zeros((nl + nh, self.n_var))
+            extra[np.arange(nl), 3 * self.el_lo + 2] = _CM
+            extra[np.arange(nl), 3 * self.j + self.slot[self.el_lo]] = _CM
+            extra[nl + np.arange(nh), 3 * self.el_hi + 2] = -_CM
+            extra[nl + np.arange(nh), 3 * self.j + self.slot[self.el_hi]] = _CM
+            jac = np.vstack([jac, extra])
+        return jac
 
     def num_ineq(self) -> int:
-        return len(self.ord_k) + (4 * len(self.ak) if self.use_angles else 0)
+        n = len(self.ord_k) + (4 * len(self.ak) if self.use_angles else 0)
+        if self.elastic:
+            n += len(self.el_lo) + len(self.el_hi)
+        return n
 
 
 # ---------------------------------------------------------------------------------------- lift
@@ -516,6 +574,7 @@ def lift_frame(
     w_surface: float = 0.01,
     soft_bones: float | None = None,
     right_hand: bool = True,
+    elastic_weight: float = 2.0,
     max_iter: int = 200,
     tol: float = 1e-7,
 ) -> LiftResult:
@@ -561,23 +620,20 @@ def lift_frame(
     z0 = np.clip(x0_pose[:, 2], prob.z_lo, prob.z_hi)
     prob.x0 = x0_pose.copy()
     prob.x0[:, 2] = z0
-    constraints = []
-    if soft_bones is None:
-        constraints.append({"type": "eq", "fun": prob.eq, "jac": prob.eq_jac})
-    if prob.num_ineq():
-        constraints.append({"type": "ineq", "fun": prob.ineq, "jac": prob.ineq_jac})
-    x_start = np.zeros(3 * prob.j)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        res = minimize(
-            prob.objective,
-            x_start,
-            jac=True,
-            method="SLSQP",
-            bounds=prob.bounds(),
-            constraints=constraints,
-            options={"maxiter": max_iter, "ftol": tol},
-        )
+    prob.set_elastic(False)
+    res = _solve(prob, soft_bones is None, max_iter, tol)
+    elastic = False
+    if not _acceptable(res, prob, soft_bones is None):
+        # infeasible or failed: the observed depth under some joint is probably wrong (2D on
+        # the wrong surface). Re-solve in elastic mode from the original start.
+        prob.x0 = x0_pose.copy()
+        prob.set_elastic(True, elastic_weight)
+        res2 = _solve(prob, soft_bones is None, max_iter, tol)
+        if np.all(np.isfinite(res2.x)):
+            res, elastic = res2, True
+        else:
+            prob.set_elastic(False)
+            prob.x0[:, 2] = z0
     X = prob.pose(res.x)
     proj = camera.project(X)
     reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
@@ -594,6 +650,36 @@ def lift_frame(
         message=str(res.message),
         time_s=time.perf_counter() - t0,
     )
+
+
+def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
+    constraints = []
+    if hard_bones:
+        constraints.append({"type": "eq", "fun": prob.eq, "jac": prob.eq_jac})
+    if prob.num_ineq():
+        constraints.append({"type": "ineq", "fun": prob.ineq, "jac": prob.ineq_jac})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return minimize(
+            prob.objective,
+            np.zeros(prob.n_var),
+            jac=True,
+            method="SLSQP",
+            bounds=prob.bounds(),
+            constraints=constraints,
+            options={"maxiter": max_iter, "ftol": tol},
+        )
+
+
+def _acceptable(res, prob: _Problem, hard_bones: bool) -> bool:
+    if not np.all(np.isfinite(res.x)):
+        return False
+    X = prob.pose(res.x)
+    if hard_bones and np.max(np.abs(prob.sk.bone_lengths(X) - prob.d)) > 0.5:
+        return False
+    if prob.num_ineq() and np.min(prob.ineq(res.x)) < -0.5:
+        return False
+    return bool(res.success)
 
 
 def _confidence(

@@ -128,7 +128,7 @@ def select(
     from .select import select_references
 
     crops, _, _ = ensure_crops(session, quiet=quiet)
-    descriptors = compute_descriptors(np.asarray(crops, dtype=np.float32), kind=session.model.settings.descriptor)
+    descriptors = compute_descriptors(crops, kind=session.model.settings.descriptor)
     selection = select_references(
         descriptors,
         strategy,

@@ -82,6 +82,14 @@ class PropagationSettings:
     sigma_visible_mm: float = 8.0
     sigma_hidden_mm: float = 25.0
     sigma_bone_mm: float = 0.05
+    anchor_fusion: bool = False  #: also align the subtree's reference directly to the frame
+    anchor_weight: float = 1.0
+    anchor_gate_px: float = 3.0
+    angle_limits: bool = True  #: refit with joint-angle limit hinges when a limit is violated
+    sigma_angle_deg: float = 2.0
+    angle_trigger: float = 1.5  #: refit when a limit is exceeded by this many sigma
+    angle_iterations: int = 4
+    carry_band_mm: float = 10.0  #: carried depth-below-surface stays this close to the skeleton's
     fit_iterations: int = 10
     fb_scale_px: float = 1.5  #: confidence scale of the forward-backward error (crop px)
     appearance_scale_mm: float = 25.0
@@ -97,7 +105,8 @@ class PropagationResult:
 
     ``joints_mm``: ``(N, J, 3)`` mm; ``confidence``: ``(N, J)`` in [0, 1]; ``skipped``: frames
     that could not be propagated, with ``reasons[frame]``; ``source``: ``(N,)`` the frame each
-    frame was actually propagated from (``-1`` where not computed); ``seconds``: wall time.
+    frame was actually propagated from (``-1`` where not computed); ``seconds``: wall time;
+    ``order``: frames in the order their results arrived (parents before children).
     """
 
     joints_mm: np.ndarray
@@ -107,6 +116,8 @@ class PropagationResult:
     source: np.ndarray | None = None
     seconds: float = 0.0
     order: list[int] = field(default_factory=list)
+    #: ``(N, J)`` mm each joint's depth below the observed surface where it was placed on it
+    below_surface_mm: np.ndarray | None = None
 
     @property
     def frame_score(self) -> np.ndarray:
@@ -299,61 +310,90 @@ def _fit(
     lengths: np.ndarray,
     sigma_bone: float,
     iterations: int,
+    angles: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Levenberg-Marquardt on the ``(J, 3)`` joints (mm) with residuals: 2D reprojection (px /
-    ``sigma_uv``), depth (mm / ``sigma_z``) and bone length (mm / ``sigma_bone``). Dense analytic
-    Jacobian ``(3J + B, 3J)``; a handful of iterations from the back-projected start."""
+    ``sigma_uv``), depth (mm / ``sigma_z``) and bone length (mm / ``sigma_bone``); a handful of
+    iterations from the back-projected start.
+
+    The normal equations are assembled from the Jacobian's sparse structure (3x3 blocks per
+    joint and per bone) without BLAS: tiny multi-threaded BLAS calls stall badly on a loaded
+    machine (measured 5-25 ms for a 137x63 product vs 0.1 ms single-threaded).
+
+    ``angles(poses (..., J, 3)) -> (..., A)`` hinge residuals of the joint-angle limits (0 inside
+    the limits): when given, they are appended with a forward-difference Jacobian (one batched
+    call over the 3J perturbed poses, kept from the first iteration)."""
     j = len(x0)
-    nb = len(bones)
+    n = 3 * j
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     idx = np.arange(j)
-    rows_u, rows_v, rows_z = 2 * idx, 2 * idx + 1, 2 * j + idx
-    rows_b = 3 * j + np.arange(nb)
-    inv_z = 1.0 / sigma_z
-    jac = np.zeros((3 * j + nb, 3 * j))
-    jac[rows_z, 3 * idx + 2] = inv_z
-    cu, cp = 3 * bones[:, 1], 3 * bones[:, 0]
+    bp, bc = bones[:, 0], bones[:, 1]
+    inv_z = 1.0 / np.broadcast_to(np.asarray(sigma_z, dtype=np.float64), (j,))
+    na = 0 if angles is None else int(angles(x0).shape[-1])
+    eps = 1e-3 * np.eye(n).reshape(n, j, 3) if na else None
+    jac_a = None
 
     def residuals(x):
         z = np.maximum(x[:, 2], 1.0)
-        r = np.empty(3 * j + nb)
-        r[rows_u] = (fx * x[:, 0] / z + cx - uv[:, 0]) / sigma_uv
-        r[rows_v] = (fy * x[:, 1] / z + cy - uv[:, 1]) / sigma_uv
-        r[rows_z] = (x[:, 2] - z_t) * inv_z
-        vec = x[bones[:, 1]] - x[bones[:, 0]]
+        r_u = (fx * x[:, 0] / z + cx - uv[:, 0]) / sigma_uv
+        r_v = (fy * x[:, 1] / z + cy - uv[:, 1]) / sigma_uv
+        r_z = (x[:, 2] - z_t) * inv_z
+        vec = x[bc] - x[bp]
         ln = np.sqrt(np.einsum("ij,ij->i", vec, vec))
-        r[rows_b] = (ln - lengths) / sigma_bone
-        return r, vec, ln
+        r_b = (ln - lengths) / sigma_bone
+        r_a = angles(x) if na else np.zeros(0)
+        cost = float(
+            np.einsum("i,i->", r_u, r_u)
+            + np.einsum("i,i->", r_v, r_v)
+            + np.einsum("i,i->", r_z, r_z)
+            + np.einsum("i,i->", r_b, r_b)
+            + np.einsum("i,i->", r_a, r_a)
+        )
+        return (r_u, r_v, r_z, r_b, r_a), vec, ln, cost
 
     x = x0.copy()
-    r, vec, ln = residuals(x)
-    cost = float(r @ r)
+    res, vec, ln, cost = residuals(x)
     lam = 1e-4
-    eye = np.eye(3 * j)
-    for _ in range(iterations):
+    for it in range(iterations):
+        r_u, r_v, r_z, r_b, r_a = res
         z = np.maximum(x[:, 2], 1.0)
         s = 1.0 / (z * sigma_uv)
-        jac[rows_u, 3 * idx] = fx * s
-        jac[rows_u, 3 * idx + 2] = -fx * x[:, 0] / z * s
-        jac[rows_v, 3 * idx + 1] = fy * s
-        jac[rows_v, 3 * idx + 2] = -fy * x[:, 1] / z * s
+        pu = np.zeros((j, 3))
+        pv = np.zeros((j, 3))
+        pu[:, 0], pu[:, 2] = fx * s, -fx * x[:, 0] / z * s
+        pv[:, 1], pv[:, 2] = fy * s, -fy * x[:, 1] / z * s
+        blocks = np.zeros((j, j, 3, 3))
+        blocks[idx, idx] = pu[:, :, None] * pu[:, None, :] + pv[:, :, None] * pv[:, None, :]
+        blocks[idx, idx, 2, 2] += inv_z**2
+        grad = pu * r_u[:, None] + pv * r_v[:, None]
+        grad[:, 2] += inv_z * r_z
         unit = vec / (np.maximum(ln, 1e-9)[:, None] * sigma_bone)
-        for c in range(3):
-            jac[rows_b, cu + c] = unit[:, c]
-            jac[rows_b, cp + c] = -unit[:, c]
-        jtj = jac.T @ jac
-        g = jac.T @ r
-        diag = np.diag(jtj) + 1e-9
-        accepted = False
+        uu = unit[:, :, None] * unit[:, None, :]
+        np.add.at(blocks, (bc, bc), uu)
+        np.add.at(blocks, (bp, bp), uu)
+        np.add.at(blocks, (bp, bc), -uu)
+        np.add.at(blocks, (bc, bp), -uu)
+        np.add.at(grad, bc, unit * r_b[:, None])
+        np.add.at(grad, bp, -unit * r_b[:, None])
+        jtj = blocks.transpose(0, 2, 1, 3).reshape(n, n)
+        g = grad.ravel()
+        if na:
+            if it == 0:
+                jac_a = ((angles(x[None] + eps) - r_a) / 1e-3).T  # (A, 3J)
+            jtj = jtj + np.einsum("ai,aj->ij", jac_a, jac_a)
+            g = g + np.einsum("ai,a->i", jac_a, r_a)
+        diag = np.diag(jtj).copy() + 1e-9
+        accepted = small = False
         for _ in range(5):
-            step = np.linalg.solve(jtj + lam * diag * eye, -g)
+            m = jtj.copy()
+            m[np.diag_indices(n)] += lam * diag
+            step = np.linalg.solve(m, -g)
             xn = x + step.reshape(j, 3)
-            rn, vn, lnn = residuals(xn)
-            cn = float(rn @ rn)
+            rn, vn, lnn, cn = residuals(xn)
             if cn < cost:
                 accepted = True
                 small = cost - cn < 1e-8 * cost + 1e-12
-                x, r, vec, ln, cost, lam = xn, rn, vn, lnn, cn, max(lam * 0.1, 1e-9)
+                x, res, vec, ln, cost, lam = xn, rn, vn, lnn, cn, max(lam * 0.1, 1e-9)
                 break
             lam *= 10.0
         if not accepted or small:
@@ -361,20 +401,47 @@ def _fit(
     return x
 
 
-def _visible_at_source(ctx: _Context, frame: int, joints: np.ndarray) -> np.ndarray:
-    """Joints of a seed frame lying near its observed surface (reads the frame's depth)."""
+def _angle_hinge(sk: Skeleton, sigma_deg: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Residuals ``(..., 2A)``: flexion/abduction outside the skeleton's limits, in sigma units."""
+    (fl, ab) = sk.angle_limits()
+    lo = np.concatenate([fl[:, 0], ab[:, 0]])
+    hi = np.concatenate([fl[:, 1], ab[:, 1]])
+
+    def hinge(poses: np.ndarray) -> np.ndarray:
+        flex, abd = sk.joint_angles(poses)
+        a = np.concatenate([flex, abd], axis=-1)
+        return (np.maximum(lo - a, 0.0) + np.maximum(a - hi, 0.0)) / sigma_deg
+
+    return hinge
+
+
+def _surface_offsets_at_source(ctx: _Context, frame: int, joints: np.ndarray) -> np.ndarray:
+    """Per joint, depth below the observed surface (mm) in a seed frame; NaN where the joint is
+    not near its surface (reads the frame's depth)."""
     offsets = np.asarray(ctx.skeleton.surface_offsets_mm)
     try:
         depth = ctx.depth_of(frame)
     except FrameError:
-        return np.zeros(len(joints), dtype=bool)
-    z = _robust_depth(depth, ctx.camera.project(joints), ctx.settings.depth_window_px)
-    return np.abs(joints[:, 2] - (z + offsets)) < ctx.settings.near_surface_mm
+        return np.full(len(joints), np.nan)
+    surf = _robust_depth(depth, ctx.camera.project(joints), ctx.settings.depth_window_px)
+    delta = joints[:, 2] - surf
+    with np.errstate(invalid="ignore"):
+        near = np.abs(delta - offsets) < ctx.settings.near_surface_mm
+    return np.where(near, delta, np.nan)
 
 
-def _step(ctx: _Context, src: int, frame: int, joints_s: np.ndarray, conf_s: np.ndarray, vis_s: np.ndarray):
-    """Propagate ``joints_s`` of frame ``src`` to ``frame``. Returns ``(joints, conf, visible)``
-    or raises ``_Skip``."""
+def _step(
+    ctx: _Context,
+    src: int,
+    frame: int,
+    joints_s: np.ndarray,
+    conf_s: np.ndarray,
+    delta_s: np.ndarray,
+    anchor: tuple[int, np.ndarray] | None = None,
+):
+    """Propagate ``joints_s`` of frame ``src`` to ``frame``. ``delta_s`` (J,) mm: each joint's
+    depth below the observed surface in the source (NaN = not on its surface). Returns
+    ``(joints, conf, delta)`` or raises ``_Skip``."""
     st = ctx.settings
     cam = ctx.camera
     sk = ctx.skeleton
@@ -398,9 +465,30 @@ def _step(ctx: _Context, src: int, frame: int, joints_s: np.ndarray, conf_s: np.
     disp, fb = _align(ctx, crop_s, crop_f, xy_s)
     disp = np.where(np.isfinite(disp), disp, 0.0)
     xy_f = xy_s + disp
+    if anchor is not None and anchor[0] != src and st.anchor_fusion:
+        # a second, direct alignment from the subtree's reference bounds the drift of long
+        # chains; per joint, the estimate with the better forward-backward consistency wins
+        # when the two disagree, else they are averaged with weights 1 / (fb^2 + 0.25)
+        a_frame, a_joints = anchor
+        xy_a = image_to_crop(cam.project(a_joints), ctx.boxes[a_frame])
+        disp_a, fb_a = _align(ctx, np.asarray(crops[a_frame], dtype=np.float32), crop_f, xy_a)
+        xy_fa = xy_a + np.where(np.isfinite(disp_a), disp_a, 0.0)
+        ok = np.isfinite(fb_a) & np.all(np.isfinite(xy_fa), axis=1)
+        w1 = 1.0 / (fb**2 + 0.25)
+        w2 = np.where(ok, st.anchor_weight / (np.nan_to_num(fb_a, nan=1e6) ** 2 + 0.25), 0.0)
+        apart = np.linalg.norm(xy_fa - xy_f, axis=1) > st.anchor_gate_px
+        pick_a = ok & apart & (fb_a < fb)
+        mixed = (w1[:, None] * xy_f + w2[:, None] * np.nan_to_num(xy_fa)) / (w1 + w2)[:, None]
+        xy_f = np.where(pick_a[:, None], xy_fa, np.where(apart[:, None], xy_f, mixed))
+        fb = np.where(pick_a, fb_a, np.where(apart, fb, np.minimum(fb, np.nan_to_num(fb_a, nan=1e6))))
     uv_f = crop_to_image(xy_f, box_f)
 
-    z_obs = _robust_depth(depth, uv_f, st.depth_window_px) + offsets
+    # the joint keeps its depth below the surface from the source (the reference's lift), kept
+    # within +-carry_band_mm of the skeleton's offset
+    surf = _robust_depth(depth, uv_f, st.depth_window_px)
+    vis_s = np.isfinite(delta_s)
+    below = np.where(vis_s, np.clip(np.nan_to_num(delta_s), offsets - st.carry_band_mm, offsets + st.carry_band_mm), offsets)
+    z_obs = surf + below
     z_pred = joints_s[:, 2] - c_s[2] + c_f[2]
     visible = (
         vis_s
@@ -416,6 +504,13 @@ def _step(ctx: _Context, src: int, frame: int, joints_s: np.ndarray, conf_s: np.
     sigma_z = np.where(visible, st.sigma_visible_mm, st.sigma_hidden_mm)
     sigma_uv = st.sigma_px * 0.5 * float(box_f[2] + box_f[3])
     x = _fit(x0, uv_f, sigma_uv, z_t, sigma_z, cam, bones, lengths, st.sigma_bone_mm, st.fit_iterations)
+    if st.angle_limits and sk.palm_joints is not None and len(sk.angle_joints):
+        hinge = _angle_hinge(sk, st.sigma_angle_deg)
+        if np.any(hinge(x) > st.angle_trigger):  # a limit is clearly violated: refit with hinges
+            x = _fit(
+                x, uv_f, sigma_uv, z_t, sigma_z, cam, bones, lengths, st.sigma_bone_mm,
+                st.angle_iterations, angles=hinge,
+            )  # fmt: skip
 
     # confidence
     half = 0.5 * st.cube_mm
@@ -433,7 +528,7 @@ def _step(ctx: _Context, src: int, frame: int, joints_s: np.ndarray, conf_s: np.
     conf = np.clip(conf_s * local, 0.0, 1.0)
     # a joint is "on its surface" in this frame if the fit kept it there
     vis_f = visible & (np.abs(x[:, 2] - z_obs) < st.near_surface_mm)
-    return x, conf, vis_f
+    return x, conf, np.where(vis_f, below, np.nan)
 
 
 class _Skip(Exception):
@@ -459,14 +554,17 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
     m = len(task.frames)
     out_j = np.full((m, j, 3), np.nan)
     out_c = np.full((m, j), np.nan)
+    out_b = np.full((m, j), np.nan)
     used_src = np.full(m, -1, dtype=np.int64)
     skipped: dict[int, str] = {}
     state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     alias: dict[int, int] = {}  # skipped frame -> nearest valid ancestor
+    root: dict[int, int] = {}  # frame -> the seed its subtree hangs off
     for f, (jj, cc, vv) in task.seeds.items():
         if vv is None:
-            vv = _visible_at_source(ctx, f, jj)
+            vv = _surface_offsets_at_source(ctx, f, jj)
         state[f] = (jj, cc, vv)
+        root[f] = f
     for k in range(m):
         f = int(task.frames[k])
         s = int(task.sources[k])
@@ -478,8 +576,9 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 emit(f, None, None)
             continue
         jj, cc, vv = state[s]
+        root[f] = root[s]
         try:
-            x, conf, vis = _step(ctx, s, f, jj, cc, vv)
+            x, conf, vis = _step(ctx, s, f, jj, cc, vv, (root[s], state[root[s]][0]))
         except _Skip as err:
             skipped[f] = str(err)
             alias[f] = s
@@ -487,10 +586,10 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 emit(f, None, None)
             continue
         state[f] = (x, conf, vis)
-        out_j[k], out_c[k], used_src[k] = x, conf, s
+        out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
         if emit is not None:
             emit(f, x, conf)
-    return task.frames, used_src, out_j, out_c, skipped
+    return task.frames, used_src, out_j, out_c, out_b, skipped
 
 
 # ---------------------------------------------------------------------------------------------
@@ -498,7 +597,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
 # ---------------------------------------------------------------------------------------------
 def _plan(
     parent: np.ndarray,
-    known: dict[int, tuple[np.ndarray, np.ndarray]],
+    known: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]],
     todo: np.ndarray,
     n_tasks: int,
 ) -> tuple[list[_Task], dict[int, str]]:
@@ -545,8 +644,7 @@ def _plan(
         frames = np.concatenate([g[1] for g in b])
         seeds = {}
         for seed, _ in b:
-            jj, cc = known[seed]
-            seeds[seed] = (jj, cc, None)
+            seeds[seed] = known[seed]
         # sources: the parent of each frame (the seed for subtree heads)
         tasks.append(_Task(frames=frames, sources=parent[frames].copy(), seeds=seeds))
     return tasks, problems
@@ -571,6 +669,7 @@ def propagate(
     on_result: Callable[[int, np.ndarray, np.ndarray], None] | None = None,
     initial_mm: np.ndarray | None = None,
     initial_confidence: np.ndarray | None = None,
+    previous: PropagationResult | None = None,
     reference_confidence: dict[int, np.ndarray] | None = None,
     aligner_kwargs: dict | None = None,
     settings: PropagationSettings | None = None,
@@ -591,7 +690,10 @@ def propagate(
     workers : local processes (1 = in this process). scheduler : ``"tcp://HOST:PORT"`` of a Dask
         distributed scheduler (or a ``dask.distributed.Client``); overrides ``workers``.
     frames : frames to recompute (default: all non-references). Their ancestors outside
-        ``frames`` must have joints: references, or rows of ``initial_mm`` (a previous result).
+        ``frames`` must have joints: references, or rows of ``previous`` (a
+        :class:`PropagationResult`; bit-identical to a full run) or of ``initial_mm`` /
+        ``initial_confidence`` (arrays as stored in a session; the joints' depth below the
+        surface is then re-measured from the depth map, so results differ slightly).
         Use :func:`descendants` to get the frames below a changed reference.
     progress : ``progress(done, total)`` in frames; on_result : ``on_result(frame, joints, conf)``
         for each computed frame, in the main process, parents before children.
@@ -615,12 +717,15 @@ def propagate(
             raise ValueError(f"reference {f}: joints must be ({j}, 3), got {jj.shape}")
         if np.all(np.isfinite(jj)):
             conf = np.ones(j) if reference_confidence is None else reference_confidence.get(f, np.ones(j))
-            known[int(f)] = (jj, np.asarray(conf, dtype=np.float64))
+            known[int(f)] = (jj, np.asarray(conf, dtype=np.float64), None)
     if frames is None:
         todo = np.flatnonzero(parent >= 0)
     else:
         todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
         todo = todo[parent[todo] >= 0]
+        if previous is not None:
+            initial_mm = previous.joints_mm
+            initial_confidence = previous.confidence
         if initial_mm is not None:
             keep = np.ones(n, dtype=bool)
             keep[todo] = False
@@ -631,7 +736,14 @@ def propagate(
                         if initial_confidence is not None
                         else np.ones(j)
                     )
-                    known[int(f)] = (np.asarray(initial_mm[f], dtype=np.float64), np.nan_to_num(conf, nan=0.5))
+                    below = None
+                    if previous is not None and previous.below_surface_mm is not None:
+                        below = np.asarray(previous.below_surface_mm[f], dtype=np.float64)
+                    known[int(f)] = (
+                        np.asarray(initial_mm[f], dtype=np.float64),
+                        np.nan_to_num(conf, nan=0.5),
+                        below,
+                    )
 
     n_workers = 1 if scheduler is None else 4
     if scheduler is None and workers > 1:
@@ -671,6 +783,7 @@ def propagate(
 
     joints = np.full((n, j, 3), np.nan)
     confidence = np.full((n, j), np.nan)
+    below = np.full((n, j), np.nan)
     source = np.full(n, -1, dtype=np.int64)
     reasons: dict[int, str] = dict(problems)
     order: list[int] = []
@@ -679,8 +792,8 @@ def propagate(
 
     def collect(result) -> None:
         nonlocal done
-        fr, src, jj, cc, skipped = result
-        joints[fr], confidence[fr], source[fr] = jj, cc, src
+        fr, src, jj, cc, bb, skipped = result
+        joints[fr], confidence[fr], below[fr], source[fr] = jj, cc, bb, src
         reasons.update(skipped)
         if on_result is not None and remote:
             for k, f in enumerate(fr):
@@ -730,6 +843,7 @@ def propagate(
         skipped=skipped,
         reasons={f: reasons[f] for f in skipped},
         source=source,
+        below_surface_mm=below,
         seconds=time.perf_counter() - t0,
         order=order,
     )

@@ -337,7 +337,7 @@ class _Problem:
         self.n, self.j = n, j
         self.chunk = chunk
         self.size = int(crops.shape[-1])
-        self.flat = crops.reshape(-1)
+        self.flat = np.asarray(crops).reshape(-1)  # plain ndarray view (a memmap stays on disk)
         self.boxes = np.asarray(boxes, dtype=np.float64)
         self.zc = np.asarray(centres_mm, dtype=np.float64)[:, 2]
         self.half = 0.5 * cube_mm
@@ -425,7 +425,9 @@ class _Problem:
         w = self.w
         n, j = self.n, self.j
         x = self.kin.joints(root, u)
-        terms = dict.fromkeys(("appearance", "temporal", "reprojection", "depth_band", "angle", "init"), 0.0)
+        terms = dict.fromkeys(
+            ("appearance", "temporal", "reprojection", "depth_band", "angle", "init"), 0.0
+        )
         if want_jac:
             hd = np.zeros((n, j, 3, 3))
             gx = np.zeros((n, j, 3))
@@ -462,7 +464,7 @@ class _Problem:
                 px = xy[..., None, 0] + self.grid[:, 0]
                 py = xy[..., None, 1] + self.grid[:, 1]
                 v, vx, vy, _ = _bilinear(self.flat, self.size, base[..., None], px, py)
-                rel = zc[..., None] + self.half * v - z[..., None]
+                rel = (zc - z).astype(np.float32)[..., None] + np.float32(self.half) * v
                 inside = np.abs(rel) < clip
                 rel = np.clip(rel, -clip, clip)
                 tm = self.templates[np.maximum(tpos, 0)]
@@ -471,14 +473,14 @@ class _Problem:
                     cost, wr = _welsch(np.abs(r), w.appearance_huber_mm)
                 else:
                     cost, wr = _huber(np.abs(r), w.appearance_huber_mm)
-                terms["appearance"] += w.appearance * float(np.sum(cost))
+                terms["appearance"] += w.appearance * float(np.sum(cost, dtype=np.float64))
                 if want_jac:
                     # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
-                    gxy = self.half * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
-                    ja = np.matmul(gxy, dxy)  # (n,J,G,3)
+                    gxy = np.float32(self.half) * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
+                    ja = np.matmul(gxy, dxy.astype(np.float32))  # (n,J,G,3)
                     ja[..., 2] -= 1.0
                     ja *= inside[..., None]
-                    ww = w.appearance * wr * has_t[..., None]
+                    ww = (w.appearance * wr * has_t[..., None]).astype(np.float32)
                     jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
                     hd[fr] += np.matmul(jw, ja)
                     gx[fr] += np.matmul(jw, r[..., None])[..., 0]
@@ -523,7 +525,7 @@ class _Problem:
             if want_jac:
                 active = np.flatnonzero(np.any(viol > 0, axis=1))
                 if len(active):
-                    ang = (active, *self._angle_jacobian(x[active]))
+                    ang = (active, *self._angle_jacobian(root[active], u[active]))
         if not want_jac:
             return terms, x
         return terms, x, hd, gx, wt, ang
@@ -541,48 +543,24 @@ class _Problem:
         )
         return np.nan_to_num(v)
 
-    def _angle_jacobian(self, x: np.ndarray):
-        """Violations (m,2A) and an approximate d(violation)/dX (m,2A,J·3) for frames x (m,J,3).
+    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, h: float = 1e-4):
+        """Violations (m,2A) and d(violation)/dθ (m,2A,P) for the frames' parameters (root, u).
 
-        Gauss-Newton approximation: the angle's frame (incoming bone, palm normal) is held fixed,
-        so only the outgoing bone b = X_c − X_k moves the angle (exact derivative in b). Steps are
-        accepted on the true energy, so the approximation only affects the step direction.
+        Forward differences over the 2B bone-direction tangent parameters (angles do not depend on
+        the root), evaluated for all of them at once: 2B extra pose evaluations per active frame.
         """
-        m, j = x.shape[:2]
-        sk = self.skel
-        k = sk.angle_joints
-        p = sk.parent_array[k]
-        c = sk.angle_children
-        a = x[:, k] - x[:, p]
-        b = x[:, c] - x[:, k]
-        nrm = sk.palm_normal(x)[:, None, :]
-        a_hat = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-9)
-        n_perp = nrm - np.sum(nrm * a_hat, axis=-1, keepdims=True) * a_hat
-        n_perp /= np.maximum(np.linalg.norm(n_perp, axis=-1, keepdims=True), 1e-9)
-        lat = np.cross(a_hat, n_perp)
-        al = np.sum(b * a_hat, -1, keepdims=True)
-        tw = np.sum(b * n_perp, -1, keepdims=True)
-        sd = np.sum(b * lat, -1, keepdims=True)
-        r2 = np.maximum(al**2 + tw**2, 1e-9)
-        rr = np.sqrt(r2)
-        deg = 180.0 / np.pi
-        d_flex = deg * (al * n_perp - tw * a_hat) / r2
-        d_abd = deg * (rr * lat - sd * (al * a_hat + tw * n_perp) / rr) / (r2 + sd**2)
-        flex, abd = sk.joint_angles(x)
-        fl, alim = sk.angle_limits()
-        sf = (flex > fl[:, 1]).astype(float) - (flex < fl[:, 0])
-        sa = (abd > alim[:, 1]).astype(float) - (abd < alim[:, 0])
-        v0 = self._angle_violation(x)
-        na = len(k)
-        jac = np.zeros((m, 2 * na, j, 3))
-        rows = np.arange(na)
-        gf = sf[..., None] * d_flex
-        ga = sa[..., None] * d_abd
-        jac[:, rows, c] += gf
-        jac[:, rows, k] -= gf
-        jac[:, na + rows, c] += ga
-        jac[:, na + rows, k] -= ga
-        return v0, jac.reshape(m, 2 * na, j * 3)
+        m, b = u.shape[:2]
+        v0 = self._angle_violation(self.kin.joints(root, u))
+        t = self.kin.tangents(u)  # (m,B,3,2)
+        pert = np.repeat(u[:, None], 2 * b, axis=1)  # (m, 2B, B, 3)
+        idx = np.arange(2 * b)
+        pert[:, idx, idx // 2] += h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
+        pert /= np.linalg.norm(pert, axis=-1, keepdims=True)
+        xs = self.kin.joints(np.repeat(root, 2 * b, axis=0), pert.reshape(m * 2 * b, b, 3))
+        v1 = self._angle_violation(xs).reshape(m, 2 * b, -1)
+        jac = np.zeros((m, v0.shape[1], self.kin.num_params))
+        jac[:, :, 3:] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
+        return v0, jac
 
 
 # ------------------------------------------------------------------------------------------------
@@ -597,8 +575,7 @@ def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarr
     diag = np.matmul(m.transpose(0, 2, 1), hm.reshape(n, j * 3, p))
     grad = np.einsum("nrp,nr->np", m, gx.reshape(n, j * 3))
     if ang is not None:
-        frames, v0, jac = ang
-        jm = np.matmul(jac, m[frames])  # (a, 2A, P)
+        frames, v0, jm = ang  # jm: (a, 2A, P) in θ-space
         wa = problem.w.angle
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
@@ -701,14 +678,20 @@ def refine(
     if crops.shape[0] != n or boxes.shape != (n, 4) or np.shape(centres_mm) != (n, 3):
         raise ValueError("crops, boxes and centres_mm must have one row per frame")
     closest = np.asarray(closest_reference, dtype=np.int64)
-    # frames without a usable initialization start from their closest reference's pose
-    bad = ~np.all(np.isfinite(init), axis=(1, 2))
-    if np.any(bad):
+    # frames without a usable initialization start from their closest reference's pose, else from
+    # the nearest initialized frame in time (e.g. references left NaN by propagation)
+    finite = np.all(np.isfinite(init), axis=(1, 2))
+    if not np.any(finite):
+        raise ValueError("init_mm has no frame with a finite initialization")
+    bad = np.flatnonzero(~finite)
+    if len(bad):
         src = closest[bad]
-        ok = (src >= 0) & np.all(np.isfinite(init[np.clip(src, 0, n - 1)]), axis=(1, 2))
-        if not np.all(ok):
-            raise ValueError(f"frames {np.flatnonzero(bad)[~ok][:10].tolist()} have no finite initialization")
-        init[bad] = init[src]
+        ok = (src >= 0) & (src < n) & finite[np.clip(src, 0, n - 1)]
+        good = np.flatnonzero(finite)
+        pos = np.clip(np.searchsorted(good, bad), 1, len(good)) - 1
+        nxt = np.minimum(pos + 1, len(good) - 1)
+        near = np.where(np.abs(good[nxt] - bad) < np.abs(good[pos] - bad), good[nxt], good[pos])
+        init[bad] = init[np.where(ok, src, near)]
     fixed = np.zeros(n, dtype=bool)
     if fixed_frames is not None:
         fixed[np.asarray(list(fixed_frames), dtype=np.int64)] = True
@@ -736,44 +719,56 @@ def refine(
     terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
     energy = sum(terms.values())
     history = [energy]
-    lam = 1e-3
+    lam = 1e-4
     converged = False
     it = 0
+    nu = 2.0
+    log = []
     for it in range(1, iterations + 1):
         m = kin.jacobian(u)
         diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, fixed)
         dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
         ab0 = _banded(diag, off)
+        g = grad.reshape(-1)
         accepted = False
-        for _ in range(12):
+        tries = 0
+        while tries < 12:
+            tries += 1
             ab = ab0.copy()
             ab[-1] += lam * dscale
             try:
                 with _single_blas_thread():
-                    step = solveh_banded(ab, -grad.reshape(-1), lower=False, check_finite=False)
+                    step = solveh_banded(ab, -g, lower=False, check_finite=False)
             except (LinAlgError, ValueError):
-                lam *= 10.0
+                lam *= nu
+                nu *= 2.0
                 continue
-            step = step.reshape(n, p)
-            step[fixed] = 0.0
-            root_n, u_n = kin.retract(root, u, step)
-            terms_n, _ = problem.evaluate(root_n, u_n, want_jac=False)
-            e_new = sum(terms_n.values())
+            step[np.repeat(fixed, p)] = 0.0
+            predicted = 0.5 * float(step @ (lam * dscale * step - g))
+            root_n, u_n = kin.retract(root, u, step.reshape(n, p))
+            trial = problem.evaluate(root_n, u_n, want_jac=True)
+            e_new = sum(trial[0].values())
             if np.isfinite(e_new) and e_new < energy:
                 accepted = True
                 break
-            lam *= 4.0
+            lam *= nu
+            nu *= 2.0
         if not accepted:
             history.append(energy)
+            log.append((it, lam, tries, 0.0))
             if progress is not None:
                 progress(it, energy)
             converged = True
             break
         decrease = (energy - e_new) / max(energy, 1e-12)
+        gain = (energy - e_new) / max(predicted, 1e-300)
+        # Nielsen's damping update on the gain ratio
+        lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3), 1e-9)
+        nu = 2.0
+        log.append((it, lam, tries, gain))
         root, u = root_n, u_n
-        lam = max(lam / 3.0, 1e-7)
-        terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
-        energy = sum(terms.values())
+        terms, x, hd, gx, wt, ang = trial
+        energy = e_new
         history.append(energy)
         if progress is not None:
             progress(it, energy)
@@ -791,5 +786,5 @@ def refine(
         iterations=it,
         converged=converged,
         time_s=time.perf_counter() - t0,
-        info={"lambda": lam},
+        info={"lambda": lam, "log": log},
     )

@@ -743,20 +743,28 @@ def coverage_curve(
 
 
 def plot_coverage(
-    curves: dict[str, tuple[np.ndarray, np.ndarray]] | tuple[np.ndarray, np.ndarray],
-    path,
+    curves_or_thresholds,
+    fraction_or_path,
+    path=None,
     *,
     title: str = "Reference coverage",
 ) -> None:
-    """Write the coverage curve(s) (from :func:`coverage_curve`) to a PNG; a dict plots one
-    labelled curve per entry."""
+    """Write coverage curve(s) from :func:`coverage_curve` to a PNG.
+
+    Either ``plot_coverage(thresholds, fraction, path)`` for one curve, or
+    ``plot_coverage({label: (thresholds, fraction), ...}, path)`` for one labelled curve each.
+    """
+    if path is None:
+        curves, path = curves_or_thresholds, fraction_or_path
+    else:
+        curves = {"": (curves_or_thresholds, fraction_or_path)}
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     if not isinstance(curves, dict):
-        curves = {"": curves}
+        curves = {"": tuple(curves)}
     fig, ax = plt.subplots(figsize=(5, 4), dpi=120)
     for label, (t, f) in curves.items():
         ax.plot(t, 100.0 * np.asarray(f), label=label or None)

@@ -58,7 +58,7 @@ class DatasetSpec(BaseModel):
 class Settings(BaseModel):
     cube_mm: float = 220.0
     crop_size: int = 128
-    descriptor: str = "hog"
+    descriptor: str = "downsampled"
     eps_mm: float = 15.0
     angle_limits: bool = True
     aligner: str = "sift"

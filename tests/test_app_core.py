@@ -43,10 +43,16 @@ def make_session(tmp_path: Path, frames: int = 6, bad_frame: int | None = 3) -> 
         write_msra_frame(data / f"{i:06d}_depth.bin", hand_depth(2 * i))
     if bad_frame is not None:
         (data / f"{bad_frame:06d}_depth.bin").write_bytes(b"\x00\x01")  # truncated
-    session = Session.create(tmp_path / "sess", DatasetSpec(path=str(data), format="msra"), frames, CAM)
+    session = Session.create(
+        tmp_path / "sess", DatasetSpec(path=str(data), format="msra"), frames, CAM
+    )
     refs = [0, 3, 5]
     session.set_selection(
-        {"strategy": "test", "reference_frames": refs, "parent": [-1 if f in refs else 0 for f in range(frames)]}
+        {
+            "strategy": "test",
+            "reference_frames": refs,
+            "parent": [-1 if f in refs else 0 for f in range(frames)],
+        }
     )
     return session
 
@@ -88,8 +94,12 @@ def test_pixel_round_trip_and_misses():
         origin = geo.sensor_position + np.array([0.01, -0.02, 0.0])  # any origin on the ray's side
         got = geo.ray_to_pixel(origin, ray_end - origin)
         np.testing.assert_allclose(got, p, atol=1e-6)
-    assert geo.ray_to_pixel(geo.sensor_position, np.array([0.0, 0.0, -1.0])) is None  # away from plane
-    assert geo.ray_to_pixel(geo.sensor_position, np.array([1.0, 0.0, 0.01])) is None  # outside image
+    assert (
+        geo.ray_to_pixel(geo.sensor_position, np.array([0.0, 0.0, -1.0])) is None
+    )  # away from plane
+    assert (
+        geo.ray_to_pixel(geo.sensor_position, np.array([1.0, 0.0, 0.01])) is None
+    )  # outside image
 
 
 def test_nearest_cloud_point_snaps_to_front_surface():
@@ -105,7 +115,9 @@ def test_nearest_cloud_point_snaps_to_front_surface():
 
 def test_cloud_is_cropped_and_capped():
     depth = np.full((CAM.height, CAM.width), 400.0, np.float32)  # a wall: 76,800 points
-    geo = build_frame_geometry(depth, CAM, np.array([0.0, 0.0, 400.0]), cube_mm=2000.0, max_points=50_000)
+    geo = build_frame_geometry(
+        depth, CAM, np.array([0.0, 0.0, 400.0]), cube_mm=2000.0, max_points=50_000
+    )
     assert len(geo.cloud_mm) <= 50_000
     small = build_frame_geometry(depth, CAM, np.array([0.0, 0.0, 400.0]), cube_mm=100.0)
     assert np.all(np.abs(small.cloud_mm[:, :2]) <= 50.0 + 1e-9)
@@ -178,7 +190,9 @@ def test_navigation_walks_references_and_progress(session):
     for j in range(session.skeleton.num_joints):
         st.place_2d(np.array([100.0 + j, 100.0]), joint=j)
     assert st.progress_text() == "1 of 3 reference frames annotated"
-    assert AnnotateState(session, "d").frame == 3  # a new browser opens on the first unfinished frame
+    assert (
+        AnnotateState(session, "d").frame == 3
+    )  # a new browser opens on the first unfinished frame
 
 
 def test_entry_frame(session):
@@ -198,9 +212,13 @@ def test_frame_without_depth_gives_message_not_exception(session):
     assert frames.get(0) is good  # cached
 
 
-def fake_lift(annotation, depth, camera, skeleton, bone_lengths_mm, *, eps_mm, angle_limits, init_mm):
+def fake_lift(
+    annotation, depth, camera, skeleton, bone_lengths_mm, *, eps_mm, angle_limits, init_mm
+):
     """Test stand-in for lift_frame: back-projects 2D joints at 400 mm, others at the wrist."""
-    uv = np.where(annotation.has_2d[:, None], annotation.uv_px, annotation.uv_px[annotation.has_2d][0])
+    uv = np.where(
+        annotation.has_2d[:, None], annotation.uv_px, annotation.uv_px[annotation.has_2d][0]
+    )
     joints = camera.backproject(uv, np.full(len(uv), 400.0))
     return SimpleNamespace(joints_mm=joints, confidence=annotation.has_2d.astype(float))
 
@@ -215,7 +233,9 @@ def test_worker_lifts_after_edits_and_coalesces(session):
         return fake_lift(annotation, *args, **kwargs)
 
     results = []
-    worker = LiftWorker(session, FrameStore(session), lift_fn=slow_lift, on_result=lambda f, o: results.append(o))
+    worker = LiftWorker(
+        session, FrameStore(session), lift_fn=slow_lift, on_result=lambda f, o: results.append(o)
+    )
     worker.start()
     try:
         st = AnnotateState(session, "c")
@@ -277,7 +297,9 @@ def test_worker_without_lift_module_is_unavailable(session, monkeypatch):
 # ------------------------------------------------------------------ hotkeys and help
 def test_help_md_has_the_hotkey_table():
     help_md = (STATIC / "help.md").read_text()
-    assert hotkey_table_markdown() in help_md, "static/help.md is out of date: paste hotkey_table_markdown()"
+    assert hotkey_table_markdown() in help_md, (
+        "static/help.md is out of date: paste hotkey_table_markdown()"
+    )
     assert "## Annotating" in help_md
 
 
@@ -286,7 +308,12 @@ def test_hotkeys_are_unique_and_bind_through_our_layer():
     assert len(set(combos)) == len(combos)
     undo = next(h for h in HOTKEYS if h.action == "undo")
     redo = next(h for h in HOTKEYS if h.action == "redo")
-    assert (undo.key, undo.modifier, redo.key, redo.modifier) == ("Z", "cmd/ctrl", "Z", "cmd/ctrl+shift")
+    assert (undo.key, undo.modifier, redo.key, redo.modifier) == (
+        "Z",
+        "cmd/ctrl",
+        "Z",
+        "cmd/ctrl+shift",
+    )
 
     class FakeHandle:
         def on_trigger(self, fn):
@@ -303,7 +330,9 @@ def test_hotkeys_are_unique_and_bind_through_our_layer():
 
     gui = FakeGui()
     fired = []
-    handles = bind_all(gui, {"undo": lambda c: fired.append(("undo", c)), "redo": lambda c: fired.append("redo")})
+    handles = bind_all(
+        gui, {"undo": lambda c: fired.append(("undo", c)), "redo": lambda c: fired.append("redo")}
+    )
     assert [a[1:] for a in gui.added] == [("Z", "cmd/ctrl"), ("Z", "cmd/ctrl+shift")]
     handles["undo"].fn(SimpleNamespace(client="client-7"))
     assert fired == [("undo", "client-7")]

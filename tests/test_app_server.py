@@ -25,7 +25,11 @@ def free_port() -> int:
 
 def run_server_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "app.server", *args], cwd=REPO, capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "app.server", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
 
 
@@ -52,11 +56,16 @@ def test_serve_prints_url_and_relifts_edits(tmp_path, capsys):
         out = capsys.readouterr().out
         assert f"annotate at http://localhost:{app.port}" in out
         assert app.host == "127.0.0.1"
-        entry = app.session.execute(SetJoint2D(frame=5, joint=0, uv_px=(150.0, 130.0)), client="test")
+        entry = app.session.execute(
+            SetJoint2D(frame=5, joint=0, uv_px=(150.0, 130.0)), client="test"
+        )
         assert app.worker.wait_idle(10)
         outcome = app.worker.latest[5]
         assert outcome.error is None and outcome.journal_seq == entry.seq
-        np.testing.assert_allclose(outcome.joints_mm[0], app.session.camera.backproject(np.array([150.0, 130.0]), np.float64(400.0)))
+        np.testing.assert_allclose(
+            outcome.joints_mm[0],
+            app.session.camera.backproject(np.array([150.0, 130.0]), np.float64(400.0)),
+        )
     finally:
         app.stop()
     assert np.isfinite(app.session.load_results()["lifted_mm"][5]).all()

@@ -163,11 +163,18 @@ def test_descendants_and_incremental_recompute(data):
     assert order[:2].tolist() == [1, 2] and set(order.tolist()) == set(range(1, 12))
     full = run(data, parent, [0, 12])
     sub = descendants(parent, [5])
-    part = run(data, parent, [0, 12], frames=sub, initial_mm=full.joints_mm, initial_confidence=full.confidence)
+    part = run(data, parent, [0, 12], frames=sub, previous=full)
     np.testing.assert_array_equal(part.joints_mm[sub], full.joints_mm[sub])
     np.testing.assert_array_equal(part.confidence[sub], full.confidence[sub])
     others = np.setdiff1d(np.arange(N), sub)
     assert np.all(np.isnan(part.joints_mm[others]))
+    # from stored arrays only (a session's init_mm/confidence): close, not bit-identical
+    part2 = run(data, parent, [0, 12], frames=sub, initial_mm=full.joints_mm, initial_confidence=full.confidence)
+    diff = np.linalg.norm(part2.joints_mm[sub] - full.joints_mm[sub], axis=-1)
+    assert diff.mean() < 2.0
+    # without the ancestors' joints the subset cannot be propagated: reported, not fatal
+    part3 = run(data, parent, [0, 12], frames=sub)
+    assert part3.skipped == sub.tolist() and "no valid ancestor" in part3.reasons[int(sub[0])]
 
 
 def test_every_aligner_runs(data):

@@ -123,7 +123,13 @@ def _two_segment_problem(jump_mm: float = 120.0, n_half: int = 10):
     rng = np.random.default_rng(0)
     pose = np.zeros((MSRA21.num_joints, 3))
     bones = np.asarray(MSRA21.template_bone_lengths_mm)
-    dirs = {1: (-0.3, -1, 0), 5: (-0.1, -1, 0), 9: (0.1, -1, 0), 13: (0.3, -1, 0), 17: (-1, -0.5, 0)}
+    dirs = {
+        1: (-0.3, -1, 0),
+        5: (-0.1, -1, 0),
+        9: (0.1, -1, 0),
+        13: (0.3, -1, 0),
+        17: (-1, -0.5, 0),
+    }
     for b, (parent, child) in enumerate(MSRA21.bones):
         d = np.asarray(dirs.get(int(child), (0, -1, 0.2)), dtype=float)
         if int(child) not in dirs:

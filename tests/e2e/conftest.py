@@ -7,7 +7,6 @@ import shutil
 from pathlib import Path
 
 import pytest
-
 from viser_helpers import save_screenshot
 
 FRAMES = 40

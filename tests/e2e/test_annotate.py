@@ -15,7 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from viser_helpers import browser, dismiss_webgl_toast, drag, open_app, screen_of, wait_camera_still, wait_until
+from viser_helpers import (
+    browser,
+    dismiss_webgl_toast,
+    drag,
+    open_app,
+    screen_of,
+    wait_camera_still,
+    wait_until,
+)
 
 from app.server import AnnoServer, serve
 from handanno_core.session import JOURNAL_FILE, Session
@@ -93,27 +101,37 @@ def test_annotate_flow(ctx: Ctx):
     page, folder, view = ctx.page, ctx.folder, ctx.view
     frame = view.frame
     assert frame == 0 and view.state.joint == 0
-    assert page.get_by_text("0 of 4 reference frames annotated").is_visible()
+    wait_until(page.get_by_text("0 of 4 reference frames annotated").is_visible, what="progress")
 
     # 1. Click on the depth image: the selected joint (wrist) gets that 2D position, joint 1 is next.
     uv0, uv1 = hand_pixels(ctx)
     page.mouse.click(*ctx.image_point(uv0))
-    entries = wait_until(lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_2d"], what="a 2D edit in the journal")
+    entries = wait_until(
+        lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_2d"],
+        what="a 2D edit in the journal",
+    )
     cmd = entries[-1]["command"]
     assert (cmd["frame"], cmd["joint"]) == (frame, 0)
     assert np.allclose(cmd["uv_px"], uv0, atol=1.5), (cmd["uv_px"], uv0)
     wait_until(lambda: view.state.joint == 1, what="auto-advance to joint 1")
     page.mouse.click(*ctx.image_point(uv1))
-    wait_until(lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 2, what="second 2D edit")
+    wait_until(
+        lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 2,
+        what="second 2D edit",
+    )
     ann = reopen(folder).annotation(frame)
     assert np.allclose(ann.uv_px[0], uv0, atol=1.5) and np.allclose(ann.uv_px[1], uv1, atol=1.5)
-    assert page.get_by_text(re.compile(r"✓ saved \d\d:\d\d:\d\d \(edit #2\)")).is_visible()
+    saved = page.get_by_text(re.compile(r"✓ saved \d\d:\d\d:\d\d \(edit #2\)"))
+    wait_until(saved.is_visible, what="the saved indicator")
 
     # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
     before = view._joint_positions_mm()[0].copy()
     start = ctx.joint_point(0)
     drag(page, start, (start[0] + 60, start[1]))
-    entries = wait_until(lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_3d"], what="a 3D drag edit")
+    entries = wait_until(
+        lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_3d"],
+        what="a 3D drag edit",
+    )
     cmd = entries[-1]["command"]
     assert (cmd["frame"], cmd["joint"]) == (frame, 0)
     moved = np.asarray(cmd["xyz_mm"]) - before
@@ -124,16 +142,29 @@ def test_annotate_flow(ctx: Ctx):
 
     # 3. Toggle visibility of the selected joint with the panel button.
     page.get_by_role("button", name="Visibility: visible (V)").click()
-    wait_until(lambda: journal(folder)[-1]["command"]["kind"] == "set_visible", what="a visibility edit")
-    assert journal(folder)[-1]["command"] == {"frame": frame, "kind": "set_visible", "joint": 0, "visible": False}
+    wait_until(
+        lambda: journal(folder)[-1]["command"]["kind"] == "set_visible", what="a visibility edit"
+    )
+    assert journal(folder)[-1]["command"] == {
+        "frame": frame,
+        "kind": "set_visible",
+        "joint": 0,
+        "visible": False,
+    }
     assert not reopen(folder).annotation(frame).visible[0]
-    wait_until(lambda: page.get_by_role("button", name="Visibility: occluded (V)").is_visible(), what="button label")
+    wait_until(
+        lambda: page.get_by_role("button", name="Visibility: occluded (V)").is_visible(),
+        what="button label",
+    )
 
     # 4. Undo with Ctrl+Z (hotkey through viser's command layer): visibility is back, journaled as undo.
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     n = len(journal(folder))
     page.keyboard.press("Control+z")
-    wait_until(lambda: len(journal(folder)) > n and journal(folder)[-1]["action"] == "undo", what="an undo entry")
+    wait_until(
+        lambda: len(journal(folder)) > n and journal(folder)[-1]["action"] == "undo",
+        what="an undo entry",
+    )
     assert reopen(folder).annotation(frame).visible[0]
     # ... and redo with Ctrl+Shift+Z.
     page.keyboard.press("Control+Shift+z")
@@ -143,7 +174,10 @@ def test_annotate_flow(ctx: Ctx):
     # 5. Next frame by hotkey N: the view moves to the next reference frame.
     page.keyboard.press("n")
     wait_until(lambda: view.frame == 10, what="next reference frame")
-    wait_until(lambda: page.get_by_text("Frame 10", exact=True).is_visible(), what="the panel showing frame 10")
+    wait_until(
+        lambda: page.get_by_text("Frame 10", exact=True).is_visible(),
+        what="the panel showing frame 10",
+    )
     wait_camera_still(page)
 
 
@@ -155,11 +189,17 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
     session = app.session
     frame = view.frame
     seq = session.open_sequence()
-    ann = simulate_annotation(seq.ground_truth.joints_mm[frame], seq.depth(frame), session.camera, session.skeleton)
+    ann = simulate_annotation(
+        seq.ground_truth.joints_mm[frame], seq.depth(frame), session.camera, session.skeleton
+    )
     from handanno_core.session import SetFrameAnnotation
 
-    entry = session.execute(SetFrameAnnotation(frame=frame, annotation=ann.to_json()), client="another-annotator")
-    wait_until(lambda: ctx.page.get_by_text("Frame edited elsewhere").is_visible(), what="the notification")
+    entry = session.execute(
+        SetFrameAnnotation(frame=frame, annotation=ann.to_json()), client="another-annotator"
+    )
+    wait_until(
+        lambda: ctx.page.get_by_text("Frame edited elsewhere").is_visible(), what="the notification"
+    )
     wait_until(
         lambda: view.last_skeleton_update is not None and view.last_skeleton_update[0] >= entry.seq,
         timeout_s=30,

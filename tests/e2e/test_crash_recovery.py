@@ -66,10 +66,9 @@ def journal(folder: Path) -> list[dict]:
 
 def test_sigkill_loses_no_acknowledged_edit(session_folder: Path):
     port = free_port()
-    geo = (
-        FrameStore(Session.open(session_folder)).get(0).geometry
-    )  # same geometry the server computes
-    camera = Session.open(session_folder).camera
+    before = Session.open(session_folder)
+    geo = FrameStore(before).get(0).geometry  # the same geometry the server computes
+    camera = before.camera
     uv = np.round(camera.project(geo.centre_mm))
     proc = start_server(session_folder, port)
     try:

@@ -34,7 +34,11 @@ ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 
 def chromium_path() -> str:
     """The Chromium binary, or skip the test with a message."""
-    path = os.environ.get("HANDANNO_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    path = (
+        os.environ.get("HANDANNO_CHROMIUM")
+        or shutil.which("chromium")
+        or shutil.which("chromium-browser")
+    )
     if not path:
         pytest.skip("e2e: no chromium binary on PATH (apt install chromium)")
     return path
@@ -130,7 +134,9 @@ def wait_camera_still(page, timeout_s: float = 10.0, still_s: float = 0.6) -> No
     raise AssertionError("browser camera did not settle")
 
 
-def wait_until(predicate, timeout_s: float = 15.0, interval_s: float = 0.1, what: str = "condition"):
+def wait_until(
+    predicate, timeout_s: float = 15.0, interval_s: float = 0.1, what: str = "condition"
+):
     """Poll ``predicate()`` until it returns a truthy value; return it (or fail naming ``what``)."""
     deadline = time.monotonic() + timeout_s
     while True:

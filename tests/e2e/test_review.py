@@ -1,0 +1,296 @@
+"""End-to-end: the Review tab in real Chromium (issue 8), every step checked on the session files.
+
+One in-process server per module over the 40-frame synthetic sequence of conftest.py, with a
+chained parent forest (references 0, 10, 20, 30; every other frame's parent is the frame before),
+lifted references taken from ground truth and the DIS aligner, so the module stays fast on two
+cores. Propagation is the real one, slowed per frame so that the page can be watched filling in.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from viser_helpers import browser, drag, open_app, screen_of, wait_camera_still, wait_until
+
+from app.review_state import next_worst
+from app.server import AnnoServer, serve
+from handanno_core.session import JOURNAL_FILE, Session
+
+STEP = 10
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def journal(folder: Path) -> list[dict]:
+    path = folder / JOURNAL_FILE
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def build_review_session(folder: Path, data: Path) -> Path:
+    from handanno_core.pipeline import annotate_from_gt, new_session
+
+    session = new_session(folder, data, format="msra", overwrite=True)
+    refs = list(range(0, session.num_frames, STEP))
+    parent = [-1 if f in refs else f - 1 for f in range(session.num_frames)]
+    session.set_selection({"strategy": "uniform", "reference_frames": refs, "parent": parent})
+    annotate_from_gt(session, quiet=True)
+    gt = session.open_sequence().ground_truth.joints_mm
+    lifted = np.full_like(gt, np.nan)
+    lifted[refs] = gt[refs]
+    conf = np.full(gt.shape[:2], np.nan)
+    conf[refs] = 1.0
+    session.save_results(lifted_mm=lifted, confidence=conf)
+    session.set_bone_lengths(session.skeleton.estimate_bone_lengths(gt))
+    session.model.settings.aligner = "dis"
+    session.close()
+    return folder
+
+
+class FastLift:
+    """Stand-in for lift_frame (the lift is tested in test_lift.py): the placed 3D joints."""
+
+    def __call__(self, annotation, depth, camera, skeleton, bones, **_):
+        """Placed 3D joints as they are; 2D-only joints back-projected 10 mm behind the surface."""
+        from types import SimpleNamespace
+
+        uv = np.nan_to_num(annotation.uv_px)
+        col = np.clip(np.rint(uv[:, 0]).astype(int), 0, camera.width - 1)
+        row = np.clip(np.rint(uv[:, 1]).astype(int), 0, camera.height - 1)
+        d = depth[row, col].astype(np.float64)
+        d = np.where(d > 0, d, np.median(d[d > 0]) if (d > 0).any() else 400.0) + 10.0
+        x = camera.backproject(uv, d)
+        placed = np.all(np.isfinite(annotation.xyz_mm), axis=1)
+        x[placed] = annotation.xyz_mm[placed]
+        return SimpleNamespace(joints_mm=x, confidence=np.ones(len(x)))
+
+
+def slowed_propagate(delay_s: float):
+    from handanno_core.pipeline import propagate
+
+    def run(session, **kw):
+        on_result = kw.pop("on_result")
+
+        def slow(frame, joints, conf):
+            time.sleep(delay_s)
+            on_result(frame, joints, conf)
+
+        return propagate(session, on_result=slow, **kw)
+
+    return run
+
+
+@dataclass
+class Ctx:
+    app: AnnoServer
+    browser: object
+    page: object
+    folder: Path
+
+    def view(self, index: int = 0):
+        views = sorted(
+            (v["Review"] for v in self.app.views.values() if "Review" in v), key=lambda v: v.client.client_id
+        )
+        return views[index]
+
+
+@pytest.fixture(scope="module")
+def ctx(synthetic_data, tmp_path_factory):
+    folder = build_review_session(tmp_path_factory.mktemp("e2e-review") / "sess", synthetic_data)
+    app = serve(folder, port=free_port(), block=False, lift_fn=FastLift())
+    app.review_runner_kwargs = {"propagate_fn": slowed_propagate(0.12), "debounce_s": 0.3}
+    try:
+        with browser() as b:
+            page = open_app(b, app.url)
+            wait_until(lambda: any("Review" in v for v in app.views.values()), what="the review view")
+            open_review_tab(page)
+            yield Ctx(app, b, page, folder)
+    finally:
+        app.stop()
+
+
+def open_review_tab(page) -> None:
+    page.get_by_role("tab", name="Review").click()
+    page.get_by_role("button", name="Propagate & refine").wait_for(timeout=10_000)
+
+
+def test_run_streams_frames_before_it_ends(ctx: Ctx):
+    page, view = ctx.page, ctx.view()
+    runner = view.runner
+    assert view.live.filled() == 4
+    page.get_by_role("button", name="Propagate & refine").click()
+    # While the run is going, the page shows partial progress and skeletons arrive.
+    text = wait_until(
+        lambda: (m := page.get_by_text("propagating:").all_inner_texts()) and m[0], timeout_s=60, what="progress text"
+    )
+    seen_partial = []
+
+    def partial():
+        st = runner.status
+        filled = view.live.filled()
+        label = page.get_by_text("propagating:").all_inner_texts()
+        if st.phase == "propagate" and 4 < filled < 40 and label:
+            seen_partial.append((filled, label[0]))
+        return len(seen_partial) >= 3 and seen_partial[-1][0] > seen_partial[0][0]
+
+    wait_until(partial, timeout_s=60, interval_s=0.2, what="frames filling in during the run")
+    assert runner.status.running, "the run should still be going"
+    assert "of 36 frames" in text
+    wait_until(lambda: runner.status.phase == "done", timeout_s=120, what="the run to finish")
+    wait_until(lambda: page.get_by_text("done: 36 frame(s) propagated").is_visible(), what="done on the page")
+    res = Session.open(ctx.folder).load_results()
+    assert np.all(np.isfinite(res["final_mm"])) and np.all(np.isfinite(res["init_mm"][np.arange(40) % 10 != 0]))
+
+
+def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
+    page, view, folder = ctx.page, ctx.view(), ctx.folder
+    before = Session.open(folder).load_results()
+    assert np.isfinite(before["init_mm"][15]).all(), "needs the previous test's run"
+    scores = view.live.scores().score
+    refs = set(range(0, 40, STEP))
+    expected = next_worst(scores, view.frame, refs)
+    page.get_by_role("button", name="Next worst frame").click()
+    wait_until(lambda: view.frame == expected, what=f"the worst frame {expected}")
+    frame = view.frame
+    assert frame not in refs
+    wait_until(lambda: page.get_by_text(f"Review frame {frame} (").is_visible(), what="the frame text")
+    wait_camera_still(page)
+    # drag a well separated joint 50 px to the right
+    k, start = pick_joint(page, view)
+    n_before = len(journal(folder))
+    drag(page, start, (start[0] + 50, start[1]))
+    entry = wait_until(lambda: len(journal(folder)) > n_before and journal(folder)[-1], what="the correction")
+    cmd = entry["command"]
+    assert cmd["kind"] == "batch"
+    assert [c["kind"] for c in cmd["commands"]] == ["set_reference", "set_frame", "set_3d"]
+    assert cmd["commands"][0] == {"frame": frame, "kind": "set_reference", "is_reference": True, "parent": -1,
+                                  "correction": True}
+    assert cmd["commands"][2]["joint"] == k
+    shown_before = before["final_mm"][frame, k]
+    assert cmd["commands"][2]["xyz_mm"][0] - shown_before[0] > 5.0
+    reopened = Session.open(folder)
+    assert frame in reopened.model.corrections and frame in reopened.model.selection.reference_frames
+    reopened.close()
+    # the runner lifts the new reference and re-propagates its descendants only
+    wait_until(
+        lambda: view.runner.history and view.runner.history[-1].kind == "corrections",
+        timeout_s=120,
+        what="the correction job",
+    )
+    job = view.runner.history[-1]
+    assert job.phase == "done", job.message
+    end = (frame // STEP + 1) * STEP
+    assert job.frames == list(range(frame + 1, end))
+    after = Session.open(folder).load_results()
+    changed = set(np.flatnonzero(np.any(~np.isclose(after["init_mm"], before["init_mm"], equal_nan=True), axis=(1, 2))))
+    assert changed <= set(range(frame, end)) and set(range(frame + 1, end)) <= changed
+    assert np.allclose(after["lifted_mm"][frame, k], cmd["commands"][2]["xyz_mm"], atol=0.01)
+    wait_until(lambda: page.get_by_text(f"Review frame {frame} (reference").is_visible(), what="reference text")
+
+
+def pick_joint(page, view, k: int | None = None) -> tuple[int, tuple[float, float]]:
+    """The joint farthest (on screen) from every other joint (or joint ``k``), and its page position."""
+    geo = view._frame_data.geometry
+    drawn = geo.to_scene(view._display_mm(view._joints_mm))
+    pts = np.array([screen_of(page, "/review/joints", p) for p in drawn])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    d[np.arange(len(d)), np.arange(len(d))] = np.inf
+    k = int(np.argmax(d.min(axis=1))) if k is None else k
+    return k, (float(pts[k, 0]), float(pts[k, 1]))
+
+
+def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
+    page_a, folder = ctx.page, ctx.folder
+    page_b = open_app(ctx.browser, ctx.app.url)
+    try:
+        open_review_tab(page_b)
+        wait_until(lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 2, what="second view")
+        view_a, view_b = ctx.view(0), ctx.view(1)
+        frame = 24  # a propagated frame both pages go to via the slider... set from the server side
+        for page, view in ((page_a, view_a), (page_b, view_b)):
+            view.activate_scene()
+            view.show_frame(frame)
+            wait_until(lambda p=page: p.get_by_text(f"Review frame {frame} (").is_visible(), what="frame text")
+            wait_camera_still(page)
+        k, start_a = pick_joint(page_a, view_a)
+        n0 = len(journal(folder))
+        drag(page_a, start_a, (start_a[0] + 40, start_a[1]))
+        wait_until(lambda: len(journal(folder)) == n0 + 1, what="page A's edit")
+        # B's view follows (lift, then re-propagation of the frame's dependents); B then drags the
+        # same joint from where B now sees it
+        wait_until(lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="A's re-propagation")
+        page_b.wait_for_timeout(500)
+        _, start_b = pick_joint(page_b, view_b, k)
+        drag(page_b, start_b, (start_b[0], start_b[1] + 40))
+        wait_until(lambda: len(journal(folder)) == n0 + 2, what="page B's edit")
+        entries = journal(folder)[n0:]
+        assert entries[0]["client"] != entries[1]["client"]
+        assert entries[0]["command"]["kind"] == "batch"  # A made the frame a reference
+        assert entries[1]["command"]["kind"] == "set_3d"  # B edited the (now) reference: no re-seed
+        assert entries[1]["command"]["joint"] == k
+        # page A was told about B's edit
+        wait_until(lambda: page_a.get_by_text("Frame edited elsewhere").first.is_visible(), what="notification on A")
+        # last write wins for the joint; A's other seeded joints are still there; all after reopening
+        ctx.app.session.save()
+        reopened = Session.open(folder)
+        ann = reopened.annotation(frame)
+        assert np.allclose(ann.xyz_mm[k], entries[1]["command"]["xyz_mm"], atol=0.01)
+        a_seed = entries[0]["command"]["commands"][1]["annotation"]
+        other = (k + 1) % 21
+        assert np.allclose(ann.xyz_mm[other], np.asarray(a_seed["xyz_mm"], float)[other], atol=0.01)
+        assert frame in reopened.model.corrections
+        reopened.close()
+        wait_until(lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="re-propagation")
+    finally:
+        page_b.close()
+        wait_until(lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 1, what="page B gone")
+
+
+def test_accept_flag_export_and_import(ctx: Ctx, tmp_path):
+    page, view, folder = ctx.page, ctx.view(), ctx.folder
+    view.show_frame(7)
+    page.get_by_role("button", name="Flag").click()
+    wait_until(lambda: journal(folder)[-1]["command"] == {"frame": 7, "kind": "set_review", "status": "flagged"},
+               what="flag entry")
+    page.get_by_role("button", name="Accept").click()
+    wait_until(lambda: journal(folder)[-1]["command"]["status"] == "accepted", what="accept entry")
+    assert Session.open(folder).model.review["7"] == "accepted"
+    # export JSON through the browser download
+    page.get_by_text("Export / import").click()
+    with page.expect_download(timeout=30_000) as info:
+        page.get_by_role("button", name="JSON", exact=True).click()
+    path = tmp_path / "export.json"
+    info.value.save_as(path)
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "handanno-export" and len(doc["frames"]) == 40
+    corrections = ctx.app.session.model.corrections
+    assert len(corrections) >= 2 and all(doc["frames"][f]["is_reference"] for f in corrections)
+    assert doc["corrections"] == corrections
+    # NPZ too (same arrays)
+    with page.expect_download(timeout=30_000) as info_npz:
+        page.get_by_role("button", name="NPZ", exact=True).click()
+    npz_path = tmp_path / "export.npz"
+    info_npz.value.save_as(npz_path)
+    with np.load(npz_path) as npz:
+        assert npz["joints_mm"].shape == (40, 21, 3)
+        assert np.allclose(npz["joints_mm"][5], doc["frames"][5]["joints_mm"], atol=1e-3)
+    # edit the export (frame 3 moved by 7 mm) and import it back through the upload button
+    doc["frames"][3]["joints_mm"] = (np.asarray(doc["frames"][3]["joints_mm"]) + 7.0).tolist()
+    path.write_text(json.dumps(doc))
+    with page.expect_file_chooser() as chooser:
+        page.get_by_role("button", name="Import JSON").click()
+    chooser.value.set_files(str(path))
+    wait_until(lambda: page.get_by_text("imported 40 frames").first.is_visible(), timeout_s=30, what="import done")
+    res = Session.open(folder).load_results()
+    assert np.allclose(res["final_mm"][3], np.asarray(doc["frames"][3]["joints_mm"]), atol=1e-3)

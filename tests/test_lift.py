@@ -1,0 +1,303 @@
+"""Tests for handanno_core.lift: recovery, constraints, angle limits, bone estimation, robustness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from handanno_core.annotation import AnnotationError, FrameAnnotation
+from handanno_core.camera import MSRA_CAMERA
+from handanno_core.lift import _Problem, initial_pose, lift_frame, lift_references, observed_depth
+from handanno_core.skeleton import MSRA21
+
+SK = MSRA21
+CAM = MSRA_CAMERA
+OFF = np.asarray(SK.surface_offsets_mm)
+
+
+# ------------------------------------------------------------------ fixture: poses + sphere render
+def _rot(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def random_pose(rng: np.random.Generator, bones: np.ndarray | None = None) -> np.ndarray:
+    """A right hand ``(21, 3)`` mm with angles drawn inside 90 % of the skeleton's limits, palm
+    within ~50 deg of facing (or facing away from) the camera, 330-420 mm away."""
+    d = np.asarray(bones if bones is not None else SK.template_bone_lengths_mm, dtype=np.float64)
+    boc = np.full(SK.num_joints, -1)
+    boc[SK.bones[:, 1]] = np.arange(len(SK.bones))
+    X = np.zeros((SK.num_joints, 3))
+    for k, ang in {1: -8.0, 5: 0.0, 9: 9.0, 13: 18.0}.items():
+        a = np.radians(ang)
+        X[k] = d[boc[k]] * np.array([np.sin(a), -np.cos(a), 0.0])
+    t = np.array([-0.75, -0.55, 0.35])
+    X[17] = d[boc[17]] * t / np.linalg.norm(t)
+    fl, ab = SK.angle_limits()
+    n = SK.palm_normal(X)
+    for i, (k, c) in enumerate(zip(SK.angle_joints, SK.angle_children, strict=True)):
+        a = X[k] - X[SK.parent_array[k]]
+        a /= np.linalg.norm(a)
+        npp = n - (n @ a) * a
+        npp /= np.linalg.norm(npp)
+        lat = np.cross(a, npp)
+        f = np.radians(rng.uniform(fl[i, 0] + 0.05 * np.ptp(fl[i]), fl[i, 1] - 0.05 * np.ptp(fl[i])))
+        b = np.radians(rng.uniform(0.9 * ab[i, 0], 0.9 * ab[i, 1]))
+        X[c] = X[k] + d[boc[c]] * (np.cos(b) * (np.cos(f) * a + np.sin(f) * npp) + np.sin(b) * lat)
+    X = X @ _rot(rng).T
+    n = SK.palm_normal(X)
+    tilt = np.arccos(abs(n[2]))
+    if tilt > np.radians(50):
+        axis = np.cross(n, [0.0, 0.0, np.sign(n[2])])
+        axis /= np.linalg.norm(axis)
+        th = tilt - np.radians(50) * rng.uniform()
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        X = X @ (np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K).T
+    X -= X.mean(axis=0)
+    return X + np.array([rng.uniform(-30, 30), rng.uniform(-20, 20), rng.uniform(330, 420)])
+
+
+def render(X: np.ndarray, step: float = 1.5) -> np.ndarray:
+    """Depth map of spheres along the bones (radius = the joints' surface offsets; tips inside a
+    cap of 0.8x the DIP radius), orthographic-per-sphere z-buffer; background 0."""
+    cen, rad = [], []
+    for p, c in SK.bones:
+        rp = OFF[p] if p != 0 else OFF[c] + 2
+        rc = OFF[c] if OFF[c] > 0 else 0.8 * OFF[p]
+        m = max(2, int(np.linalg.norm(X[c] - X[p]) / step) + 1)
+        t = np.linspace(0, 1, m)[:, None]
+        cen.append(X[p] + t * (X[c] - X[p]))
+        rad.append(rp + t[:, 0] * (rc - rp))
+    cen.append(X[[0]])
+    rad.append(np.array([OFF[0]]))
+    cen, rad = np.concatenate(cen), np.concatenate(rad)
+    h, w = CAM.height, CAM.width
+    depth = np.full(h * w, np.inf)
+    uv = CAM.project(cen)
+    r = np.arange(-14, 15)
+    dv, du = np.meshgrid(r, r, indexing="ij")
+    uu = np.rint(uv[:, 0])[:, None] + du.ravel()[None]
+    vv = np.rint(uv[:, 1])[:, None] + dv.ravel()[None]
+    xs = (uu - CAM.cx) * cen[:, 2:3] / CAM.fx - cen[:, 0:1]
+    ys = (vv - CAM.cy) * cen[:, 2:3] / CAM.fy - cen[:, 1:2]
+    rho2 = xs**2 + ys**2
+    inside = (rho2 < rad[:, None] ** 2) & (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+    z = cen[:, 2:3] - np.sqrt(np.maximum(rad[:, None] ** 2 - rho2, 0))
+    np.minimum.at(depth, (vv * w + uu)[inside].astype(np.int64), z[inside])
+    depth[~np.isfinite(depth)] = 0
+    return depth.reshape(h, w).astype(np.float32)
+
+
+def annotate(X, depth, noise_px=0.0, rng=None, eps=15.0) -> FrameAnnotation:
+    rng = rng if rng is not None else np.random.default_rng(0)
+    uv = CAM.project(X)
+    D = observed_depth(depth, uv, window=0)
+    vis = np.isfinite(D) & (X[:, 2] <= D + OFF + eps - 0.5)
+    par = SK.parent_array
+    dz = X[:, 2] - X[np.maximum(par, 0), 2]
+    order = np.where(dz > 10, 1, np.where(dz < -10, -1, 0)).astype(np.int8)
+    order[par < 0] = 0
+    if noise_px:
+        uv = uv + rng.normal(0, noise_px, uv.shape)
+    return FrameAnnotation(uv, vis, order, np.full((len(X), 3), np.nan))
+
+
+def _check_constraints(r, ann, bones, tol=0.5):
+    X = r.joints_mm
+    assert np.max(np.abs(SK.bone_lengths(X) - bones)) < tol
+    D = r.observed_depth_mm
+    has = np.isfinite(D)
+    lo = D + OFF
+    assert np.all(X[has, 2] >= lo[has] - tol)
+    vis = has & ann.visible
+    assert np.all(X[vis, 2] <= lo[vis] + 15.0 + tol)
+    par = SK.parent_array
+    k = np.flatnonzero((ann.depth_order != 0) & (par >= 0))
+    assert np.all(ann.depth_order[k] * (X[k, 2] - X[par[k], 2]) >= 5.0 - tol)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    rng = np.random.default_rng(7)
+    out = []
+    for _ in range(6):
+        X = random_pose(rng)
+        depth = render(X)
+        out.append((X, depth, annotate(X, depth)))
+    return out
+
+
+# ------------------------------------------------------------------ tests
+def test_fixture_poses_respect_limits(frames):
+    fl_lim, ab_lim = SK.angle_limits()
+    for X, _, _ in frames:
+        fl, ab = SK.joint_angles(X)
+        assert np.all(fl >= fl_lim[:, 0] - 1e-6) and np.all(fl <= fl_lim[:, 1] + 1e-6)
+        assert np.all(ab >= ab_lim[:, 0] - 1e-6) and np.all(ab <= ab_lim[:, 1] + 1e-6)
+
+
+def test_exact_annotations_recovered_and_constraints_hold(frames):
+    errs = []
+    for X, depth, ann in frames:
+        bones = SK.bone_lengths(X)
+        r = lift_frame(ann, depth, CAM, SK, bones)
+        assert r.converged, r.message
+        assert r.joints_mm.shape == (21, 3) and r.confidence.shape == (21,)
+        assert np.nanmax(r.reprojection_px) < 1.0
+        _check_constraints(r, ann, bones)
+        errs.append(np.linalg.norm(r.joints_mm - X, axis=1))
+    errs = np.array(errs)
+    assert errs.mean() < 2.0, errs.mean(axis=1)
+    assert np.median(errs.max(axis=1)) < 8.0
+
+
+def test_angle_limits_respected_when_on():
+    rng = np.random.default_rng(3)
+    fl_lim, ab_lim = SK.angle_limits()
+    for _ in range(4):
+        X = random_pose(rng)
+        depth = render(X)
+        ann = annotate(X, depth, noise_px=4.0, rng=rng)  # noisy 2D pushes towards violations
+        bones = SK.bone_lengths(X)
+        r = lift_frame(ann, depth, CAM, SK, bones, angle_limits=True)
+        fl, ab = SK.joint_angles(r.joints_mm)
+        assert np.all(fl >= fl_lim[:, 0] - 0.5) and np.all(fl <= fl_lim[:, 1] + 0.5)
+        assert np.all(ab >= ab_lim[:, 0] - 0.5) and np.all(ab <= ab_lim[:, 1] + 0.5)
+        assert np.max(np.abs(SK.bone_lengths(r.joints_mm) - bones)) < 0.5
+
+
+def test_angle_limits_change_solution_when_violated():
+    """A 2D annotation of a hyper-extended finger: the limits force a different pose."""
+    rng = np.random.default_rng(11)
+    X = random_pose(rng)
+    depth = render(X)
+    ann = annotate(X, depth)
+    # bend the index DIP->TIP backwards in 2D: mirror the tip about the DIP-PIP line
+    uv = ann.uv_px
+    a = uv[3] - uv[2]
+    b = uv[4] - uv[3]
+    a_hat = a / np.linalg.norm(a)
+    b_ref = 2 * (b @ a_hat) * a_hat - b
+    ann.uv_px[4] = uv[3] + b_ref
+    ann.depth_order[:] = 0
+    bones = SK.bone_lengths(X)
+    on = lift_frame(ann, depth, CAM, SK, bones, angle_limits=True)
+    off = lift_frame(ann, depth, CAM, SK, bones, angle_limits=False)
+    fl_lim, ab_lim = SK.angle_limits()
+    fl, ab = SK.joint_angles(on.joints_mm)
+    assert np.all(fl >= fl_lim[:, 0] - 0.5) and np.all(fl <= fl_lim[:, 1] + 0.5)
+    assert np.all(np.abs(ab) <= ab_lim[:, 1] + 0.5)
+    assert off.reprojection_px[4] <= on.reprojection_px[4] + 1e-6
+
+
+def test_analytic_derivatives_match_finite_differences(frames):
+    X, depth, ann = frames[0]
+    ann = ann.copy()
+    ann.xyz_mm[3] = X[3] + 1.0
+    bones = SK.bone_lengths(X)
+    x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
+    prob = _Problem(
+        ann, d_obs, CAM, SK, bones, x0, eps_mm=15.0, angle_limits=True, order_margin_mm=5.0,
+        w_3d=1.0, w_surface=0.01, w_free=1e-3, soft_bones=0.1, right_hand=True,
+    )
+    prob.set_elastic(True)
+    x = np.random.default_rng(0).normal(0, 0.5, prob.n_var)
+    x[63:] = np.abs(x[63:])
+
+    def fd(fun, h=1e-6):
+        cols = []
+        for i in range(len(x)):
+            e = np.zeros_like(x)
+            e[i] = h
+            cols.append((np.atleast_1d(fun(x + e)) - np.atleast_1d(fun(x - e))) / (2 * h))
+        return np.stack(cols, axis=-1)
+
+    np.testing.assert_allclose(prob.objective(x)[1], fd(lambda v: prob.objective(v)[0])[0], atol=1e-4)
+    np.testing.assert_allclose(prob.eq_jac(x), fd(prob.eq), atol=1e-5)
+    np.testing.assert_allclose(prob.ineq_jac(x), fd(prob.ineq), atol=1e-5)
+
+
+def test_missing_joints_and_missing_depth_still_lift(frames):
+    X, depth, ann = frames[1]
+    bones = SK.bone_lengths(X)
+    ann = ann.copy()
+    ann.uv_px[[8, 12]] = np.nan  # two tips not annotated
+    ann.depth_order[[8, 12]] = 0
+    depth = depth.copy()
+    u, v = np.rint(CAM.project(X[6])).astype(int)
+    depth[v - 5 : v + 6, u - 5 : u + 6] = 0  # no valid depth under joint 6
+    r = lift_frame(ann, depth, CAM, SK, bones)
+    assert np.all(np.isfinite(r.joints_mm))
+    assert np.isnan(r.observed_depth_mm[6]) and np.isnan(r.reprojection_px[8])
+    assert r.confidence[8] < 0.5 and r.confidence[12] < 0.5 and r.confidence[6] < 0.8
+    assert r.confidence[1] > 0.8
+    assert np.max(np.abs(SK.bone_lengths(r.joints_mm) - bones)) < 0.5
+    err = np.linalg.norm(r.joints_mm - X, axis=1)
+    assert np.median(err) < 3.0
+
+
+def test_joints_given_in_3d_are_kept(frames):
+    X, depth, ann = frames[2]
+    bones = SK.bone_lengths(X)
+    ann = ann.copy()
+    ann.uv_px[[3, 4]] = np.nan
+    ann.xyz_mm[[3, 4]] = X[[3, 4]]
+    r = lift_frame(ann, depth, CAM, SK, bones)
+    assert np.linalg.norm(r.joints_mm[[3, 4]] - X[[3, 4]], axis=1).max() < 3.0
+
+
+def test_warm_start_is_consistent(frames):
+    X, depth, ann = frames[3]
+    bones = SK.bone_lengths(X)
+    r = lift_frame(ann, depth, CAM, SK, bones)
+    r2 = lift_frame(ann, depth, CAM, SK, bones, init_mm=r.joints_mm)
+    assert r2.iterations <= r.iterations
+    assert np.abs(r2.joints_mm - r.joints_mm).max() < 1.0
+
+
+def test_malformed_annotations_raise(frames):
+    X, depth, ann = frames[0]
+    bones = SK.bone_lengths(X)
+    bad = ann.copy()
+    bad.uv_px = bad.uv_px[:20]
+    with pytest.raises(AnnotationError, match="shape"):
+        lift_frame(bad, depth, CAM, SK, bones)
+    bad = ann.copy()
+    bad.uv_px[5, 0] = np.nan
+    with pytest.raises(AnnotationError, match="half-NaN"):
+        lift_frame(bad, depth, CAM, SK, bones)
+    bad = ann.copy()
+    bad.depth_order[3] = 2
+    with pytest.raises(AnnotationError):
+        lift_references({0: bad}, lambda f: depth, CAM, SK)
+    with pytest.raises(ValueError, match="bone_lengths_mm"):
+        lift_frame(ann, depth, CAM, SK, bones[:5])
+
+
+def test_bone_lengths_estimated_from_exact_data():
+    rng = np.random.default_rng(5)
+    true = np.asarray(SK.template_bone_lengths_mm) * 1.05 * rng.uniform(0.97, 1.03, 20)
+    anns, depths, poses = {}, {}, {}
+    for f in range(24):
+        X = random_pose(rng, true)
+        depths[f] = render(X)
+        anns[f] = annotate(X, depths[f])
+        poses[f] = X
+    res = lift_references(anns, depths.__getitem__, CAM, SK)
+    err = np.abs(res.bone_lengths_mm - true)
+    start = np.abs(res.bone_history_mm[0] - true)
+    assert err.mean() < 1.5 and err.mean() < 0.5 * start.mean(), (err, start)
+    assert np.max(np.abs(res.bone_history_mm[-1] - res.bone_history_mm[-2])) < 0.1 or len(
+        res.bone_history_mm
+    ) == 11
+    pinned = lift_references(anns, depths.__getitem__, CAM, SK, bone_lengths_mm=true, pin_bone_lengths=True)
+    np.testing.assert_array_equal(pinned.bone_lengths_mm, true)
+    e = np.mean([np.linalg.norm(pinned.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
+    assert e < 2.0

@@ -1,0 +1,352 @@
+"""Review logic without a browser: scores, worst-frame walk, corrections, the background runner
+(streaming, cancelling, re-propagating only descendants), and safe session names."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.review_state import (
+    OFF_HAND_MM,
+    PARTIAL_FILE,
+    LiveResults,
+    ReviewRunner,
+    bone_anomaly,
+    correction_command,
+    depth_residuals,
+    frame_scores,
+    next_worst,
+    temporal_jump,
+    worst_order,
+)
+from handanno_core.camera import CameraIntrinsics
+from handanno_core.session import (
+    JOURNAL_FILE,
+    RESULTS_FILE,
+    Session,
+    SessionError,
+    resolve_session,
+    safe_session_path,
+)
+from handanno_core.skeleton import MSRA21
+
+FRAMES = 40
+STEP = 10
+
+
+# ------------------------------------------------------------------------------------------ scores
+def smooth_sequence(n: int = 30) -> np.ndarray:
+    """(n, J, 3) mm: a template hand drifting slowly (bone lengths exact)."""
+    rng = np.random.default_rng(0)
+    base = rng.normal(0.0, 30.0, size=(MSRA21.num_joints, 3)) + [0.0, 0.0, 400.0]
+    drift = np.linspace(0.0, 20.0, n)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    return base[None] + drift
+
+
+def test_bone_anomaly_and_jump_find_the_broken_frame():
+    joints = smooth_sequence()
+    bones = MSRA21.bones
+    lengths = MSRA21.bone_lengths(joints[0])
+    joints[12, 4] += [0.0, 45.0, 0.0]  # one joint of frame 12 thrown off: a bone stretches, frame jumps
+    dev = bone_anomaly(joints, bones, lengths)
+    assert dev[0] == pytest.approx(0.0, abs=1e-9) and np.argmax(dev) == 12 and dev[12] > 0.2
+    jump = temporal_jump(joints)
+    assert np.argmax(jump) == 12 and jump[12] > 40.0
+    # neighbours jump only to one side, so their min-jump stays small
+    assert jump[11] < 5.0 and jump[13] < 5.0
+    # a sequence break between 11 and 12 hides that jump; a missing frame is NaN
+    joints[20] = np.nan
+    jump2 = temporal_jump(joints, sequence_breaks=[12])
+    assert np.isnan(jump2[20]) and jump2[12] > 40.0 and jump2[11] < 5.0
+
+
+def test_frame_scores_rank_bad_frames_first_and_references_are_excluded():
+    joints = smooth_sequence()
+    lengths = MSRA21.bone_lengths(joints[0])
+    conf = np.full(joints.shape[:2], 0.9)
+    conf[5] = 0.3  # low propagation confidence
+    joints[12, 4] += [0.0, 45.0, 0.0]  # geometric anomaly
+    joints[25] = np.nan  # not computed
+    is_ref = np.zeros(len(joints), bool)
+    is_ref[[0, 10, 20]] = True
+    s = frame_scores(conf, joints, MSRA21.bones, lengths, is_reference=is_ref)
+    assert np.isnan(s.score[25]) and np.all(s.score[is_ref] == 1.0)
+    assert np.all((s.score[np.isfinite(s.score)] >= 0) & (s.score[np.isfinite(s.score)] <= 1))
+    order = worst_order(s.score, exclude=np.flatnonzero(is_ref))
+    assert set(order[:2]) == {5, 12}
+    assert 25 not in order and 0 not in order
+    # the depth term moves a frame to the front
+    residual = np.zeros(joints.shape[:2])
+    residual[7] = 60.0
+    s2 = frame_scores(conf, joints, MSRA21.bones, lengths, depth_residual_mm=residual, is_reference=is_ref)
+    assert 7 not in order[:3] and 7 in worst_order(s2.score, np.flatnonzero(is_ref))[:3]
+    # the optional flow term too
+    flow = np.zeros(len(joints))
+    flow[17] = 20.0
+    s3 = frame_scores(conf, joints, MSRA21.bones, lengths, flow_error_px=flow, is_reference=is_ref)
+    assert 17 not in order[:3] and 17 in worst_order(s3.score, np.flatnonzero(is_ref))[:3]
+
+
+def test_next_worst_walks_by_increasing_score():
+    score = np.array([0.9, 0.2, np.nan, 0.5, 0.1, 0.5])
+    assert worst_order(score).tolist() == [4, 1, 3, 5, 0]
+    assert next_worst(score) == 4
+    assert next_worst(score, 4) == 1
+    assert next_worst(score, 1) == 3
+    assert next_worst(score, 0) == 4  # wraps around
+    assert next_worst(score, 2) == 4  # a frame without score: start from the worst
+    assert next_worst(score, None, exclude=[4, 1]) == 3
+    assert next_worst(np.full(3, np.nan)) is None
+
+
+def test_depth_residuals_from_crops():
+    cam = CameraIntrinsics(fx=200.0, fy=200.0, cx=63.5, cy=63.5, width=128, height=128)
+    n, size, cube = 2, 128, 220.0
+    crops = np.ones((n, size, size), np.float32)
+    crops[:, 40:90, 40:90] = 0.0  # a flat surface at the centre depth
+    centres = np.array([[0.0, 0.0, 400.0]] * n)
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0]] * n)  # crop pixel == image pixel
+    joints = np.zeros((n, 3, 3))
+    joints[:, :, 2] = 410.0  # behind the surface: fine
+    joints[0, 1, 2] = 380.0  # 20 mm in front of the surface
+    joints[0, 2, :2] = [-60.0, -60.0]  # projects at (33.5, 33.5): background
+    res = depth_residuals(joints, crops, boxes, centres, cam, cube_mm=cube)
+    assert res[0, 0] == 0.0 and res[0, 1] == pytest.approx(20.0) and res[0, 2] == OFF_HAND_MM
+    assert np.all(res[1] == 0.0)
+
+
+# ------------------------------------------------------------------------------------------ session fixture
+def build_session(folder: Path, data: Path) -> Path:
+    """References every 10th frame, annotated by the simulated annotator; lifted joints taken from
+    ground truth so that the fixture is fast (the lift is tested elsewhere)."""
+    from handanno_core.pipeline import annotate_from_gt, new_session
+
+    session = new_session(folder, data, format="msra", overwrite=True)
+    refs = list(range(0, session.num_frames, STEP))
+    parent = [-1 if f in refs else (f - 1 if f % STEP else -1) for f in range(session.num_frames)]
+    session.set_selection({"strategy": "uniform", "reference_frames": refs, "parent": parent})
+    annotate_from_gt(session, quiet=True)
+    gt = session.open_sequence().ground_truth.joints_mm
+    lifted = np.full_like(gt, np.nan)
+    lifted[refs] = gt[refs]
+    conf = np.full(gt.shape[:2], np.nan)
+    conf[refs] = 1.0
+    session.save_results(lifted_mm=lifted, confidence=conf)
+    session.set_bone_lengths(session.skeleton.estimate_bone_lengths(gt))
+    session.model.settings.aligner = "dis"  # the fast aligner keeps this file under its time budget
+    session.close()
+    return folder
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    from handanno_core.synth import generate_sequence
+
+    out = tmp_path_factory.mktemp("review-data") / "data"
+    generate_sequence(out, frames=FRAMES, seed=1, progress=False)
+    return out
+
+
+@pytest.fixture()
+def session(data_dir, tmp_path):
+    s = Session.open(build_session(tmp_path / "sess", data_dir))
+    yield s
+    s.close()
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else ""
+
+
+# ------------------------------------------------------------------------------------------ corrections
+def test_correction_makes_a_reference_in_one_undoable_entry(session):
+    frame, joint = 13, 4
+    gt = session.open_sequence().ground_truth.joints_mm
+    shown = gt[frame] + 3.0
+    target = gt[frame, joint] + [5.0, 0.0, 0.0]
+    with session.lock:
+        cmd, became = correction_command(session, frame, joint, target, shown)
+        entry = session.execute(cmd, client="a")
+    assert became and entry.command["kind"] == "batch"
+    kinds = [c["kind"] for c in entry.command["commands"]]
+    assert kinds == ["set_reference", "set_frame", "set_3d"]
+    assert frame in session.model.selection.reference_frames and session.model.corrections == [frame]
+    assert session.parent[frame] == -1
+    ann = session.annotation(frame)
+    assert np.allclose(ann.xyz_mm[joint], target, atol=0.01)
+    assert np.allclose(ann.xyz_mm[joint + 1], shown[joint + 1], atol=0.01)
+    # a second annotator's edit on the same frame (with a stale skeleton) is a plain joint edit:
+    # it cannot re-seed the frame over the first annotator's joint
+    with session.lock:
+        cmd2, became2 = correction_command(session, frame, 7, gt[frame, 7], gt[frame] - 50.0)
+        session.execute(cmd2, client="b")
+    assert not became2 and cmd2.kind == "set_3d"
+    reopened = Session.open(session.folder)
+    assert np.allclose(reopened.annotation(frame).xyz_mm[joint], target, atol=0.01)
+    assert np.allclose(reopened.annotation(frame).xyz_mm[7], gt[frame, 7], atol=0.01)
+    assert reopened.model.corrections == [frame]
+    reopened.close()
+    # client a's undo restores the frame to a propagated one without touching b's joint edit
+    session.undo("a")
+    assert frame not in session.model.selection.reference_frames and session.model.corrections == []
+    assert session.parent[frame] == 12
+
+
+# ------------------------------------------------------------------------------------------ runner
+def fake_propagate(delay_s: float = 0.0, gate: threading.Event | None = None):
+    """A stand-in for pipeline.propagate: emits each frame's joints, then saves like the real one."""
+    calls = []
+
+    def run(session, *, workers=1, frames=None, progress=None, on_result=None, quiet=False):
+        parent = session.parent
+        todo = np.flatnonzero(parent >= 0) if frames is None else np.asarray(frames)[parent[frames] >= 0]
+        calls.append(todo.tolist())
+        results = session.load_results()
+        init, conf = results["init_mm"].copy(), results["confidence"].copy()
+        j = session.skeleton.num_joints
+        for k, f in enumerate(todo):
+            if gate is not None and k == len(todo) // 2:
+                gate.wait(10)
+            joints = np.full((j, 3), 100.0 + f) + len(calls)
+            on_result(int(f), joints, np.full(j, 0.5))
+            progress(k + 1, len(todo))
+            init[f], conf[f] = joints, 0.5
+            time.sleep(delay_s)
+        session.save_results(init_mm=init, confidence=conf)
+
+    run.calls = calls
+    return run
+
+
+def fake_refine(session, progress=None):
+    for it in range(3):
+        progress(it + 1, 10.0 - it)
+    init = session.load_results()["init_mm"]
+    return np.where(np.isfinite(init), init + 1.0, np.nan)
+
+
+def test_runner_streams_then_saves_and_cancel_leaves_old_results(session):
+    gate = threading.Event()
+    prop = fake_propagate(gate=gate)
+    runner = ReviewRunner(session, propagate_fn=prop, refine_fn=fake_refine, checkpoint_every_s=0.0)
+    results_path, journal_path = session.folder / RESULTS_FILE, session.folder / JOURNAL_FILE
+    before, journal_before = digest(results_path), digest(journal_path)
+    seen = []
+    runner.listeners.append(lambda ev, r, f: seen.append(f) if ev == "frame" else None)
+    try:
+        assert runner.start_full()
+        assert not runner.start_full()  # one at a time
+        deadline = time.monotonic() + 10
+        while runner.status.done < 10 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        # frames are visible while the job is still running (it waits on the gate)
+        assert runner.status.running and runner.live.filled() >= 4 + 10
+        assert (session.folder / PARTIAL_FILE).exists()  # periodic save next to results.npz
+        assert digest(results_path) == before  # results.npz untouched so far
+        runner.cancel()
+        gate.set()
+        assert runner.wait_idle(10)
+        assert runner.status.phase == "cancelled"
+        assert digest(results_path) == before and digest(journal_path) == journal_before
+        assert not (session.folder / PARTIAL_FILE).exists()
+        # a complete run writes init and final; the partial file is gone
+        gate.set()
+        assert runner.start_full() and runner.wait_idle(10)
+        assert runner.status.phase == "done", runner.status.message
+        res = session.load_results()
+        non_refs = np.flatnonzero(session.parent >= 0)
+        assert np.all(np.isfinite(res["init_mm"][non_refs])) and np.all(np.isfinite(res["final_mm"][non_refs]))
+        assert sorted(set(seen)) == non_refs.tolist()
+        assert runner.live.stage[non_refs].min() == 3
+        assert digest(journal_path) == journal_before
+    finally:
+        runner.stop()
+
+
+def test_runner_cancel_during_refinement_restores_results(session):
+    started = threading.Event()
+
+    def slow_refine(session, progress=None):
+        started.set()
+        for it in range(200):
+            progress(it, 1.0)
+            time.sleep(0.02)
+        raise AssertionError("not cancelled")
+
+    runner = ReviewRunner(session, propagate_fn=fake_propagate(), refine_fn=slow_refine)
+    before = digest(session.folder / RESULTS_FILE)
+    try:
+        runner.start_full()
+        assert started.wait(10)
+        assert digest(session.folder / RESULTS_FILE) != before  # propagation saved its init_mm
+        runner.cancel()
+        assert runner.wait_idle(10) and runner.status.phase == "cancelled"
+        res = session.load_results()
+        assert not np.isfinite(res["init_mm"]).any()  # back to the old (empty) propagation
+    finally:
+        runner.stop()
+
+
+def test_correction_repropagates_only_descendants_with_the_real_pipeline(session):
+    """Real propagation (DIS aligner) and refinement: after a correction on frame 15 only frames
+    15..19 (its descendants in the chain 10 -> 11 -> ... -> 19) get a new init_mm on disk."""
+    gt = session.open_sequence().ground_truth.joints_mm
+    runner = ReviewRunner(session, lift_for=lambda f, seq: gt[f], debounce_s=0.05)
+    try:
+        assert runner.start_full() and runner.wait_idle(120)
+        assert runner.status.phase == "done", runner.status.message
+        first = session.load_results()
+        non_refs = np.flatnonzero(session.parent >= 0)
+        assert np.all(np.isfinite(first["init_mm"][non_refs]))
+        err = np.linalg.norm(first["final_mm"] - gt, axis=-1)
+        assert np.nanmedian(err) < 25.0, np.nanmedian(err)
+        # review edit on frame 15 (as the view does it)
+        frame = 15
+        shown = first["final_mm"][frame]
+        with session.lock:
+            cmd, became = correction_command(session, frame, 8, gt[frame, 8], shown)
+            entry = session.execute(cmd, client="reviewer")
+        assert became
+        runner.request_correction(frame, entry.seq)
+        time.sleep(0.2)
+        assert runner.wait_idle(120) and runner.status.phase == "done", runner.status.message
+        assert runner.status.frames == [16, 17, 18, 19]
+        second = session.load_results()
+        changed = np.flatnonzero(
+            np.any(~np.isclose(second["init_mm"], first["init_mm"], equal_nan=True), axis=(1, 2))
+        )
+        assert set(changed) <= {15, 16, 17, 18, 19} and {16, 17, 18, 19} <= set(changed)
+        assert np.allclose(second["lifted_mm"][frame], gt[frame])
+        assert np.all(np.isfinite(second["final_mm"]))
+        reopened = Session.open(session.folder)
+        assert frame in reopened.model.corrections and frame in reopened.model.selection.reference_frames
+        reopened.close()
+    finally:
+        runner.stop()
+
+
+def test_live_results_scores_use_crops_when_cached(session):
+    live = LiveResults(session)
+    assert live.filled() == 4  # the lifted references
+    s = live.scores()
+    assert np.isfinite(s.score).sum() == 4 and "depth_mm" not in s.terms  # no crop cache yet
+    live.put(3, session.open_sequence().ground_truth.joints_mm[3], np.full(21, 0.8), 2)
+    s2 = live.scores()
+    assert np.isfinite(s2.score[3]) and s2.score[3] < 1.0
+
+
+# ------------------------------------------------------------------------------------------ names
+@pytest.mark.parametrize("name", ["../etc", "a/b", "/tmp/x", "..", "", ".hidden", "a\\b", "x" * 200])
+def test_session_names_from_users_are_refused(name, tmp_path):
+    with pytest.raises(SessionError):
+        safe_session_path(name, tmp_path)
+
+
+def test_session_names_inside_the_sessions_folder(tmp_path):
+    assert safe_session_path("demo", tmp_path) == (tmp_path / "demo").resolve()
+    assert resolve_session("demo-2", tmp_path) == (tmp_path / "demo-2").resolve()

@@ -24,6 +24,8 @@ from __future__ import annotations
 import json
 import threading
 import time
+import traceback
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -117,6 +119,11 @@ class AnnotateView:
         self.state = AnnotateState(app.session, client=f"browser-{client.client_id}")
         self.skeleton = app.session.skeleton
         self._lock = threading.RLock()
+        # Every redraw runs on this view's own single thread, in order: edits, lift results and
+        # navigation from different threads never interleave half-drawn states, and the session's
+        # listener (which holds the session lock) only enqueues.
+        self._ui = ThreadPoolExecutor(1, thread_name_prefix=f"view-{client.client_id}")
+        self._shown_frame = -1
         self._frame_data: FrameData | None = None
         self._annotation: FrameAnnotation = FrameAnnotation.empty(self.skeleton.num_joints)
         self._lifted: LiftOutcome | None = None
@@ -134,6 +141,24 @@ class AnnotateView:
         self._build_scene()
         self._build_gui()
         self.show_frame(self.state.frame, reset_camera=True)
+
+    def _post(self, fn, *args: Any, **kwargs: Any) -> None:
+        """Run ``fn`` on the view's UI thread (after everything posted before)."""
+
+        def run() -> None:
+            try:
+                fn(*args, **kwargs)
+            except Exception:
+                traceback.print_exc()
+
+        try:
+            self._ui.submit(run)
+        except RuntimeError:  # shut down: the client is gone
+            pass
+
+    def flush(self, timeout: float = 30.0) -> None:
+        """Wait until every posted redraw has run (tests and benchmarks)."""
+        self._ui.submit(lambda: None).result(timeout)
 
     # ================================================================== construction
     def _build_scene(self) -> None:
@@ -356,14 +381,19 @@ class AnnotateView:
 
     def select_joint(self, joint: int) -> None:
         self.state.select_joint(joint)
-        self._render()
+        self._post(self._render)
 
     def _toggle_click_mode(self) -> None:
         self.state.toggle_click_mode()
         self.click_mode.value = "3D on cloud" if self.state.click_mode == "3d" else "2D on image"
 
     def show_frame(self, frame: int, reset_camera: bool = False) -> None:
-        """Load ``frame`` (the state's current frame) into the existing handles."""
+        """Load ``frame`` into the existing handles (on the view's UI thread)."""
+        self._post(self._show_frame, frame, reset_camera)
+
+    def _show_frame(self, frame: int, reset_camera: bool) -> None:
+        if frame != self.state.frame:
+            return  # navigation moved on before this ran
         data = self.app.frames.get(frame)
         annotation = self.session.annotation(frame) or FrameAnnotation.empty(
             self.skeleton.num_joints
@@ -372,6 +402,7 @@ class AnnotateView:
         geo = data.geometry
         with self._lock, self.client.atomic():
             self._frame_data = data
+            self._shown_frame = frame
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
@@ -551,13 +582,16 @@ class AnnotateView:
             stamp = time.strftime("%H:%M:%S", time.localtime(entry.time))
             what = {"do": "edit", "undo": "undo", "redo": "redo"}[entry.action]
             self.saved_md.content = f"✓ saved {stamp} ({what} #{entry.seq})"
-        self._render()
+        self._post(self._render)
         return entry
 
     # ================================================================== session / worker events
     def on_entry(self, entry: JournalEntry, frame: int) -> None:
-        """A journal entry on ``frame`` was acknowledged (any client). Called under the session lock."""
-        if frame != self.frame:
+        """A journal entry on ``frame`` was acknowledged (any client; called under the session lock)."""
+        self._post(self._apply_entry, entry, frame)
+
+    def _apply_entry(self, entry: JournalEntry, frame: int) -> None:
+        if frame != self._shown_frame:
             if entry.client != self.state.client:
                 self._update_panel()  # progress may have changed
             return
@@ -576,8 +610,11 @@ class AnnotateView:
         self._render(edit_seq=entry.seq)
 
     def on_lift(self, outcome: LiftOutcome) -> None:
-        """The worker lifted ``outcome.frame`` (worker thread)."""
-        if outcome.frame != self.frame:
+        """The worker lifted ``outcome.frame`` (called on the worker thread)."""
+        self._post(self._apply_lift, outcome)
+
+    def _apply_lift(self, outcome: LiftOutcome) -> None:
+        if outcome.frame != self._shown_frame:
             return
         if outcome.joints_mm is None:
             self.lift_md.content = f"*skeleton: {outcome.error}*"
@@ -728,3 +765,4 @@ class AnnotateView:
 
     def close(self) -> None:
         """The client disconnected: nothing to persist (edits are journaled as they happen)."""
+        self._ui.shutdown(wait=False, cancel_futures=True)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,7 +52,9 @@ PARTIAL_FILE = "propagation_partial.npz"
 # scores (pure numpy)
 
 
-def bone_anomaly(joints_mm: np.ndarray, bones: np.ndarray, bone_lengths_mm: np.ndarray) -> np.ndarray:
+def bone_anomaly(
+    joints_mm: np.ndarray, bones: np.ndarray, bone_lengths_mm: np.ndarray
+) -> np.ndarray:
     """``(N,)`` largest relative bone-length deviation per frame (0 = exact; NaN if no joints).
 
     ``joints_mm`` (N, J, 3) mm, ``bones`` (B, 2) (parent, child), ``bone_lengths_mm`` (B,) mm.
@@ -118,6 +121,7 @@ def depth_residuals(
     uv = camera.project(jj)  # (M, J, 2)
     xy = image_to_crop(uv, np.asarray(boxes, dtype=np.float64)[frames][:, None, :])
     size = crops.shape[1]
+    xy = np.where(np.isfinite(xy), xy, -1.0)  # joints at z <= 0 project nowhere: off the crop
     xi = np.rint(xy[..., 0]).astype(np.int64)
     yi = np.rint(xy[..., 1]).astype(np.int64)
     inside = (xi >= 0) & (xi < size) & (yi >= 0) & (yi < size)
@@ -126,7 +130,11 @@ def depth_residuals(
     vals[inside] = np.asarray(crops[fi[inside], yi[inside], xi[inside]], dtype=np.float64)
     background = ~inside | (vals >= 0.999)
     observed = np.asarray(centres_mm, dtype=np.float64)[frames, 2][:, None] + vals * (cube_mm / 2.0)
-    offsets = 0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)[None, :]
+    offsets = (
+        0.0
+        if surface_offsets_mm is None
+        else np.asarray(surface_offsets_mm, dtype=np.float64)[None, :]
+    )
     # A visible joint centre sits ~offset behind the surface: in front of (observed + offset) is wrong.
     res = np.maximum(observed + offsets - jj[..., 2], 0.0)
     res = np.where(background, OFF_HAND_MM, np.minimum(res, OFF_HAND_MM))
@@ -184,7 +192,8 @@ def frame_scores(
         terms["bone"] = bone_anomaly(joints, bones, bone_lengths_mm)
         score *= _goodness(terms["bone"], s["bone"])
     if depth_residual_mm is not None:
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # frames without joints: NaN
             terms["depth_mm"] = np.nanmean(np.asarray(depth_residual_mm, dtype=np.float64), axis=1)
         score *= _goodness(terms["depth_mm"], s["depth_mm"])
     terms["jump_mm"] = temporal_jump(joints, sequence_breaks)
@@ -192,7 +201,8 @@ def frame_scores(
     if flow_error_px is not None:
         f = np.asarray(flow_error_px, dtype=np.float64)
         if f.ndim == 2:
-            with np.errstate(all="ignore"):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
                 f = np.nanmean(f, axis=1)
         terms["flow_px"] = f
         score *= _goodness(f, s["flow_px"])
@@ -212,7 +222,9 @@ def worst_order(score: np.ndarray, exclude: Iterable[int] = ()) -> np.ndarray:
     return frames[np.lexsort((frames, score[frames]))]
 
 
-def next_worst(score: np.ndarray, current: int | None = None, exclude: Iterable[int] = ()) -> int | None:
+def next_worst(
+    score: np.ndarray, current: int | None = None, exclude: Iterable[int] = ()
+) -> int | None:
     """The next frame after ``current`` in :func:`worst_order` (the worst one if ``current`` is
     None or not in the order; None when there is nothing to review)."""
     order = worst_order(score, exclude)
@@ -247,10 +259,17 @@ def seed_annotation(
     ann.uv_px[:] = camera.project(x)
     if depth_mm is not None:
         uv = np.rint(ann.uv_px).astype(np.int64)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        inside = (
+            (uv[:, 0] >= 0)
+            & (uv[:, 0] < camera.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < camera.height)
+        )
         d = np.zeros(nj)
         d[inside] = depth_mm[uv[inside, 1], uv[inside, 0]]
-        off = 0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)
+        off = (
+            0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)
+        )
         ann.visible[:] = inside & (d > 0) & (d >= x[:, 2] - off - margin_mm)
     return ann
 
@@ -279,7 +298,9 @@ def correction_command(
         return edit, False
     commands: list[dict[str, Any]] = []
     if not is_ref:
-        commands.append(SetReference(frame=int(frame), is_reference=True, correction=True).model_dump())
+        commands.append(
+            SetReference(frame=int(frame), is_reference=True, correction=True).model_dump()
+        )
     seed = seed_annotation(shown_mm, session.camera, depth_mm, session.skeleton.surface_offsets_mm)
     commands.append(SetFrameAnnotation(frame=int(frame), annotation=seed.to_json()).model_dump())
     commands.append(edit.model_dump())
@@ -322,7 +343,9 @@ class LiveResults:
             )
             self.version += 1
 
-    def put(self, frame: int, joints_mm: np.ndarray, confidence: np.ndarray | None, stage: int) -> None:
+    def put(
+        self, frame: int, joints_mm: np.ndarray, confidence: np.ndarray | None, stage: int
+    ) -> None:
         with self._lock:
             self.joints_mm[frame] = joints_mm
             if confidence is not None:
@@ -408,7 +431,9 @@ class Cancelled(Exception):
     """Raised inside the stage callbacks to stop a job."""
 
 
-def refine_all(session: Session, progress: Callable[[int, float], None] | None = None) -> np.ndarray:
+def refine_all(
+    session: Session, progress: Callable[[int, float], None] | None = None
+) -> np.ndarray:
     """Global refinement (thesis Eq. 4) of the session's current ``init_mm``; returns ``final_mm``
     (N, J, 3) mm without saving it. References start from their lifted pose (``init_mm`` has no rows
     for them), every other frame from its propagated pose."""
@@ -532,7 +557,9 @@ class ReviewRunner:
                 return False
             self._pending_full = True
             self._cancel.clear()
-            self.status = JobStatus(kind="full", phase="starting", message="starting", started_at=time.time())
+            self.status = JobStatus(
+                kind="full", phase="starting", message="starting", started_at=time.time()
+            )
             self._cond.notify_all()
         self._emit("progress", -1)
         return True
@@ -541,7 +568,9 @@ class ReviewRunner:
         """A review edit made ``frame`` a reference (journal entry ``seq``): re-propagate and refine
         its descendants once edits have been quiet for ``debounce_s``."""
         with self._cond:
-            self._pending_corrections[int(frame)] = max(int(seq), self._pending_corrections.get(int(frame), 0))
+            self._pending_corrections[int(frame)] = max(
+                int(seq), self._pending_corrections.get(int(frame), 0)
+            )
             self._corrections_due = time.monotonic() + self.debounce_s
             self._cond.notify_all()
 
@@ -646,7 +675,9 @@ class ReviewRunner:
                     results = session.load_results()
                     results["lifted_mm"][frame] = joints
                     results["confidence"][frame] = conf
-                    session.save_results(lifted_mm=results["lifted_mm"], confidence=results["confidence"])
+                    session.save_results(
+                        lifted_mm=results["lifted_mm"], confidence=results["confidence"]
+                    )
                 self.live.put(frame, joints, conf, 1)
                 self._emit("frame", frame)
                 backup["lifted_mm"][frame] = joints  # the new reference's lift stays either way
@@ -654,7 +685,9 @@ class ReviewRunner:
             frames = descendants(session.parent, sorted(corrections))
         parent = session.parent
         todo = np.flatnonzero(parent >= 0) if frames is None else frames[parent[frames] >= 0]
-        self._set(phase="propagate", done=0, total=len(todo), frames=[int(f) for f in todo], message="")
+        self._set(
+            phase="propagate", done=0, total=len(todo), frames=[int(f) for f in todo], message=""
+        )
         partial_init = np.full_like(backup["init_mm"], np.nan)
         partial_conf = np.full_like(backup["confidence"], np.nan)
         last_checkpoint = time.monotonic()
@@ -664,12 +697,20 @@ class ReviewRunner:
             self._check()
             partial_init[frame] = joints
             partial_conf[frame] = conf
-            self.live.put(int(frame), np.asarray(joints, dtype=np.float64), np.asarray(conf, dtype=np.float64), 2)
+            self.live.put(
+                int(frame),
+                np.asarray(joints, dtype=np.float64),
+                np.asarray(conf, dtype=np.float64),
+                2,
+            )
             self._emit("frame", int(frame))
             if time.monotonic() - last_checkpoint >= self.checkpoint_every_s:
                 last_checkpoint = time.monotonic()
                 # Periodic save of what is computed so far, next to (never over) results.npz.
-                atomic_save_npz(session.folder / PARTIAL_FILE, {"init_mm": partial_init, "confidence": partial_conf})
+                atomic_save_npz(
+                    session.folder / PARTIAL_FILE,
+                    {"init_mm": partial_init, "confidence": partial_conf},
+                )
 
         def progress(done: int, total: int) -> None:
             self._check()
@@ -697,7 +738,9 @@ class ReviewRunner:
             self._check()
         except BaseException:
             session.save_results(
-                init_mm=backup["init_mm"], confidence=backup["confidence"], final_mm=backup["final_mm"]
+                init_mm=backup["init_mm"],
+                confidence=backup["confidence"],
+                final_mm=backup["final_mm"],
             )
             raise
         self._set(phase="saving")
@@ -732,4 +775,6 @@ class ReviewRunner:
             angle_limits=session.model.settings.angle_limits,
             init_mm=np.nan_to_num(ann.xyz_mm) if np.all(np.isfinite(ann.xyz_mm)) else None,
         )
-        return np.asarray(result.joints_mm, dtype=np.float64), np.asarray(result.confidence, dtype=np.float64)
+        return np.asarray(result.joints_mm, dtype=np.float64), np.asarray(
+            result.confidence, dtype=np.float64
+        )

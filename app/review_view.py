@@ -190,15 +190,21 @@ class ReviewView:
         gui = self.client.gui
         n = self.session.num_frames
         self.status_md = gui.add_markdown("")
-        self.run_button = gui.add_button("Propagate & refine", hint="Propagate every frame, then refine (background)")
+        self.run_button = gui.add_button(
+            "Propagate & refine", hint="Propagate every frame, then refine (background)"
+        )
         self.cancel_button = gui.add_button("Cancel run", color="red", disabled=True)
         self.run_bar = gui.add_progress_bar(0.0, animated=False)
         self.run_md = gui.add_markdown("*no run yet*")
         refs = [int(f) for f in self.session.reference_frames]
         marks = tuple((f, "") for f in refs[:60]) if refs else None
-        self.slider = gui.add_slider("Frame", min=0, max=max(n - 1, 1), step=1, initial_value=0, marks=marks)
+        self.slider = gui.add_slider(
+            "Frame", min=0, max=max(n - 1, 1), step=1, initial_value=0, marks=marks
+        )
         self.play_nav = gui.add_button_group("Playback", ("◀", "Play", "▶"))
-        self.worst_button = gui.add_button("Next worst frame", hint="Walk frames by increasing review score")
+        self.worst_button = gui.add_button(
+            "Next worst frame", hint="Walk frames by increasing review score"
+        )
         self.review_buttons = gui.add_button_group("Review", ("Accept", "Flag", "Clear"))
         self.frame_md = gui.add_markdown("")
         x = np.arange(n, dtype=np.float64)
@@ -207,13 +213,17 @@ class ReviewView:
             series=(
                 viser.uplot.Series(label="frame"),
                 viser.uplot.Series(label="score", stroke="#1f77b4", width=1.5),
-                viser.uplot.Series(label="current", stroke="#d62728", width=2, points={"show": False}),
+                viser.uplot.Series(
+                    label="current", stroke="#d62728", width=2, points={"show": False}
+                ),
             ),
             scales={"x": {"time": False}, "y": {"range": [0.0, 1.05]}},
             title="Review score (1 = trustworthy)",
             aspect=2.0,
         )
-        self.scene_button = gui.add_button("Show annotate scene", hint="Both tabs share the 3D scene")
+        self.scene_button = gui.add_button(
+            "Show annotate scene", hint="Both tabs share the 3D scene"
+        )
         with gui.add_folder("Export / import", expand_by_default=False):
             self.export_buttons = gui.add_button_group("Export", tuple(EXPORT_FORMATS))
             self.import_button = gui.add_upload_button("Import JSON", mime_type="application/json")
@@ -277,9 +287,9 @@ class ReviewView:
             view = self.app.views.get(self.client.client_id, {}).get("Annotate")
         if view is None:
             return []
-        return [getattr(view, n, None) for n in ("cloud", "image", "handles2d", "joints", "bones")] + list(
-            getattr(view, "labels", [])
-        )
+        return [
+            getattr(view, n, None) for n in ("cloud", "image", "handles2d", "joints", "bones")
+        ] + list(getattr(view, "labels", []))
 
     def activate_scene(self) -> None:
         """Show the review scene (and hide the annotate view's nodes) in this browser."""
@@ -290,7 +300,9 @@ class ReviewView:
             for h in self._annotate_handles():
                 if h is not None:
                     h.visible = False
-            self.cloud.visible = self._frame_data is not None and len(self._frame_data.geometry.cloud_mm) > 0
+            self.cloud.visible = (
+                self._frame_data is not None and len(self._frame_data.geometry.cloud_mm) > 0
+            )
             self.joints.visible = True
             self.bones.visible = True
         self.scene_button.label = "Show annotate scene"
@@ -330,7 +342,9 @@ class ReviewView:
             self.frame = frame
             self._frame_data = data
             has_cloud = len(geo.cloud_mm) > 0
-            self.cloud.points = geo.to_scene(geo.cloud_mm if has_cloud else geo.centre_mm[None]).astype(np.float32)
+            self.cloud.points = geo.to_scene(
+                geo.cloud_mm if has_cloud else geo.centre_mm[None]
+            ).astype(np.float32)
             self.cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
             self.cloud.point_size = float(1.6 * geo.centre_mm[2] / self.session.camera.fx / 1000.0)
             self.cloud.visible = has_cloud and self.scene_active
@@ -343,7 +357,9 @@ class ReviewView:
         self._playing = not self._playing
         self.play_nav.options = ("◀", "Pause" if self._playing else "Play", "▶")
         if self._playing and (self._play_thread is None or not self._play_thread.is_alive()):
-            self._play_thread = threading.Thread(target=self._play, name="handanno-review-play", daemon=True)
+            self._play_thread = threading.Thread(
+                target=self._play, name="handanno-review-play", daemon=True
+            )
             self._play_thread.start()
 
     def _play(self, fps: float = 8.0) -> None:
@@ -363,14 +379,20 @@ class ReviewView:
         exclude = set(accepted) | {int(f) for f in self.session.reference_frames}
         frame = next_worst(scores, self.frame, exclude)
         if frame is None:
-            self.client.add_notification("Nothing to review", "no propagated frames yet", auto_close_seconds=3.0)
+            self.client.add_notification(
+                "Nothing to review", "no propagated frames yet", auto_close_seconds=3.0
+            )
             return None
         self.show_frame(frame)
         return frame
 
     # ================================================================== edits
     def set_review(self, status: str | None) -> JournalEntry | None:
-        return self._execute(lambda: self.session.execute(SetReview(frame=self.frame, status=status), self.client_name))
+        return self._execute(
+            lambda: self.session.execute(
+                SetReview(frame=self.frame, status=status), self.client_name
+            )
+        )
 
     def move_joint(self, joint: int, xyz_mm: np.ndarray) -> JournalEntry | None:
         """Review edit: move ``joint`` of the shown frame to ``xyz_mm`` (a correction on a
@@ -378,7 +400,9 @@ class ReviewView:
         frame = self.frame
         shown = self._joints_mm.copy()
         if not np.all(np.isfinite(shown)):
-            self.client.add_notification("Nothing to correct", "this frame has no skeleton yet", color="yellow")
+            self.client.add_notification(
+                "Nothing to correct", "this frame has no skeleton yet", color="yellow"
+            )
             return None
         depth = self._frame_data.depth if self._frame_data is not None else None
 
@@ -399,7 +423,9 @@ class ReviewView:
             self.client.add_notification("Edit NOT saved", str(exc), color="red")
             return None
         except ValueError as exc:
-            self.client.add_notification("Edit refused", str(exc), color="yellow", auto_close_seconds=5.0)
+            self.client.add_notification(
+                "Edit refused", str(exc), color="yellow", auto_close_seconds=5.0
+            )
             return None
         self.acks.append((entry.seq, time.perf_counter()))
         stamp = time.strftime("%H:%M:%S", time.localtime(entry.time))
@@ -442,9 +468,15 @@ class ReviewView:
         try:
             data = export_bytes(self.session, fmt)
         except Exception as exc:
-            self.client.add_notification("Export failed", f"{type(exc).__name__}: {exc}", color="red")
+            self.client.add_notification(
+                "Export failed", f"{type(exc).__name__}: {exc}", color="red"
+            )
             return
-        name = f"{self.session.model.name}-{fmt}.{ext}" if fmt == "msra" else f"{self.session.model.name}.{ext}"
+        name = (
+            f"{self.session.model.name}-{fmt}.{ext}"
+            if fmt == "msra"
+            else f"{self.session.model.name}.{ext}"
+        )
         self.client.send_file_download(name, data, save_immediately=True)
         self.io_md.content = f"exported {label} ({len(data) / 1024:.0f} KiB)"
 
@@ -465,7 +497,9 @@ class ReviewView:
                 return None
         self.live.reload()
         self.io_md.content = f"imported {count} frames from {name}"
-        self.client.add_notification("Imported", f"{count} frames from {name}", auto_close_seconds=4.0)
+        self.client.add_notification(
+            "Imported", f"{count} frames from {name}", auto_close_seconds=4.0
+        )
         self.show_frame(self.frame)
         return count
 
@@ -482,7 +516,9 @@ class ReviewView:
 
     def on_lift(self, outcome: Any) -> None:
         """The lift worker lifted a frame: a review-made reference shows its new skeleton."""
-        if outcome.joints_mm is None or int(outcome.frame) not in set(self.session.model.corrections):
+        if outcome.joints_mm is None or int(outcome.frame) not in set(
+            self.session.model.corrections
+        ):
             return
         self.live.put(int(outcome.frame), outcome.joints_mm, None, 1)
         if outcome.frame == self.frame:
@@ -516,7 +552,9 @@ class ReviewView:
         joints, stage = self.live.frame(self.frame)
         self._joints_mm = joints
         shown = np.all(np.isfinite(joints), axis=1)
-        pos = np.where(shown[:, None], data.geometry.to_scene(self._display_mm(joints)), 0.0).astype(np.float32)
+        pos = np.where(
+            shown[:, None], data.geometry.to_scene(self._display_mm(joints)), 0.0
+        ).astype(np.float32)
         is_ref = self.frame in set(self.session.model.selection.reference_frames)
         scales = np.where(shown, JOINT_RADIUS_M * (1.3 if is_ref else 1.0), 0.0).astype(np.float32)
         bones = self.skeleton.bones
@@ -566,14 +604,14 @@ class ReviewView:
     def _refresh_plot(self) -> None:
         n = self.session.num_frames
         score = np.nan_to_num(self.live.scores().score, nan=0.0)
-        current = np.full(n, np.nan)
-        current[self.frame] = score[self.frame]
         marker = np.where(np.arange(n) == self.frame, 1.05, 0.0)
         self.plot.data = (np.arange(n, dtype=np.float64), score, marker)
 
     def start_run(self) -> bool:
         if not self.runner.start_full():
-            self.client.add_notification("Already running", "a propagation run is in progress", auto_close_seconds=3.0)
+            self.client.add_notification(
+                "Already running", "a propagation run is in progress", auto_close_seconds=3.0
+            )
             return False
         self.refresh(force=True)
         return True

@@ -157,6 +157,7 @@ def main() -> int:
             # Fully annotated frames: simulated annotator on the first references, then live edits.
             for frame in refs[:3]:
                 view.go_to_index(view.state.frames.index(frame))
+                view.flush()
                 ann = simulate_annotation(
                     gt[frame], seq.depth(frame), session.camera, session.skeleton
                 )
@@ -185,6 +186,7 @@ def main() -> int:
             # New frames: the first three joints.
             for frame in refs[3 : 3 + max(1, args.edits // 3)]:
                 view.go_to_index(view.state.frames.index(frame))
+                view.flush()
                 ann = simulate_annotation(
                     gt[frame], seq.depth(frame), session.camera, session.skeleton
                 )

@@ -16,6 +16,10 @@ moved by 3 px).
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # tiny SLSQP problems: threads only contend
+
 import argparse
 import json
 import os
@@ -35,8 +39,13 @@ def _run(seq, frames, noise, bones, workers, label):
     anns = simulate_annotations(seq, frames, noise_px=noise, seed=0)
     t0 = time.perf_counter()
     lifted = lift_references(
-        anns, seq.depth, seq.camera, seq.skeleton, bone_lengths_mm=bones,
-        pin_bone_lengths=bones is not None, workers=workers,
+        anns,
+        seq.depth,
+        seq.camera,
+        seq.skeleton,
+        bone_lengths_mm=bones,
+        pin_bone_lengths=bones is not None,
+        workers=workers,
     )
     elapsed = time.perf_counter() - t0
     pred = np.stack([lifted.joints_mm[f] for f in frames])
@@ -124,7 +133,13 @@ def main() -> None:
         f"warm median {speed['warm_median_ms']:.1f} ms (p90 {speed['warm_p90_ms']:.1f}), "
         f"{speed['median_iterations']:.0f} SLSQP iterations"
     )
-    result = {"dataset": str(args.seq), "frames": len(seq), "step": args.step, "runs": runs, "speed": speed}
+    result = {
+        "dataset": str(args.seq),
+        "frames": len(seq),
+        "step": args.step,
+        "runs": runs,
+        "speed": speed,
+    }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.json}")

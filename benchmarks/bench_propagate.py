@@ -200,7 +200,7 @@ def memory_scaling(p: dict, aligner: str, sizes: list[int]) -> list[dict]:
 
 def score_vs_error(res, pred, gt, frames) -> float | None:
     """Spearman correlation between the frame score and the frame's mean error (want < 0)."""
-    err = np.nanmean(np.linalg.norm(pred - gt, axis=-1), axis=1)[frames]
+    err = np.linalg.norm(pred[frames] - gt[frames], axis=-1).mean(axis=1)
     score = res.frame_score[frames]
     ok = np.isfinite(err) & np.isfinite(score)
     if ok.sum() <= 3:

@@ -85,7 +85,7 @@ def main() -> None:
     ap.add_argument("--ref-step", type=int, default=20)
     ap.add_argument("--init", default="perturbed", choices=["perturbed", "file"])
     ap.add_argument("--init-file", default=None, help="npz: init_mm (N,J,3), refs, closest, bones")
-    ap.add_argument("--iterations", type=int, default=30)
+    ap.add_argument("--iterations", type=int, default=25)
     ap.add_argument("--json", default="benchmarks/results/refine.json")
     ap.add_argument("--weights", default="{}", help="JSON overrides of RefineWeights")
     args = ap.parse_args()

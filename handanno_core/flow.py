@@ -159,7 +159,9 @@ def dense_sift(
 # ---------------------------------------------------------------------------------------------
 # SIFT Flow: data cost and belief propagation on one level
 # ---------------------------------------------------------------------------------------------
-def _data_cost(s1: np.ndarray, s2: np.ndarray, offset: np.ndarray, radius: int, trunc: float) -> np.ndarray:
+def _data_cost(
+    s1: np.ndarray, s2: np.ndarray, offset: np.ndarray, radius: int, trunc: float
+) -> np.ndarray:
     """Truncated L1 descriptor cost ``(S, S, h, w)`` (label axes dv, du first) around ``offset``."""
     h, w, c = s1.shape
     size = 2 * radius + 1
@@ -479,7 +481,14 @@ def dis_flow(
     module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
     in :func:`coarse_to_fine` (each level initialized with the upsampled flow).
     """
-    key = (preset, patch_size, patch_stride, finest_scale, gradient_descent_iterations, variational_iterations)
+    key = (
+        preset,
+        patch_size,
+        patch_stride,
+        finest_scale,
+        gradient_descent_iterations,
+        variational_iterations,
+    )
     dis = _DIS_CACHE.get(key)
     if dis is None:
         dis = cv2.DISOpticalFlow_create(preset)
@@ -524,7 +533,9 @@ def ncc_match(
     ref = np.asarray(reference, dtype=np.float32)
     mov = np.asarray(moving, dtype=np.float32)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    guess = np.zeros_like(pts) if init is None else np.asarray(init, dtype=np.float64).reshape(-1, 2)
+    guess = (
+        np.zeros_like(pts) if init is None else np.asarray(init, dtype=np.float64).reshape(-1, 2)
+    )
     half = patch // 2
     big = half + 2 * search + 2
     ref_p = cv2.copyMakeBorder(ref, big, big, big, big, cv2.BORDER_CONSTANT, value=background)
@@ -538,7 +549,9 @@ def ncc_match(
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(g))):
             continue
         c = np.clip(np.rint(p).astype(int), -search, hi + search)
-        tpl = ref_p[c[1] + big - half : c[1] + big + half + 1, c[0] + big - half : c[0] + big + half + 1]
+        tpl = ref_p[
+            c[1] + big - half : c[1] + big + half + 1, c[0] + big - half : c[0] + big + half + 1
+        ]
         q = np.clip(np.rint(p + g).astype(int), -search, hi + search)
         x0, y0 = q[0] + big - half - search, q[1] + big - half - search
         region = mov_p[y0 : y0 + win, x0 : x0 + win]

@@ -19,16 +19,27 @@ Why the surface tie-breaker: with exact 2D the one-sided depth intervals leave t
 to slide up to ``eps`` along the viewing rays; the weak pull towards ``D_k + o_k`` picks the
 shallowest consistent pose, which is where joint centres of a hand seen from the front lie.
 
-Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame). The limits
-are written as smooth constraints that are linear in the outgoing bone ``b`` for a fixed local
-frame (``a_hat``, ``n_perp``, ``lateral``):
+Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame: lateral axis
+from the palm normal at a finger's first joint, transported along the chain after that). The
+limits are written as smooth constraints that are linear in the outgoing bone ``b`` for a fixed
+local frame (``a_hat``, ``n_perp``, ``lateral``):
 
 * flexion >= fmin:  cos(fmin) b.n_perp - sin(fmin) b.a_hat >= 0   (a half-plane; range < 180 deg)
 * flexion <= fmax:  sin(fmax) b.a_hat - cos(fmax) b.n_perp >= 0
 * abduction in [amin, amax]:  |b| sin(amin) <= b.lateral <= |b| sin(amax)
 
-The frame depends on the incoming bone and on the palm normal; both are differentiated exactly
-(no lagged frame), so one SLSQP run converges to a point where every constraint holds.
+The frame depends on the incoming bones of the chain and on the palm normal; all are
+differentiated exactly (no lagged frame), so one SLSQP run converges to a point where every
+constraint holds.
+
+If the hard problem is infeasible or SLSQP fails (typically a 2D point on the wrong surface, so
+its observed depth is wrong), the frame is re-solved in *elastic mode*: each depth interval gets a
+slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone,
+order or angle constraints are still violated by more than 0.5 mm is returned with
+``converged=False`` and halved confidence.
+
+Speed note: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
+can be 50x slower. Run with ``OPENBLAS_NUM_THREADS=1`` (the benchmark sets it).
 
 Variables are offsets from the initial pose in centimetres, which keeps SLSQP well conditioned
 (1 cm is a few pixels at hand distance); constraints are in mm.
@@ -78,7 +89,8 @@ class LiftResult:
     joints and joints without valid depth). reprojection_px: ``(J,)`` distance between the lifted
     joint's projection and its 2D annotation (NaN where there is no 2D). observed_depth_mm: ``(J,)``
     depth ``D_k`` used for the joint's interval (NaN where none). bone_error_mm: largest
-    ``| |X_c - X_p| - d_b |`` at the solution.
+    ``| |X_c - X_p| - d_b |`` at the solution. elastic: the hard depth intervals were infeasible
+    (or SLSQP failed) and the frame was re-solved with L1-penalised interval violations.
     """
 
     joints_mm: np.ndarray
@@ -88,6 +100,7 @@ class LiftResult:
     reprojection_px: np.ndarray
     observed_depth_mm: np.ndarray
     bone_error_mm: float
+    elastic: bool = False
     message: str = ""
     time_s: float = 0.0
 
@@ -104,11 +117,11 @@ class LiftSet:
 
 
 # ---------------------------------------------------------------------------------------- depth
-def observed_depth(
-    depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3
-) -> np.ndarray:
-    """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: the pixel itself if valid, else the
-    nearest valid pixel within ``window`` px (ties: the closer surface). NaN where none."""
+def observed_depth(depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3) -> np.ndarray:
+    """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: the closest valid surface in the 3x3
+    pixels around the rounded point (robust to sensor dropout at silhouette edges, and the same
+    test the simulated annotator uses for visibility); if none, the nearest valid pixel within
+    ``window`` px. NaN where none."""
     depth = np.asarray(depth_mm)
     h, w = depth.shape
     uv = np.asarray(uv_px, dtype=np.float64)
@@ -128,7 +141,8 @@ def observed_depth(
     vals[inside] = depth[vv[inside], uu[inside]]
     valid = inside & np.isfinite(vals) & (vals > 0)
     # nearest valid pixel; among equally near ones the closer surface (depth breaks ties)
-    key = np.where(valid, dist2[None, :] * 1e6 + vals, np.inf)
+    ring = np.maximum(dist2, 2.0) if window >= 1 else dist2  # the 3x3 block counts as distance 0
+    key = np.where(valid, ring[None, :] * 1e6 + vals, np.inf)
     best = np.argmin(key, axis=1)
     found = np.isfinite(key[np.arange(len(best)), best])
     res = np.where(found, vals[np.arange(len(best)), best], np.nan)
@@ -208,7 +222,13 @@ def initial_pose(
             pose[k] = pose[p] + length * _template_direction(skeleton, k, pose)
             continue
         # on the joint's viewing ray at bone length from the (already placed) parent
-        ray = np.array([(ann.uv_px[k, 0] - camera.cx) / camera.fx, (ann.uv_px[k, 1] - camera.cy) / camera.fy, 1.0])
+        ray = np.array(
+            [
+                (ann.uv_px[k, 0] - camera.cx) / camera.fx,
+                (ann.uv_px[k, 1] - camera.cy) / camera.fy,
+                1.0,
+            ]
+        )
         ray /= np.linalg.norm(ray)
         rp = float(ray @ pose[p])
         disc = rp**2 - float(pose[p] @ pose[p]) + length**2
@@ -231,8 +251,9 @@ def initial_pose(
 
 
 # ---------------------------------------------------------------------------------------- problem
-def _skew_cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.cross(a, b)
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]_x`` with ``[v]_x y = v x y``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class _Problem:
@@ -287,9 +308,11 @@ class _Problem:
         self.ord_s = np.asarray(ann.depth_order, dtype=np.float64)[self.ord_k]
         self.margin = order_margin_mm
         # angle rows
-        self.use_angles = bool(angle_limits) and skeleton.palm_joints is not None and len(
-            skeleton.angle_joints
-        ) > 0
+        self.use_angles = (
+            bool(angle_limits)
+            and skeleton.palm_joints is not None
+            and len(skeleton.angle_joints) > 0
+        )
         if self.use_angles:
             k = skeleton.angle_joints
             self.ak = k
@@ -303,6 +326,7 @@ class _Problem:
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
         self.nfev = 0
+        self._cache: dict = {}
         self.elastic = False
         self.el_lo = np.flatnonzero(np.isfinite(lo))
         self.el_hi = np.flatnonzero(np.isfinite(hi))
@@ -401,11 +425,21 @@ class _Problem:
         jac[rows, p] -= unit
         return n - self.d, jac
 
+    def _cached(self, name: str, x: np.ndarray):
+        """SLSQP asks for a constraint and its Jacobian at the same x: evaluate once."""
+        hit = self._cache.get(name)
+        if hit is not None and np.array_equal(hit[0], x):
+            return hit[1]
+        X = self.pose(x)
+        val = self._bone_eq(X) if name == "eq" else self._ineq(X)
+        self._cache[name] = (x.copy(), val)
+        return val
+
     def eq(self, x: np.ndarray) -> np.ndarray:
-        return self._bone_eq(self.pose(x))[0]
+        return self._cached("eq", x)[0]
 
     def eq_jac(self, x: np.ndarray) -> np.ndarray:
-        jac = _CM * self._bone_eq(self.pose(x))[1].reshape(len(self.d), -1)
+        jac = _CM * self._cached("eq", x)[1].reshape(len(self.d), -1)
         if self.n_slack:
             jac = np.hstack([jac, np.zeros((len(jac), self.n_slack))])
         return jac
@@ -431,89 +465,86 @@ class _Problem:
         return np.concatenate(vals), np.concatenate(jacs, axis=0)
 
     def _angles(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        k, p, c = self.ak, self.ap, self.ac
-        a_n = len(k)
+        """Angle-limit rows ``(4A,)`` and their Jacobian ``(4A, J, 3)``.
+
+        The local frame follows ``Skeleton.joint_angles``: at a finger's first joint the lateral
+        axis is ``normalize(a x n)`` (palm normal ``n``); further along it is the parent joint's
+        lateral axis made perpendicular to the incoming bone (transported); ``n_perp = l x a``.
+        Derivatives are propagated exactly through the chain and the palm normal.
+        """
+        j = self.j
+        eye = np.eye(3)
         w0, i1, l1 = self.palm
         e1 = X[i1] - X[w0]
         e2 = X[l1] - X[w0]
-        mvec = self.hand_sign * np.cross(e1, e2)
+        mvec = np.cross(e1, e2)
         mn = max(float(np.linalg.norm(mvec)), 1e-9)
-        n = mvec / mn
-        u = X[k] - X[p]  # (A, 3) incoming
-        b = X[c] - X[k]  # (A, 3) outgoing
-        un = np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-        a = u / un
-        wv = np.cross(u, n[None, :])
-        wn = np.maximum(np.linalg.norm(wv, axis=1, keepdims=True), 1e-9)
-        lat = wv / wn
-        npp = np.cross(lat, a)
-        bn = np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-9)
-        s1 = np.sum(b * a, axis=1)
-        s2 = np.sum(b * npp, axis=1)
-        s3 = np.sum(b * lat, axis=1)
-
-        def proj_a(vec: np.ndarray) -> np.ndarray:  # (I - a a^T) vec / |u|
-            return (vec - np.sum(vec * a, axis=1, keepdims=True) * a) / un
-
-        def proj_l(vec: np.ndarray) -> np.ndarray:  # (I - l l^T) vec / |w|
-            return (vec - np.sum(vec * lat, axis=1, keepdims=True) * lat) / wn
-
-        # derivatives of s1, s2, s3 wrt b, u, n   (A, 3) each
-        ds1_b, ds2_b, ds3_b = a, npp, lat
-        ds1_u = proj_a(b)
-        q3 = proj_l(b)
-        ds3_u = np.cross(n[None, :], q3)
-        ds3_n = np.cross(q3, u)
-        q2 = proj_l(np.cross(a, b))
-        ds2_u = np.cross(n[None, :], q2) + proj_a(np.cross(b, lat))
-        ds2_n = np.cross(q2, u)
-        bunit = b / bn
-        # constraint values (A,) and their partials
-        vals = [
-            self.cfmin * s2 - self.sfmin * s1,
-            self.sfmax * s1 - self.cfmax * s2,
-            s3 - bn[:, 0] * self.samin,
-            bn[:, 0] * self.samax - s3,
-        ]
-        cb = [
-            self.cfmin[:, None] * ds2_b - self.sfmin[:, None] * ds1_b,
-            self.sfmax[:, None] * ds1_b - self.cfmax[:, None] * ds2_b,
-            ds3_b - self.samin[:, None] * bunit,
-            self.samax[:, None] * bunit - ds3_b,
-        ]
-        cu = [
-            self.cfmin[:, None] * ds2_u - self.sfmin[:, None] * ds1_u,
-            self.sfmax[:, None] * ds1_u - self.cfmax[:, None] * ds2_u,
-            ds3_u,
-            -ds3_u,
-        ]
-        cn = [
-            self.cfmin[:, None] * ds2_n,
-            -self.cfmax[:, None] * ds2_n,
-            ds3_n,
-            -ds3_n,
-        ]
-        val = np.concatenate(vals)
-        gb = np.concatenate(cb)
-        gu = np.concatenate(cu)
-        gn = np.concatenate(cn)
-        # n = sign * m/|m|, m = e1 x e2
-        gm = (gn - np.sum(gn * n[None, :], axis=1, keepdims=True) * n[None, :]) / mn * self.hand_sign
-        ge1 = np.cross(e2[None, :], gm)
-        ge2 = np.cross(gm, e1[None, :])
-        rows = np.arange(4 * a_n)
-        kk, pp, cc = np.tile(k, 4), np.tile(p, 4), np.tile(c, 4)
-        jac = np.zeros((4 * a_n, self.j, 3))
-        jac[rows, cc] += gb
-        jac[rows, kk] += gu - gb
-        jac[rows, pp] -= gu
-        jac[:, i1] += ge1
-        jac[:, l1] += ge2
-        jac[:, w0] -= ge1 + ge2
-        return val, jac
+        n = self.hand_sign * mvec / mn
+        pm = self.hand_sign * (eye - np.outer(n, n)) / mn
+        dn = np.zeros((3, j, 3))  # dn/dX
+        dn[:, i1] += pm @ -_skew(e2)
+        dn[:, l1] += pm @ _skew(e1)
+        dn[:, w0] -= dn[:, i1] + dn[:, l1]
+        lat_of: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        a_n = len(self.ak)
+        vals = np.zeros((4, a_n))
+        jac = np.zeros((4, a_n, j, 3))
+        for i, (k, p, c) in enumerate(zip(self.ak, self.ap, self.ac, strict=True)):
+            u = X[k] - X[p]
+            un = max(float(np.linalg.norm(u)), 1e-9)
+            a = u / un
+            pa = (eye - np.outer(a, a)) / un
+            da = np.zeros((3, j, 3))
+            da[:, k] += pa
+            da[:, p] -= pa
+            if int(p) in lat_of:
+                lp, dlp = lat_of[int(p)]
+                al = float(a @ lp)
+                w = lp - al * a
+                dw = np.einsum("ab,bjk->ajk", eye - np.outer(a, a), dlp) - np.einsum(
+                    "ab,bjk->ajk", al * eye + np.outer(a, lp), da
+                )
+            else:
+                w = np.cross(u, n)
+                du = np.zeros((3, j, 3))
+                du[:, k] += eye
+                du[:, p] -= eye
+                dw = np.einsum("ab,bjk->ajk", -_skew(n), du) + np.einsum(
+                    "ab,bjk->ajk", _skew(u), dn
+                )
+            wn = max(float(np.linalg.norm(w)), 1e-9)
+            lat = w / wn
+            dl = np.einsum("ab,bjk->ajk", (eye - np.outer(lat, lat)) / wn, dw)
+            lat_of[int(k)] = (lat, dl)
+            npp = np.cross(lat, a)
+            b = X[c] - X[k]
+            bn = max(float(np.linalg.norm(b)), 1e-9)
+            s1, s2, s3 = float(b @ a), float(b @ npp), float(b @ lat)
+            g1 = np.einsum("a,ajk->jk", b, da)
+            g2 = np.einsum("a,ajk->jk", np.cross(a, b), dl) + np.einsum(
+                "a,ajk->jk", np.cross(b, lat), da
+            )
+            g3 = np.einsum("a,ajk->jk", b, dl)
+            g1[c] += a
+            g1[k] -= a
+            g2[c] += npp
+            g2[k] -= npp
+            g3[c] += lat
+            g3[k] -= lat
+            gb = np.zeros((j, 3))
+            gb[c] += b / bn
+            gb[k] -= b / bn
+            cf0, sf0, cf1, sf1 = self.cfmin[i], self.sfmin[i], self.cfmax[i], self.sfmax[i]
+            sa0, sa1 = self.samin[i], self.samax[i]
+            vals[:, i] = (cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3)
+            jac[0, i] = cf0 * g2 - sf0 * g1
+            jac[1, i] = sf1 * g1 - cf1 * g2
+            jac[2, i] = g3 - sa0 * gb
+            jac[3, i] = sa1 * gb - g3
+        return vals.ravel(), jac.reshape(4 * a_n, j, 3)
 
     def ineq(self, x: np.ndarray) -> np.ndarray:
-        val = self._ineq(self.pose(x))[0]
+        val = self._cached("ineq", x)[0]
         if self.elastic:
             X = self.pose(x)
             sl = _CM * x[3 * self.j :]
@@ -523,7 +554,7 @@ class _Problem:
         return val
 
     def ineq_jac(self, x: np.ndarray) -> np.ndarray:
-        jac = self._ineq(self.pose(x))[1]
+        jac = self._cached("ineq", x)[1]
         jac = _CM * jac.reshape(jac.shape[0], -1)
         if self.elastic:
             ns = self.n_slack
@@ -569,9 +600,9 @@ def lift_frame(
     eps_mm: float = 15.0,
     angle_limits: bool = True,
     init_mm: np.ndarray | None = None,
-    order_margin_mm: float = 5.0,
+    order_margin_mm: float = 10.0,
     w_3d: float = 1.0,
-    w_surface: float = 0.01,
+    w_surface: float = 0.001,
     soft_bones: float | None = None,
     right_hand: bool = True,
     elastic_weight: float = 2.0,
@@ -634,19 +665,22 @@ def lift_frame(
         else:
             prob.set_elastic(False)
             prob.x0[:, 2] = z0
+    ok = _acceptable(res, prob, soft_bones is None)  # constraints really hold (SLSQP can claim
+    # success in elastic mode with violated angle rows; report that as not converged)
     X = prob.pose(res.x)
     proj = camera.project(X)
     reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
     bone_err = float(np.max(np.abs(skeleton.bone_lengths(X) - d)))
-    conf = _confidence(annotation, d_obs, reproj, bool(res.success))
+    conf = _confidence(annotation, d_obs, reproj, ok)
     return LiftResult(
         joints_mm=X,
         confidence=conf,
-        converged=bool(res.success),
+        converged=ok,
         iterations=int(res.nit),
         reprojection_px=reproj,
         observed_depth_mm=np.where(prob.has2d, d_obs, np.nan),
         bone_error_mm=bone_err,
+        elastic=elastic,
         message=str(res.message),
         time_s=time.perf_counter() - t0,
     )
@@ -715,7 +749,9 @@ def _run_all(jobs: list[tuple], workers: int, progress, stage: str) -> list[Lift
     total = len(jobs)
     if workers > 1 and total > 1:
         with ProcessPoolExecutor(max_workers=workers) as ex:
-            for i, r in enumerate(ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))):
+            for i, r in enumerate(
+                ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))
+            ):
                 out.append(r)
                 if progress is not None:
                     progress(i + 1, total)
@@ -740,7 +776,9 @@ def initial_bone_lengths(
     projected length is never longer than the bone (we take the 75th percentile of the ratios).
     """
     if skeleton.template_bone_lengths_mm is None:
-        raise ValueError(f"skeleton {skeleton.name} has no template bone lengths; pass bone_lengths_mm")
+        raise ValueError(
+            f"skeleton {skeleton.name} has no template bone lengths; pass bone_lengths_mm"
+        )
     tmpl = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
     ratios = []
     offsets = np.asarray(skeleton.surface_offsets_mm)
@@ -753,9 +791,13 @@ def initial_bone_lengths(
         good = ok[p] & ok[c]
         # planar (projected) length at the mean depth of the two joints
         zm = 0.5 * (z[p] + z[c])
-        planar = np.linalg.norm(
-            (X[c, :2] / np.maximum(z[c, None], 1) - X[p, :2] / np.maximum(z[p, None], 1)), axis=1
-        ) * zm
+        planar = (
+            np.linalg.norm(
+                (X[c, :2] / np.maximum(z[c, None], 1) - X[p, :2] / np.maximum(z[p, None], 1)),
+                axis=1,
+            )
+            * zm
+        )
         ratios.append((planar / tmpl)[good])
     r = np.concatenate(ratios) if ratios else np.zeros(0)
     r = r[np.isfinite(r) & (r > 0)]
@@ -810,8 +852,14 @@ def lift_references(
     if not pin_bone_lengths and len(frames) > 0:
         for _ in range(max_rounds):
             jobs = [
-                (annotations[f], depths[f], camera, skeleton, bones,
-                 dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)))
+                (
+                    annotations[f],
+                    depths[f],
+                    camera,
+                    skeleton,
+                    bones,
+                    dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
+                )
                 for f in frames
             ]
             res = _run_all(jobs, workers, progress, "bones")

@@ -248,18 +248,23 @@ def propagate(
         workers=workers,
         scheduler=scheduler,
         frames=frames,
+        initial_mm=results["init_mm"] if frames is not None else None,
+        initial_confidence=results["confidence"] if frames is not None else None,
         progress=progress,
         on_result=on_result,
     )
-    init = result.joints_mm
-    confidence = result.confidence
-    if frames is not None:
-        # Only the recomputed frames change.
-        mask = np.zeros(session.num_frames, dtype=bool)
-        mask[np.asarray(frames, dtype=np.int64)] = True
-        init = np.where(mask[:, None, None], init, results["init_mm"])
-        confidence = np.where(mask[:, None], confidence, results["confidence"])
-    session.save_results(init_mm=init, confidence=confidence)
+    computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))
+    with session.lock:
+        # Merge into fresh arrays: an edit may have re-lifted a reference while this ran.
+        current = session.load_results()
+        init = np.where(computed[:, None, None], result.joints_mm, current["init_mm"])
+        confidence = np.where(computed[:, None], result.confidence, current["confidence"])
+        if frames is None:
+            init[~computed] = np.nan
+        # A reference's initialization is its lifted pose, so every frame has one for refinement.
+        for f, joints in reference_joints.items():
+            init[f] = joints
+        session.save_results(init_mm=init, confidence=confidence)
     if result.skipped:
         _log(f"propagation skipped {len(result.skipped)} frame(s): {result.skipped[:10]}", quiet)
     return result

@@ -2,15 +2,15 @@
 
 One robust least-squares problem over every frame of the sequence:
 
-``E = Σ λ_app  ρ_app(appearance)     per joint, 7×7 patch samples, mm
-    + Σ λ_temp ρ_temp(X[i+1,k] − X[i,k])  consecutive frames in time order, camera coords, mm
-    + Σ λ_proj ‖π(X[r,k]) − l[r,k]‖²      reference frames' annotated 2D, px
-    + Σ λ_depth (depth-band violation)²   Eq. 3 band behind the observed surface, mm
-    + Σ λ_angle (joint-angle violation)²  skeleton.angle_limits, degrees
-    + Σ λ_init ρ(X − X_init)              optional weak pull to the initialization, mm``
+``E = Σ λ_app   ρ_W(appearance sample)        7×7 patch per joint, mm (Welsch)
+    + Σ λ_temp  ρ_H(‖X[i+1,k] − X[i,k]‖)       consecutive frames in time order, camera coords, mm
+    + Σ λ_proj  ½‖π(X[r,k]) − l[r,k]‖²          reference frames' annotated 2D, px
+    + Σ λ_depth ρ_W(depth-band violation)       Eq. 3 band behind the observed surface, mm
+    + Σ λ_angle ½(joint-angle violation)²       skeleton.angle_limits, degrees
+    + Σ λ_init  ρ_H(‖X − X_init‖)               weak pull to the initialization, mm``
 
-each term written as ``½·λ·r²`` (or ``λ·Huber(r)``), i.e. residuals weighted by ``√λ`` in the units
-stated (see :class:`RefineWeights`).
+(ρ_H Huber, ρ_W Welsch, both ≈ ½r² for small r), i.e. residuals weighted by ``√λ`` in the units
+stated; default λ and why in :class:`RefineWeights`.
 
 **Bone lengths are hard constraints** through the parameterization: each frame is a root position
 (3) plus one unit direction per bone (updated on the sphere through a 2-D tangent step), with the
@@ -26,7 +26,8 @@ crop of the frame's closest reference (relative to that reference joint's depth)
 uses the analytic gradient of the bilinear interpolant. The same crops give the observed depth
 ``D`` at each projection for the depth band (``D + offset_k ≤ Z ≤ D + offset_k + eps``; the lower
 side holds for every joint that projects onto the hand, the upper side only for joints visible in
-the frame's closest reference annotation and is Huber-robust because visibility can change).
+the frame's closest reference annotation; both sides use a redescending loss because a joint whose
+projection lands on another surface must not be dragged onto it).
 
 **Solver**: Levenberg-Marquardt with IRLS weights for the robust terms. The normal equations are
 block-tridiagonal in time (blocks of ``3 + 2B`` parameters per frame; only the temporal term
@@ -62,40 +63,53 @@ __all__ = ["RefineResult", "RefineWeights", "refine"]
 class RefineWeights:
     """Weights λ of the refinement energy; each residual is multiplied by √λ in the stated unit.
 
-    Defaults were chosen on the project's synthetic sequence (``synth.generate_sequence``,
-    MSRA-21 skeleton, 220 mm crops at 128 px, references every 20th frame with exact simulated 2D),
-    starting from propagation-like perturbed ground truth (smooth 5-10 mm offsets, outlier frames,
-    bone violations), see ``benchmarks/bench_refine.py``:
+    Defaults were chosen on the project's synthetic data (``synth.generate_sequence`` seed 0,
+    MSRA-21, 220 mm / 128 px crops centred by ``crops.locate_hands``, exact simulated 2D on the
+    references) with two initializations: the real propagation (``propagate.propagate`` from a
+    5 % / 2 % ``forest`` selection, reference poses = ground truth to skip the lift) and perturbed
+    ground truth (smooth 5-10 mm offsets correlated in time, larger at fingertips, 2 % outlier
+    frames of 20-40 mm, bone violations); see ``benchmarks/bench_refine.py``. On 300 frames:
+    propagation 5 % 3.92 -> 2.14 mm mean (max 40.9 -> 19.3), 2 % 10.10 -> 8.03 mm, perturbed
+    8.15 -> 4.04 mm (max 59.9 -> 35.1).
 
-    * ``appearance`` (per mm² per patch sample, 49 samples per joint): 0.02 — the patch term then
-      weighs about one mm² per joint, comparable to the temporal term, strong enough to pull a joint
-      back onto its finger but not so strong that silhouette mismatches dominate. Samples are
-      Huber-robust with ``appearance_huber_mm``; relative depths are clipped at
-      ``appearance_clip_mm`` (background and far-away surfaces become a constant).
-    * ``temporal`` (per mm² per joint and frame pair): 1.0 with Huber scale ``temporal_huber_mm``
-      = 6 mm: removes jitter and pulls isolated outlier frames to their neighbours, while real
-      motion (a few mm per frame) costs little, and true jumps beyond the scale only grow linearly.
-    * ``reprojection`` (per px² on reference frames' annotated 2D): 4.0 — with exact annotations
-      the references are anchored to about a pixel; lower it for noisy annotators.
-    * ``depth_band`` (per mm² of violation of Eq. 3's band, eps = ``eps_mm`` = 15 mm): 1.0.
-    * ``angle`` (per degree² outside ``skeleton.angle_limits``): 0.05 — a soft guard only.
-    * ``init`` (per mm² to the initialization, Huber 10 mm): 0.0 by default (off): the data terms
-      suffice on the synthetic data; a small value adds a prior for frames without good data.
+    * ``appearance`` (per mm² per patch sample; 7×7 samples, 2 crop px apart, per joint): 0.02,
+      so one joint's patch weighs about 1/mm², like the temporal term. Samples are robust with
+      a redescending Welsch loss of scale ``appearance_scale_mm`` = 10 mm (Huber made silhouette
+      mismatches pull joints tens of mm away); relative depths are clipped at ±40 mm so background
+      is a constant. Only joints visible in the closest reference use it (an occluded joint's
+      patch shows its occluder). 0.05 and 0.01 were no better.
+    * ``temporal`` (per mm² per joint and consecutive-frame pair): 1.0, Huber scale 15 mm (true
+      motion on the synthetic data is <= 6 mm/frame; 15 mm still pulls outlier frames in
+      quadratically; 6 mm was 0.1-0.2 mm worse). 0.3-0.5 left more jitter, 3.0 over-smoothed
+      (mean +0.4 mm).
+    * ``reprojection`` (per px² on the references' annotated 2D): 20; anchors references to a
+      fraction of a pixel with exact annotations (4 was ~0.1 mm worse); lower it (to about
+      1/σ² for σ px of annotation noise) for noisy annotators.
+    * ``depth_band`` (per mm² outside Eq. 3's band ``[D + offset, D + offset + eps_mm]``): 1.0 with
+      a Welsch loss of scale 10 mm: a joint whose projection falls on a far surface (a fingertip
+      just off the finger, onto the palm behind it) is not dragged there (a plain or Huber
+      penalty pushed such tips 60-90 mm back).
+    * ``angle`` (per degree² outside ``skeleton.angle_limits``): 0.01, a soft guard (the synthetic
+      ground truth itself exceeds ``Skeleton.joint_angles`` limits at some DIP joints, so more
+      is harmful).
+    * ``init`` (per mm² to the initialization, Huber 10 mm): 0.03. Without it joints with little
+      data (occluded, fingertips) drift with their neighbours (mean got *worse*, 3.92 -> 4.18 mm
+      on the propagation); 0.1-0.5 kept too much of the propagation error.
     """
 
     appearance: float = 0.02
-    appearance_huber_mm: float = 10.0
+    appearance_scale_mm: float = 10.0
     appearance_clip_mm: float = 40.0
     appearance_visible_only: bool = True
-    appearance_robust: str = "huber"
+    appearance_robust: str = "welsch"
     temporal: float = 1.0
-    temporal_huber_mm: float = 6.0
-    reprojection: float = 4.0
+    temporal_huber_mm: float = 15.0
+    reprojection: float = 20.0
     depth_band: float = 1.0
     depth_band_scale_mm: float = 10.0
     eps_mm: float = 15.0
-    angle: float = 0.05
-    init: float = 0.0
+    angle: float = 0.01
+    init: float = 0.03
     init_huber_mm: float = 10.0
     patch_size: int = 7
     patch_spacing_px: float = 2.0
@@ -470,9 +484,9 @@ class _Problem:
                 tm = self.templates[np.maximum(tpos, 0)]
                 r = np.where(has_t[..., None], rel - tm, 0.0)
                 if w.appearance_robust == "welsch":
-                    cost, wr = _welsch(np.abs(r), w.appearance_huber_mm)
+                    cost, wr = _welsch(np.abs(r), w.appearance_scale_mm)
                 else:
-                    cost, wr = _huber(np.abs(r), w.appearance_huber_mm)
+                    cost, wr = _huber(np.abs(r), w.appearance_scale_mm)
                 terms["appearance"] += w.appearance * float(np.sum(cost, dtype=np.float64))
                 if want_jac:
                     # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
@@ -634,7 +648,7 @@ def refine(
     closest_reference: np.ndarray,
     sequence_breaks: Iterable[int] = (),
     weights: RefineWeights | None = None,
-    iterations: int = 30,
+    iterations: int = 25,
     progress: Callable[[int, float], None] | None = None,
     fixed_frames: Iterable[int] | None = None,
     cube_mm: float = 220.0,

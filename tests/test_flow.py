@@ -75,7 +75,10 @@ def test_dis_flow_recovers_shift_and_warp(deg, shift, scale):
     assert hand_epe(ref, flow, truth) < 0.5
 
 
-@pytest.mark.parametrize(("deg", "shift", "scale", "limit"), [(0.0, (3.4, -2.3), 1.0, 0.5), (5.0, (1.5, -2.0), 1.03, 0.75)])
+@pytest.mark.parametrize(
+    ("deg", "shift", "scale", "limit"),
+    [(0.0, (3.4, -2.3), 1.0, 0.5), (5.0, (1.5, -2.0), 1.03, 0.75)],
+)
 def test_sift_flow_recovers_shift_and_warp(deg, shift, scale, limit):
     """At the paper's setting (full resolution, 3 levels). The discrete labels plus a sub-pixel
     fit reach 0.35 px on the shift; the rotated+scaled warp stays ~0.55 px (edge pixels)."""
@@ -134,7 +137,9 @@ def test_ncc_match_finds_shifted_patches():
 
 def test_sample_flow_bilinear_median():
     yy, xx = np.mgrid[0:32, 0:32].astype(np.float32)
-    flow = np.stack([xx * 0.5, yy * 0.25], -1)  # linear field: median of a symmetric window = centre
+    flow = np.stack(
+        [xx * 0.5, yy * 0.25], -1
+    )  # linear field: median of a symmetric window = centre
     pts = np.array([[10.25, 12.5], [3.0, 4.0], [np.nan, 2.0]])
     out = sample_flow(flow, pts, radius=1)
     np.testing.assert_allclose(out[:2], [[5.125, 3.125], [1.5, 1.0]], atol=1e-5)

@@ -16,7 +16,9 @@ N = 24
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    path = generate_sequence(tmp_path_factory.mktemp("seq") / "s", frames=N, seed=3, progress=False, workers=1)
+    path = generate_sequence(
+        tmp_path_factory.mktemp("seq") / "s", frames=N, seed=3, progress=False, workers=1
+    )
     seq = open_sequence(path)
     centres = locate_hands(seq)
     crops = compute_crops(seq, centres, None)
@@ -79,7 +81,9 @@ def test_near_identical_frame_gives_nearly_identical_joints(data):
     seq = data["seq"]
     depth_of = NoisyCopy(seq)
     c = data["centres"][[0, 0]]
-    crops = np.stack([data["crops"][0], crop_depth(depth_of(1), seq.camera, c[1]).astype(np.float16)])
+    crops = np.stack(
+        [data["crops"][0], crop_depth(depth_of(1), seq.camera, c[1]).astype(np.float16)]
+    )
     res = run(
         data,
         np.array([-1, 0]),
@@ -169,7 +173,14 @@ def test_descendants_and_incremental_recompute(data):
     others = np.setdiff1d(np.arange(N), sub)
     assert np.all(np.isnan(part.joints_mm[others]))
     # from stored arrays only (a session's init_mm/confidence): close, not bit-identical
-    part2 = run(data, parent, [0, 12], frames=sub, initial_mm=full.joints_mm, initial_confidence=full.confidence)
+    part2 = run(
+        data,
+        parent,
+        [0, 12],
+        frames=sub,
+        initial_mm=full.joints_mm,
+        initial_confidence=full.confidence,
+    )
     diff = np.linalg.norm(part2.joints_mm[sub] - full.joints_mm[sub], axis=-1)
     assert diff.mean() < 2.0
     # without the ancestors' joints the subset cannot be propagated: reported, not fatal
@@ -198,3 +209,15 @@ def test_dask_cluster_matches_local_processes(data, local_processes):
     np.testing.assert_array_equal(local.joints_mm, remote.joints_mm)
     np.testing.assert_array_equal(local.confidence, remote.confidence)
     assert local.skipped == remote.skipped
+
+
+def test_implausible_reference_is_reported_not_propagated(data):
+    seq = data["seq"]
+    parent = np.array([-1, 0, 1] + [-1] * (N - 3))
+    broken = data["gt"][0] * np.array([1.0, 1.0, -1.0])  # behind the camera
+    res = propagate(
+        parent, {0: broken}, data["crops"], data["boxes"], data["centres"], seq.depth,
+        seq.camera, seq.skeleton, data["bones"], frames=[1, 2],
+    )  # fmt: skip
+    assert res.skipped == [1, 2]
+    assert "implausible" in res.reasons[1]

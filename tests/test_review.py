@@ -52,7 +52,11 @@ def test_bone_anomaly_and_jump_find_the_broken_frame():
     joints = smooth_sequence()
     bones = MSRA21.bones
     lengths = MSRA21.bone_lengths(joints[0])
-    joints[12, 4] += [0.0, 45.0, 0.0]  # one joint of frame 12 thrown off: a bone stretches, frame jumps
+    joints[12, 4] += [
+        0.0,
+        45.0,
+        0.0,
+    ]  # one joint of frame 12 thrown off: a bone stretches, frame jumps
     dev = bone_anomaly(joints, bones, lengths)
     assert dev[0] == pytest.approx(0.0, abs=1e-9) and np.argmax(dev) == 12 and dev[12] > 0.2
     jump = temporal_jump(joints)
@@ -83,7 +87,9 @@ def test_frame_scores_rank_bad_frames_first_and_references_are_excluded():
     # the depth term moves a frame to the front
     residual = np.zeros(joints.shape[:2])
     residual[7] = 60.0
-    s2 = frame_scores(conf, joints, MSRA21.bones, lengths, depth_residual_mm=residual, is_reference=is_ref)
+    s2 = frame_scores(
+        conf, joints, MSRA21.bones, lengths, depth_residual_mm=residual, is_reference=is_ref
+    )
     assert 7 not in order[:3] and 7 in worst_order(s2.score, np.flatnonzero(is_ref))[:3]
     # the optional flow term too
     flow = np.zeros(len(joints))
@@ -175,7 +181,9 @@ def test_correction_makes_a_reference_in_one_undoable_entry(session):
     assert became and entry.command["kind"] == "batch"
     kinds = [c["kind"] for c in entry.command["commands"]]
     assert kinds == ["set_reference", "set_frame", "set_3d"]
-    assert frame in session.model.selection.reference_frames and session.model.corrections == [frame]
+    assert frame in session.model.selection.reference_frames and session.model.corrections == [
+        frame
+    ]
     assert session.parent[frame] == -1
     ann = session.annotation(frame)
     assert np.allclose(ann.xyz_mm[joint], target, atol=0.01)
@@ -204,7 +212,11 @@ def fake_propagate(delay_s: float = 0.0, gate: threading.Event | None = None):
 
     def run(session, *, workers=1, frames=None, progress=None, on_result=None, quiet=False):
         parent = session.parent
-        todo = np.flatnonzero(parent >= 0) if frames is None else np.asarray(frames)[parent[frames] >= 0]
+        todo = (
+            np.flatnonzero(parent >= 0)
+            if frames is None
+            else np.asarray(frames)[parent[frames] >= 0]
+        )
         calls.append(todo.tolist())
         results = session.load_results()
         init, conf = results["init_mm"].copy(), results["confidence"].copy()
@@ -260,7 +272,9 @@ def test_runner_streams_then_saves_and_cancel_leaves_old_results(session):
         assert runner.status.phase == "done", runner.status.message
         res = session.load_results()
         non_refs = np.flatnonzero(session.parent >= 0)
-        assert np.all(np.isfinite(res["init_mm"][non_refs])) and np.all(np.isfinite(res["final_mm"][non_refs]))
+        assert np.all(np.isfinite(res["init_mm"][non_refs])) and np.all(
+            np.isfinite(res["final_mm"][non_refs])
+        )
         assert sorted(set(seen)) == non_refs.tolist()
         assert runner.live.stage[non_refs].min() == 3
         assert digest(journal_path) == journal_before
@@ -324,7 +338,10 @@ def test_correction_repropagates_only_descendants_with_the_real_pipeline(session
         assert np.allclose(second["lifted_mm"][frame], gt[frame])
         assert np.all(np.isfinite(second["final_mm"]))
         reopened = Session.open(session.folder)
-        assert frame in reopened.model.corrections and frame in reopened.model.selection.reference_frames
+        assert (
+            frame in reopened.model.corrections
+            and frame in reopened.model.selection.reference_frames
+        )
         reopened.close()
     finally:
         runner.stop()
@@ -341,7 +358,9 @@ def test_live_results_scores_use_crops_when_cached(session):
 
 
 # ------------------------------------------------------------------------------------------ names
-@pytest.mark.parametrize("name", ["../etc", "a/b", "/tmp/x", "..", "", ".hidden", "a\\b", "x" * 200])
+@pytest.mark.parametrize(
+    "name", ["../etc", "a/b", "/tmp/x", "..", "", ".hidden", "a\\b", "x" * 200]
+)
 def test_session_names_from_users_are_refused(name, tmp_path):
     with pytest.raises(SessionError):
         safe_session_path(name, tmp_path)

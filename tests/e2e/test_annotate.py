@@ -77,6 +77,7 @@ def ctx(session_folder):
         with browser() as b:
             page = open_app(b, app.url)
             wait_until(lambda: app.annotate_views(), what="the view of the browser")
+            app.annotate_views()[0].flush()
             wait_camera_still(page)
             yield Ctx(app, page, session_folder)
     finally:
@@ -125,6 +126,8 @@ def test_annotate_flow(ctx: Ctx):
     wait_until(saved.is_visible, what="the saved indicator")
 
     # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
+    assert ctx.app.worker.wait_idle(120)  # let the lift land first: it moves the joint spheres
+    view.flush()
     before = view._joint_positions_mm()[0].copy()
     start = ctx.joint_point(0)
     drag(page, start, (start[0] + 60, start[1]))
@@ -217,3 +220,32 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
     SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
     ctx.page.screenshot(path=str(SCREENSHOT))
     assert SCREENSHOT.stat().st_size > 10_000
+
+
+def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
+    """A frame whose depth cannot be read shows a message in the page; the view keeps working."""
+    from app.frames import FrameData
+    from app.geometry import empty_geometry
+
+    app, view, page = ctx.app, ctx.view, ctx.page
+    real_get = app.frames.get
+
+    def get(frame: int) -> FrameData:
+        if frame == 20:
+            msg = "frame 20: no depth (000020_depth.bin: truncated)"
+            return FrameData(20, None, empty_geometry(app.session.camera), error=msg)
+        return real_get(frame)
+
+    monkeypatch.setattr(app.frames, "get", get)
+    view.go_to_index(view.state.frames.index(20))
+    view.flush()
+    wait_until(lambda: page.get_by_text("⚠ frame 20: no depth").is_visible(), what="the message")
+    assert (
+        view.click_image(view._frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0]))
+        is None
+    )
+    view.go_to_index(view.state.frames.index(30))  # and the next frame is fine again
+    wait_until(
+        lambda: not page.get_by_text("⚠ frame 20: no depth").is_visible(), what="message gone"
+    )
+    assert view._frame_data.depth is not None

@@ -100,7 +100,8 @@ class Ctx:
 
     def view(self, index: int = 0):
         views = sorted(
-            (v["Review"] for v in self.app.views.values() if "Review" in v), key=lambda v: v.client.client_id
+            (v["Review"] for v in self.app.views.values() if "Review" in v),
+            key=lambda v: v.client.client_id,
         )
         return views[index]
 
@@ -113,7 +114,9 @@ def ctx(synthetic_data, tmp_path_factory):
     try:
         with browser() as b:
             page = open_app(b, app.url)
-            wait_until(lambda: any("Review" in v for v in app.views.values()), what="the review view")
+            wait_until(
+                lambda: any("Review" in v for v in app.views.values()), what="the review view"
+            )
             open_review_tab(page)
             yield Ctx(app, b, page, folder)
     finally:
@@ -125,6 +128,28 @@ def open_review_tab(page) -> None:
     page.get_by_role("button", name="Propagate & refine").wait_for(timeout=10_000)
 
 
+def test_cancel_from_the_page_keeps_the_old_results(ctx: Ctx):
+    page, view, folder = ctx.page, ctx.view(), ctx.folder
+    results, journal_path = folder / "results.npz", folder / JOURNAL_FILE
+    # let the lift worker finish its own (idle-time) save of lifted joints first
+    ctx.app.worker.wait_idle(60)
+    time.sleep(ctx.app.worker.save_after_s + 0.5)
+    before = (results.read_bytes(), journal_path.read_bytes() if journal_path.exists() else b"")
+    page.get_by_role("button", name="Propagate & refine").click()
+    wait_until(lambda: view.live.filled() >= 8, timeout_s=60, what="a few propagated frames")
+    page.get_by_role("button", name="Cancel run").click()
+    wait_until(
+        lambda: view.runner.status.phase == "cancelled", timeout_s=60, what="the run to stop"
+    )
+    wait_until(
+        lambda: page.get_by_text("cancelled: the session keeps").is_visible(), what="cancel text"
+    )
+    after = (results.read_bytes(), journal_path.read_bytes() if journal_path.exists() else b"")
+    assert after == before, "a cancelled run must leave results.npz and the journal untouched"
+    assert not (folder / "propagation_partial.npz").exists()
+    assert view.live.filled() == 4  # the view is back to what is on disk
+
+
 def test_run_streams_frames_before_it_ends(ctx: Ctx):
     page, view = ctx.page, ctx.view()
     runner = view.runner
@@ -132,7 +157,9 @@ def test_run_streams_frames_before_it_ends(ctx: Ctx):
     page.get_by_role("button", name="Propagate & refine").click()
     # While the run is going, the page shows partial progress and skeletons arrive.
     text = wait_until(
-        lambda: (m := page.get_by_text("propagating:").all_inner_texts()) and m[0], timeout_s=60, what="progress text"
+        lambda: (m := page.get_by_text("propagating:").all_inner_texts()) and m[0],
+        timeout_s=60,
+        what="progress text",
     )
     seen_partial = []
 
@@ -148,9 +175,14 @@ def test_run_streams_frames_before_it_ends(ctx: Ctx):
     assert runner.status.running, "the run should still be going"
     assert "of 36 frames" in text
     wait_until(lambda: runner.status.phase == "done", timeout_s=120, what="the run to finish")
-    wait_until(lambda: page.get_by_text("done: 36 frame(s) propagated").is_visible(), what="done on the page")
+    wait_until(
+        lambda: page.get_by_text("done: 36 frame(s) propagated").is_visible(),
+        what="done on the page",
+    )
     res = Session.open(ctx.folder).load_results()
-    assert np.all(np.isfinite(res["final_mm"])) and np.all(np.isfinite(res["init_mm"][np.arange(40) % 10 != 0]))
+    assert np.all(np.isfinite(res["final_mm"])) and np.all(
+        np.isfinite(res["init_mm"][np.arange(40) % 10 != 0])
+    )
 
 
 def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
@@ -164,23 +196,34 @@ def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
     wait_until(lambda: view.frame == expected, what=f"the worst frame {expected}")
     frame = view.frame
     assert frame not in refs
-    wait_until(lambda: page.get_by_text(f"Review frame {frame} (").is_visible(), what="the frame text")
+    wait_until(
+        lambda: page.get_by_text(f"Review frame {frame} (").is_visible(), what="the frame text"
+    )
     wait_camera_still(page)
     # drag a well separated joint 50 px to the right
     k, start = pick_joint(page, view)
     n_before = len(journal(folder))
     drag(page, start, (start[0] + 50, start[1]))
-    entry = wait_until(lambda: len(journal(folder)) > n_before and journal(folder)[-1], what="the correction")
+    entry = wait_until(
+        lambda: len(journal(folder)) > n_before and journal(folder)[-1], what="the correction"
+    )
     cmd = entry["command"]
     assert cmd["kind"] == "batch"
     assert [c["kind"] for c in cmd["commands"]] == ["set_reference", "set_frame", "set_3d"]
-    assert cmd["commands"][0] == {"frame": frame, "kind": "set_reference", "is_reference": True, "parent": -1,
-                                  "correction": True}
+    assert cmd["commands"][0] == {
+        "frame": frame,
+        "kind": "set_reference",
+        "is_reference": True,
+        "parent": -1,
+        "correction": True,
+    }
     assert cmd["commands"][2]["joint"] == k
     shown_before = before["final_mm"][frame, k]
     assert cmd["commands"][2]["xyz_mm"][0] - shown_before[0] > 5.0
     reopened = Session.open(folder)
-    assert frame in reopened.model.corrections and frame in reopened.model.selection.reference_frames
+    assert (
+        frame in reopened.model.corrections and frame in reopened.model.selection.reference_frames
+    )
     reopened.close()
     # the runner lifts the new reference and re-propagates its descendants only
     wait_until(
@@ -193,10 +236,17 @@ def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
     end = (frame // STEP + 1) * STEP
     assert job.frames == list(range(frame + 1, end))
     after = Session.open(folder).load_results()
-    changed = set(np.flatnonzero(np.any(~np.isclose(after["init_mm"], before["init_mm"], equal_nan=True), axis=(1, 2))))
+    changed = set(
+        np.flatnonzero(
+            np.any(~np.isclose(after["init_mm"], before["init_mm"], equal_nan=True), axis=(1, 2))
+        )
+    )
     assert changed <= set(range(frame, end)) and set(range(frame + 1, end)) <= changed
     assert np.allclose(after["lifted_mm"][frame, k], cmd["commands"][2]["xyz_mm"], atol=0.01)
-    wait_until(lambda: page.get_by_text(f"Review frame {frame} (reference").is_visible(), what="reference text")
+    wait_until(
+        lambda: page.get_by_text(f"Review frame {frame} (reference").is_visible(),
+        what="reference text",
+    )
 
 
 def pick_joint(page, view, k: int | None = None) -> tuple[int, tuple[float, float]]:
@@ -215,13 +265,19 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
     page_b = open_app(ctx.browser, ctx.app.url)
     try:
         open_review_tab(page_b)
-        wait_until(lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 2, what="second view")
+        wait_until(
+            lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 2,
+            what="second view",
+        )
         view_a, view_b = ctx.view(0), ctx.view(1)
         frame = 24  # a propagated frame both pages go to via the slider... set from the server side
         for page, view in ((page_a, view_a), (page_b, view_b)):
             view.activate_scene()
             view.show_frame(frame)
-            wait_until(lambda p=page: p.get_by_text(f"Review frame {frame} (").is_visible(), what="frame text")
+            wait_until(
+                lambda p=page: p.get_by_text(f"Review frame {frame} (").is_visible(),
+                what="frame text",
+            )
             wait_camera_still(page)
         k, start_a = pick_joint(page_a, view_a)
         n0 = len(journal(folder))
@@ -229,7 +285,11 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
         wait_until(lambda: len(journal(folder)) == n0 + 1, what="page A's edit")
         # B's view follows (lift, then re-propagation of the frame's dependents); B then drags the
         # same joint from where B now sees it
-        wait_until(lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="A's re-propagation")
+        wait_until(
+            lambda: ctx.app.review_hub.runner.wait_idle(0.1),
+            timeout_s=120,
+            what="A's re-propagation",
+        )
         page_b.wait_for_timeout(500)
         _, start_b = pick_joint(page_b, view_b, k)
         drag(page_b, start_b, (start_b[0], start_b[1] + 40))
@@ -240,7 +300,10 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
         assert entries[1]["command"]["kind"] == "set_3d"  # B edited the (now) reference: no re-seed
         assert entries[1]["command"]["joint"] == k
         # page A was told about B's edit
-        wait_until(lambda: page_a.get_by_text("Frame edited elsewhere").first.is_visible(), what="notification on A")
+        wait_until(
+            lambda: page_a.get_by_text("Frame edited elsewhere").first.is_visible(),
+            what="notification on A",
+        )
         # last write wins for the joint; A's other seeded joints are still there; all after reopening
         ctx.app.session.save()
         reopened = Session.open(folder)
@@ -251,18 +314,28 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
         assert np.allclose(ann.xyz_mm[other], np.asarray(a_seed["xyz_mm"], float)[other], atol=0.01)
         assert frame in reopened.model.corrections
         reopened.close()
-        wait_until(lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="re-propagation")
+        wait_until(
+            lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="re-propagation"
+        )
     finally:
         page_b.close()
-        wait_until(lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 1, what="page B gone")
+        wait_until(
+            lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 1,
+            what="page B gone",
+        )
 
 
 def test_accept_flag_export_and_import(ctx: Ctx, tmp_path):
     page, view, folder = ctx.page, ctx.view(), ctx.folder
     view.show_frame(7)
     page.get_by_role("button", name="Flag").click()
-    wait_until(lambda: journal(folder)[-1]["command"] == {"frame": 7, "kind": "set_review", "status": "flagged"},
-               what="flag entry")
+    wait_until(
+        lambda: (
+            journal(folder)[-1]["command"]
+            == {"frame": 7, "kind": "set_review", "status": "flagged"}
+        ),
+        what="flag entry",
+    )
     page.get_by_role("button", name="Accept").click()
     wait_until(lambda: journal(folder)[-1]["command"]["status"] == "accepted", what="accept entry")
     assert Session.open(folder).model.review["7"] == "accepted"
@@ -291,6 +364,10 @@ def test_accept_flag_export_and_import(ctx: Ctx, tmp_path):
     with page.expect_file_chooser() as chooser:
         page.get_by_role("button", name="Import JSON").click()
     chooser.value.set_files(str(path))
-    wait_until(lambda: page.get_by_text("imported 40 frames").first.is_visible(), timeout_s=30, what="import done")
+    wait_until(
+        lambda: page.get_by_text("imported 40 frames").first.is_visible(),
+        timeout_s=30,
+        what="import done",
+    )
     res = Session.open(folder).load_results()
     assert np.allclose(res["final_mm"][3], np.asarray(doc["frames"][3]["joints_mm"]), atol=1e-3)

@@ -43,8 +43,6 @@ depth bounds exist for every frame; memory is O(N·J) besides the crops (no N×J
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -53,6 +51,7 @@ import numpy as np
 from scipy.linalg import LinAlgError, solveh_banded
 
 from .annotation import FrameAnnotation
+from .blas import single_blas_thread
 from .camera import CameraIntrinsics
 from .skeleton import Skeleton
 
@@ -186,58 +185,6 @@ def _bilinear(flat: np.ndarray, size: int, base: np.ndarray, x: np.ndarray, y: n
     gx = np.where(inside, gx, np.float32(0.0))
     gy = np.where(inside, gy, np.float32(0.0))
     return val, gx, gy, fg
-
-
-_BLAS_SETTERS: list | None = None
-
-
-def _openblas_thread_setters() -> list:
-    """(get, set) function pairs of the OpenBLAS libraries loaded in this process (Linux only)."""
-    global _BLAS_SETTERS
-    if _BLAS_SETTERS is not None:
-        return _BLAS_SETTERS
-    setters = []
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = {ln.split()[-1] for ln in fh if "openblas" in ln.lower() and ".so" in ln}
-    except OSError:
-        paths = set()
-    for path in sorted(paths):
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for pre in ("scipy_", ""):
-            for suf in ("64_", ""):
-                get = getattr(lib, f"{pre}openblas_get_num_threads{suf}", None)
-                put = getattr(lib, f"{pre}openblas_set_num_threads{suf}", None)
-                if get is not None and put is not None:
-                    get.restype = ctypes.c_int
-                    setters.append((get, put))
-                    break
-            else:
-                continue
-            break
-    _BLAS_SETTERS = setters
-    return setters
-
-
-@contextlib.contextmanager
-def _single_blas_thread():
-    """Run the banded solves with one OpenBLAS thread.
-
-    The band solve is memory-bound; on a small shared machine OpenBLAS's spinning worker threads
-    made it 5-15× slower (measured: 0.27 s vs 1.4-6.8 s for N=3040 under load).
-    """
-    setters = _openblas_thread_setters()
-    old = [get() for get, _ in setters]
-    for _, put in setters:
-        put(1)
-    try:
-        yield
-    finally:
-        for (_, put), n in zip(setters, old, strict=True):
-            put(n)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -751,7 +698,7 @@ def refine(
             ab = ab0.copy()
             ab[-1] += lam * dscale
             try:
-                with _single_blas_thread():
+                with single_blas_thread():
                     step = solveh_banded(ab, -g, lower=False, check_finite=False)
             except (LinAlgError, ValueError):
                 lam *= nu

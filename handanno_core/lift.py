@@ -38,11 +38,11 @@ slack with an L1 cost (an exact penalty: intervals that can be met are met). A r
 order or angle constraints are still violated by more than 0.5 mm is returned with
 ``converged=False`` and halved confidence.
 
-Speed note: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
-can be 50x slower. Run with ``OPENBLAS_NUM_THREADS=1`` (the benchmark sets it).
-
-Variables are offsets from the initial pose in centimetres, which keeps SLSQP well conditioned
-(1 cm is a few pixels at hand distance); constraints are in mm.
+Speed notes: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
+can be 50x slower, so every solve runs inside :func:`handanno_core.blas.single_blas_thread`.
+Variables are offsets from the initial pose, scaled per axis (1.5 mm units in x/y ~ 1 px, 10 mm
+in z) so SLSQP's identity start Hessian is about right; constraints are in mm. The angle-limit
+Jacobian is vectorized over fingers (one batch per chain level).
 
 Bone lengths (:func:`lift_references`) are unknown in advance. They start from the skeleton's
 template scaled to the annotated frames and are re-estimated from all lifted references: each
@@ -64,6 +64,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .annotation import AnnotationError, FrameAnnotation
+from .blas import single_blas_thread
 from .camera import CameraIntrinsics
 from .skeleton import Skeleton
 
@@ -77,7 +78,13 @@ __all__ = [
     "AnnotationError",
 ]
 
-_CM = 10.0  # mm per optimisation unit
+# Variable scaling (measured): SLSQP starts its quasi-Newton Hessian at the identity, so each
+# unit should move the objective by about the same amount. 1 px of reprojection is ~1.5 mm
+# laterally at hand distance (f = 241 px, z = 350 mm), while depth is only weakly determined
+# (bones, surface tie-breaker) and gets 10 mm units. This halved SLSQP iterations (50 -> 26)
+# compared with uniform 10 mm units.
+_SCALE_XY = 1.5  # mm per optimisation unit, x and y
+_SCALE_Z = 10.0  # mm per optimisation unit, z (and elastic slacks)
 
 
 # ---------------------------------------------------------------------------------------- results
@@ -117,11 +124,15 @@ class LiftSet:
 
 
 # ---------------------------------------------------------------------------------------- depth
-def observed_depth(depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3) -> np.ndarray:
+def observed_depth(
+    depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3, near_px: int = 1
+) -> np.ndarray:
     """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: the closest valid surface in the 3x3
     pixels around the rounded point (robust to sensor dropout at silhouette edges, and the same
     test the simulated annotator uses for visibility); if none, the nearest valid pixel within
-    ``window`` px. NaN where none."""
+    ``window`` px. NaN where none. ``near_px`` is the half-size of the block that counts as
+    distance 0 (1 = 3x3; 2 = 5x5 tolerates 2D points a pixel or two off a thin finger, which would
+    otherwise read the surface behind it)."""
     depth = np.asarray(depth_mm)
     h, w = depth.shape
     uv = np.asarray(uv_px, dtype=np.float64)
@@ -129,6 +140,7 @@ def observed_depth(depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3) -> 
     ok = np.all(np.isfinite(uv), axis=1)
     if not np.any(ok):
         return out
+    window = max(window, near_px)
     r = np.arange(-window, window + 1)
     dv, du = np.meshgrid(r, r, indexing="ij")
     dist2 = (du**2 + dv**2).ravel().astype(np.float64)
@@ -141,7 +153,8 @@ def observed_depth(depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3) -> 
     vals[inside] = depth[vv[inside], uu[inside]]
     valid = inside & np.isfinite(vals) & (vals > 0)
     # nearest valid pixel; among equally near ones the closer surface (depth breaks ties)
-    ring = np.maximum(dist2, 2.0) if window >= 1 else dist2  # the 3x3 block counts as distance 0
+    cheb = np.maximum(np.abs(du), np.abs(dv)).ravel()
+    ring = np.where(cheb <= near_px, 0.0, dist2)  # the (2 near_px + 1)^2 block is distance 0
     key = np.where(valid, ring[None, :] * 1e6 + vals, np.inf)
     best = np.argmin(key, axis=1)
     found = np.isfinite(key[np.arange(len(best)), best])
@@ -169,6 +182,7 @@ def initial_pose(
     camera: CameraIntrinsics,
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray | None = None,
+    depth_near_px: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Initial joints ``(J, 3)`` mm and observed depths ``(J,)`` mm for a frame.
 
@@ -179,7 +193,7 @@ def initial_pose(
     ann = annotation
     j = skeleton.num_joints
     offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
-    d_obs = observed_depth(depth_mm, ann.uv_px)
+    d_obs = observed_depth(depth_mm, ann.uv_px, near_px=depth_near_px)
     has2d = ann.has_2d
     has3d = ann.has_3d
     z = d_obs + offsets
@@ -243,7 +257,13 @@ def initial_pose(
                 ok = order_k * (zc - pose[p, 2]) > 0
                 if not ok.any():
                     ok[:] = True
-            cost = np.where(ok, np.abs(zc - z[k]), np.inf)
+            zt = z[k]
+            if not ann.visible[k]:
+                # hidden joint: its observed depth is only a lower bound (the occluder). Of the
+                # two ray intersections take the one nearer the parent's depth (behind the
+                # occluder): measured to avoid fingers folded towards the camera behind a palm
+                zt = max(pose[p, 2], d_obs[k] + offsets[k] if np.isfinite(d_obs[k]) else -np.inf)
+            cost = np.where(ok, np.abs(zc - zt), np.inf)
             t = float(cands[np.argmin(cost)])
         if t * ray[2] > 1.0:
             pose[k] = t * ray
@@ -254,6 +274,18 @@ def initial_pose(
 def _skew(v: np.ndarray) -> np.ndarray:
     """``[v]_x`` with ``[v]_x y = v x y``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of ``(..., 3)`` arrays (np.cross has a large per-call overhead)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
 
 
 class _Problem:
@@ -273,6 +305,7 @@ class _Problem:
         order_margin_mm: float,
         w_3d: float,
         w_surface: float,
+        surface_depth_mm: float = 0.0,
         w_free: float,
         soft_bones: float | None,
         right_hand: bool,
@@ -298,7 +331,7 @@ class _Problem:
         hi = np.where(valid_d & ann.visible, d_obs + offsets + eps_mm, np.inf)
         self.z_lo, self.z_hi = lo, hi
         self.surf_mask = valid_d & ann.visible
-        self.surf_target = np.where(self.surf_mask, lo, 0.0)
+        self.surf_target = np.where(self.surf_mask, lo + surface_depth_mm, 0.0)
         self.w_surface = w_surface
         # depth order rows
         par = skeleton.parent_array
@@ -325,7 +358,9 @@ class _Problem:
             self.samin, self.samax = np.sin(ab[:, 0]), np.sin(ab[:, 1])
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
+            self._setup_angle_levels()
         self.nfev = 0
+        self.sc3 = np.array([_SCALE_XY, _SCALE_XY, _SCALE_Z])
         self._cache: dict = {}
         self.elastic = False
         self.el_lo = np.flatnonzero(np.isfinite(lo))
@@ -352,23 +387,23 @@ class _Problem:
 
     # -- variables: x (3J [+ S],) = (X - x0) / 1 cm [, slacks / 1 cm]
     def pose(self, x: np.ndarray) -> np.ndarray:
-        return self.x0 + _CM * x[: 3 * self.j].reshape(self.j, 3)
+        return self.x0 + self.sc3 * x[: 3 * self.j].reshape(self.j, 3)
 
     def bounds(self, trust_mm: float = 150.0) -> list[tuple[float | None, float | None]]:
-        t = trust_mm / _CM
+        txy, tz = trust_mm / _SCALE_XY, trust_mm / _SCALE_Z
         b: list[tuple[float | None, float | None]] = []
         for k in range(self.j):
-            b.append((-t, t))
-            b.append((-t, t))
-            lo, hi = -t, t
+            b.append((-txy, txy))
+            b.append((-txy, txy))
+            lo, hi = -tz, tz
             if not self.elastic:
                 if np.isfinite(self.z_lo[k]):
-                    lo = max(lo, (self.z_lo[k] - self.x0[k, 2]) / _CM)
+                    lo = max(lo, (self.z_lo[k] - self.x0[k, 2]) / _SCALE_Z)
                 if np.isfinite(self.z_hi[k]):
-                    hi = min(hi, (self.z_hi[k] - self.x0[k, 2]) / _CM)
+                    hi = min(hi, (self.z_hi[k] - self.x0[k, 2]) / _SCALE_Z)
                 hi = max(hi, lo)
             b.append((lo, hi))
-        b.extend([(0.0, t)] * self.n_slack)
+        b.extend([(0.0, tz)] * self.n_slack)
         return b
 
     # -- objective
@@ -406,11 +441,11 @@ class _Problem:
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
-        grad = _CM * g.ravel()
+        grad = (self.sc3 * g).ravel()
         if self.elastic:
             sl = x[3 * self.j :]
-            f += self.w_elastic * _CM * float(np.sum(sl))
-            grad = np.concatenate([grad, np.full(len(sl), self.w_elastic * _CM)])
+            f += self.w_elastic * _SCALE_Z * float(np.sum(sl))
+            grad = np.concatenate([grad, np.full(len(sl), self.w_elastic * _SCALE_Z)])
         return f, grad
 
     # -- constraints (in mm), Jacobians w.r.t. joints (rows, J, 3)
@@ -439,7 +474,7 @@ class _Problem:
         return self._cached("eq", x)[0]
 
     def eq_jac(self, x: np.ndarray) -> np.ndarray:
-        jac = _CM * self._cached("eq", x)[1].reshape(len(self.d), -1)
+        jac = (self._cached("eq", x)[1] * self.sc3).reshape(len(self.d), -1)
         if self.n_slack:
             jac = np.hstack([jac, np.zeros((len(jac), self.n_slack))])
         return jac
@@ -464,20 +499,47 @@ class _Problem:
             return np.zeros(0), np.zeros((0, self.j, 3))
         return np.concatenate(vals), np.concatenate(jacs, axis=0)
 
+    def _setup_angle_levels(self) -> None:
+        """Constant data for :meth:`_angles`: angle joints grouped by depth along their chain
+        (level 0 = a finger's first joint), the parent's angle index, and the constant
+        difference-selection matrices ``D_kp = E_k - E_p`` and ``D_ck`` ``(A, 3, 3J)``."""
+        j = self.j
+        ak = np.asarray(self.ak)
+        index_of = {int(k): i for i, k in enumerate(ak)}
+        level = np.zeros(len(ak), dtype=np.int64)
+        parent_idx = np.full(len(ak), -1)
+        for i, p in enumerate(self.ap):  # angle joints come in topological order
+            if int(p) in index_of:
+                parent_idx[i] = index_of[int(p)]
+                level[i] = level[parent_idx[i]] + 1
+        self.a_levels = [np.flatnonzero(level == lv) for lv in range(int(level.max()) + 1)]
+        self.a_parent = parent_idx
+        eye = np.eye(3)
+
+        def sel(k):
+            e = np.zeros((len(k), 3, 3 * j))
+            for r, kk in enumerate(k):
+                e[r, :, 3 * kk : 3 * kk + 3] += eye
+            return e
+
+        self.D_kp = sel(ak) - sel(self.ap)
+        self.D_ck = sel(self.ac) - sel(ak)
+
     def _angles(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Angle-limit rows ``(4A,)`` and their Jacobian ``(4A, J, 3)``.
 
         The local frame follows ``Skeleton.joint_angles``: at a finger's first joint the lateral
         axis is ``normalize(a x n)`` (palm normal ``n``); further along it is the parent joint's
         lateral axis made perpendicular to the incoming bone (transported); ``n_perp = l x a``.
-        Derivatives are propagated exactly through the chain and the palm normal.
+        Derivatives are propagated exactly through the chain and the palm normal. Vectorized over
+        fingers: one batch of small matrix products per chain level (at most 3 levels).
         """
         j = self.j
         eye = np.eye(3)
         w0, i1, l1 = self.palm
         e1 = X[i1] - X[w0]
         e2 = X[l1] - X[w0]
-        mvec = np.cross(e1, e2)
+        mvec = _cross(e1, e2)
         mn = max(float(np.linalg.norm(mvec)), 1e-9)
         n = self.hand_sign * mvec / mn
         pm = self.hand_sign * (eye - np.outer(n, n)) / mn
@@ -485,69 +547,71 @@ class _Problem:
         dn[:, i1] += pm @ -_skew(e2)
         dn[:, l1] += pm @ _skew(e1)
         dn[:, w0] -= dn[:, i1] + dn[:, l1]
-        lat_of: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        dn = dn.reshape(3, 3 * j)
         a_n = len(self.ak)
-        vals = np.zeros((4, a_n))
-        jac = np.zeros((4, a_n, j, 3))
-        for i, (k, p, c) in enumerate(zip(self.ak, self.ap, self.ac, strict=True)):
+        A = np.zeros((a_n, 3))
+        LAT = np.zeros((a_n, 3))
+        DA = np.zeros((a_n, 3, 3 * j))
+        DL = np.zeros((a_n, 3, 3 * j))
+        for idx in self.a_levels:
+            k, p = self.ak[idx], self.ap[idx]
             u = X[k] - X[p]
-            un = max(float(np.linalg.norm(u)), 1e-9)
-            a = u / un
-            pa = (eye - np.outer(a, a)) / un
-            da = np.zeros((3, j, 3))
-            da[:, k] += pa
-            da[:, p] -= pa
-            if int(p) in lat_of:
-                lp, dlp = lat_of[int(p)]
-                al = float(a @ lp)
-                w = lp - al * a
-                dw = np.einsum("ab,bjk->ajk", eye - np.outer(a, a), dlp) - np.einsum(
-                    "ab,bjk->ajk", al * eye + np.outer(a, lp), da
-                )
+            un = np.maximum(np.linalg.norm(u, axis=1), 1e-9)
+            a = u / un[:, None]
+            pa = (eye - a[:, :, None] * a[:, None, :]) / un[:, None, None]
+            da = pa @ self.D_kp[idx]
+            pi = self.a_parent[idx]
+            if pi[0] >= 0:  # a level shares one kind (first joint or not): see _setup
+                lp, dlp = LAT[pi], DL[pi]
+                al = np.einsum("mi,mi->m", a, lp)
+                w = lp - al[:, None] * a
+                ma = eye - a[:, :, None] * a[:, None, :]
+                mb = al[:, None, None] * eye + a[:, :, None] * lp[:, None, :]
+                dw = ma @ dlp - mb @ da
             else:
-                w = np.cross(u, n)
-                du = np.zeros((3, j, 3))
-                du[:, k] += eye
-                du[:, p] -= eye
-                dw = np.einsum("ab,bjk->ajk", -_skew(n), du) + np.einsum(
-                    "ab,bjk->ajk", _skew(u), dn
-                )
-            wn = max(float(np.linalg.norm(w)), 1e-9)
-            lat = w / wn
-            dl = np.einsum("ab,bjk->ajk", (eye - np.outer(lat, lat)) / wn, dw)
-            lat_of[int(k)] = (lat, dl)
-            npp = np.cross(lat, a)
-            b = X[c] - X[k]
-            bn = max(float(np.linalg.norm(b)), 1e-9)
-            s1, s2, s3 = float(b @ a), float(b @ npp), float(b @ lat)
-            g1 = np.einsum("a,ajk->jk", b, da)
-            g2 = np.einsum("a,ajk->jk", np.cross(a, b), dl) + np.einsum(
-                "a,ajk->jk", np.cross(b, lat), da
-            )
-            g3 = np.einsum("a,ajk->jk", b, dl)
-            g1[c] += a
-            g1[k] -= a
-            g2[c] += npp
-            g2[k] -= npp
-            g3[c] += lat
-            g3[k] -= lat
-            gb = np.zeros((j, 3))
-            gb[c] += b / bn
-            gb[k] -= b / bn
-            cf0, sf0, cf1, sf1 = self.cfmin[i], self.sfmin[i], self.cfmax[i], self.sfmax[i]
-            sa0, sa1 = self.samin[i], self.samax[i]
-            vals[:, i] = (cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3)
-            jac[0, i] = cf0 * g2 - sf0 * g1
-            jac[1, i] = sf1 * g1 - cf1 * g2
-            jac[2, i] = g3 - sa0 * gb
-            jac[3, i] = sa1 * gb - g3
+                w = _cross(u, n)
+                sk_u = np.zeros((len(idx), 3, 3))
+                sk_u[:, 0, 1], sk_u[:, 0, 2] = -u[:, 2], u[:, 1]
+                sk_u[:, 1, 0], sk_u[:, 1, 2] = u[:, 2], -u[:, 0]
+                sk_u[:, 2, 0], sk_u[:, 2, 1] = -u[:, 1], u[:, 0]
+                dw = -_skew(n) @ self.D_kp[idx] + sk_u @ dn
+            wn = np.maximum(np.linalg.norm(w, axis=1), 1e-9)
+            lat = w / wn[:, None]
+            pl = (eye - lat[:, :, None] * lat[:, None, :]) / wn[:, None, None]
+            A[idx], LAT[idx], DA[idx], DL[idx] = a, lat, da, pl @ dw
+        npp = _cross(LAT, A)
+        B = X[self.ac] - X[self.ak]
+        bn = np.maximum(np.linalg.norm(B, axis=1), 1e-9)
+        s1 = np.einsum("mi,mi->m", B, A)
+        s2 = np.einsum("mi,mi->m", B, npp)
+        s3 = np.einsum("mi,mi->m", B, LAT)
+        D = self.D_ck
+        g1 = np.einsum("mi,mix->mx", B, DA) + np.einsum("mi,mix->mx", A, D)
+        g2 = (
+            np.einsum("mi,mix->mx", _cross(A, B), DL)
+            + np.einsum("mi,mix->mx", _cross(B, LAT), DA)
+            + np.einsum("mi,mix->mx", npp, D)
+        )
+        g3 = np.einsum("mi,mix->mx", B, DL) + np.einsum("mi,mix->mx", LAT, D)
+        gb = np.einsum("mi,mix->mx", B / bn[:, None], D)
+        cf0, sf0, cf1, sf1 = self.cfmin, self.sfmin, self.cfmax, self.sfmax
+        sa0, sa1 = self.samin, self.samax
+        vals = np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
+        jac = np.stack(
+            [
+                cf0[:, None] * g2 - sf0[:, None] * g1,
+                sf1[:, None] * g1 - cf1[:, None] * g2,
+                g3 - sa0[:, None] * gb,
+                sa1[:, None] * gb - g3,
+            ]
+        )
         return vals.ravel(), jac.reshape(4 * a_n, j, 3)
 
     def ineq(self, x: np.ndarray) -> np.ndarray:
         val = self._cached("ineq", x)[0]
         if self.elastic:
             X = self.pose(x)
-            sl = _CM * x[3 * self.j :]
+            sl = _SCALE_Z * x[3 * self.j :]
             lo = X[self.el_lo, 2] - self.z_lo[self.el_lo] + sl[self.slot[self.el_lo]]
             hi = self.z_hi[self.el_hi] - X[self.el_hi, 2] + sl[self.slot[self.el_hi]]
             val = np.concatenate([val, lo, hi])
@@ -555,16 +619,16 @@ class _Problem:
 
     def ineq_jac(self, x: np.ndarray) -> np.ndarray:
         jac = self._cached("ineq", x)[1]
-        jac = _CM * jac.reshape(jac.shape[0], -1)
+        jac = (jac * self.sc3).reshape(jac.shape[0], -1)
         if self.elastic:
             ns = self.n_slack
             jac = np.hstack([jac, np.zeros((len(jac), ns))])
             nl, nh = len(self.el_lo), len(self.el_hi)
             extra = np.zeros((nl + nh, self.n_var))
-            extra[np.arange(nl), 3 * self.el_lo + 2] = _CM
-            extra[np.arange(nl), 3 * self.j + self.slot[self.el_lo]] = _CM
-            extra[nl + np.arange(nh), 3 * self.el_hi + 2] = -_CM
-            extra[nl + np.arange(nh), 3 * self.j + self.slot[self.el_hi]] = _CM
+            extra[np.arange(nl), 3 * self.el_lo + 2] = _SCALE_Z
+            extra[np.arange(nl), 3 * self.j + self.slot[self.el_lo]] = _SCALE_Z
+            extra[nl + np.arange(nh), 3 * self.el_hi + 2] = -_SCALE_Z
+            extra[nl + np.arange(nh), 3 * self.j + self.slot[self.el_hi]] = _SCALE_Z
             jac = np.vstack([jac, extra])
         return jac
 
@@ -603,11 +667,13 @@ def lift_frame(
     order_margin_mm: float = 10.0,
     w_3d: float = 1.0,
     w_surface: float = 0.001,
+    surface_depth_mm: float = 0.0,
+    depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
     elastic_weight: float = 2.0,
     max_iter: int = 200,
-    tol: float = 1e-7,
+    tol: float = 1e-6,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
 
@@ -625,7 +691,9 @@ def lift_frame(
     depth = np.asarray(depth)
     if depth.ndim != 2:
         raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
-    x0_pose, d_obs = initial_pose(annotation, depth, camera, skeleton, d)
+    x0_pose, d_obs = initial_pose(
+        annotation, depth, camera, skeleton, d, depth_near_px=depth_near_px
+    )
     if init_mm is not None:
         init = np.asarray(init_mm, dtype=np.float64)
         if init.shape != x0_pose.shape:
@@ -643,6 +711,7 @@ def lift_frame(
         order_margin_mm=order_margin_mm,
         w_3d=w_3d,
         w_surface=w_surface,
+        surface_depth_mm=surface_depth_mm,
         w_free=1e-3,
         soft_bones=soft_bones,
         right_hand=right_hand,
@@ -692,7 +761,7 @@ def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
         constraints.append({"type": "eq", "fun": prob.eq, "jac": prob.eq_jac})
     if prob.num_ineq():
         constraints.append({"type": "ineq", "fun": prob.ineq, "jac": prob.ineq_jac})
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), single_blas_thread():
         warnings.simplefilter("ignore", RuntimeWarning)
         return minimize(
             prob.objective,

@@ -61,7 +61,7 @@ class Settings(BaseModel):
     descriptor: str = "downsampled"
     eps_mm: float = 15.0
     angle_limits: bool = True
-    aligner: str = "sift"
+    aligner: str = "dis"
 
 
 class SelectionModel(BaseModel):

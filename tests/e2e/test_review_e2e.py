@@ -73,7 +73,15 @@ class FastLift:
         x = camera.backproject(uv, d)
         placed = np.all(np.isfinite(annotation.xyz_mm), axis=1)
         x[placed] = annotation.xyz_mm[placed]
-        return SimpleNamespace(joints_mm=x, confidence=np.ones(len(x)))
+        # keep the bone lengths (directions as clicked), as every real lift does; placed joints stay
+        lengths = dict(zip(skeleton.bones[:, 1].tolist(), np.asarray(bones).tolist(), strict=True))
+        out = x.copy()
+        for c in skeleton.topological_order[1:]:
+            p = skeleton.parent_array[c]
+            v = x[c] - x[p]
+            if not placed[c]:
+                out[c] = out[p] + v / max(np.linalg.norm(v), 1e-9) * lengths[int(c)]
+        return SimpleNamespace(joints_mm=out, confidence=np.ones(len(x)))
 
 
 def slowed_propagate(delay_s: float):

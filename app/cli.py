@@ -19,7 +19,11 @@ def _intrinsics(text: str | None):
     if len(parts) not in (4, 6):
         raise argparse.ArgumentTypeError("--intrinsics expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
     fx, fy, cx, cy = map(float, parts[:4])
-    width, height = (int(parts[4]), int(parts[5])) if len(parts) == 6 else (int(round(2 * cx)), int(round(2 * cy)))
+    width, height = (
+        (int(parts[4]), int(parts[5]))
+        if len(parts) == 6
+        else (int(round(2 * cx)), int(round(2 * cy)))
+    )
     return CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
 
 
@@ -36,26 +40,40 @@ def build_parser() -> argparse.ArgumentParser:
         prog="handanno",
         description="Semi-automatic 3D hand-pose annotation of depth videos.",
     )
-    parser.add_argument("--sessions-dir", default="sessions", help="where bare session names live (default ./sessions)")
+    parser.add_argument(
+        "--sessions-dir",
+        default="sessions",
+        help="where bare session names live (default ./sessions)",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def session_arg(p: argparse.ArgumentParser) -> None:
-        p.add_argument("session", metavar="SESSION", help="session folder, or a name under --sessions-dir")
+        p.add_argument(
+            "session", metavar="SESSION", help="session folder, or a name under --sessions-dir"
+        )
 
     def server_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--host", default=DEFAULT_HOST, help="interface to bind (default 127.0.0.1; 0.0.0.0 only behind a proxy)")
+        p.add_argument(
+            "--host",
+            default=DEFAULT_HOST,
+            help="interface to bind (default 127.0.0.1; 0.0.0.0 only behind a proxy)",
+        )
         p.add_argument("--port", type=int, default=DEFAULT_PORT)
         p.add_argument("--sessions-dir", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
     p = sub.add_parser("demo", help="synthetic sequence -> session -> app")
     server_args(p)
-    p.add_argument("--frames", type=int, default=300, help="frames in the demo sequence (first run only)")
+    p.add_argument(
+        "--frames", type=int, default=300, help="frames in the demo sequence (first run only)"
+    )
 
     p = sub.add_parser("serve", help="serve an existing session in the browser app")
     session_arg(p)
     server_args(p)
 
-    p = sub.add_parser("synth", help="write a synthetic sequence with exact ground truth (MSRA layout)")
+    p = sub.add_parser(
+        "synth", help="write a synthetic sequence with exact ground truth (MSRA layout)"
+    )
     p.add_argument("out_dir", metavar="OUT_DIR")
     p.add_argument("--frames", type=int, default=3040)
     p.add_argument("--seed", type=int, default=0)
@@ -74,12 +92,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("select", help="select reference frames")
     session_arg(p)
-    p.add_argument("--strategy", default="forest", help="forest (ours, default), chain, chain-step, coverage, uniform")
+    p.add_argument(
+        "--strategy",
+        default="forest",
+        help="forest (ours, default), chain, chain-step, coverage, uniform",
+    )
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--ref-fraction", type=float, help="exact budget, e.g. 0.05 for 5 %% of frames")
     g.add_argument("--rho", type=float, help="raw cosine-distance threshold")
 
-    p = sub.add_parser("annotate-from-gt", help="simulated annotator from ground truth (benchmarks only)")
+    p = sub.add_parser(
+        "annotate-from-gt", help="simulated annotator from ground truth (benchmarks only)"
+    )
     session_arg(p)
     p.add_argument("--noise-px", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
@@ -114,7 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-px", type=float, default=0.0)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--aligner", choices=["sift", "dis", "ncc"])
-    p.add_argument("--gt-bones", action="store_true", help="use ground-truth bone lengths (comparison only)")
+    p.add_argument(
+        "--gt-bones", action="store_true", help="use ground-truth bone lengths (comparison only)"
+    )
     p.add_argument("--json", required=True, type=Path, dest="json_out")
     return parser
 
@@ -172,7 +198,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         from handanno_core.datasets import open_sequence
         from handanno_core.synth import generate_sequence
 
-        out = generate_sequence(args.out_dir, frames=args.frames, seed=args.seed, workers=args.workers)
+        out = generate_sequence(
+            args.out_dir, frames=args.frames, seed=args.seed, workers=args.workers
+        )
         print(open_sequence(out).describe())
     elif cmd == "new":
         from handanno_core.session import resolve_session
@@ -191,7 +219,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         print(_open(args).summary())
     elif cmd == "select":
         session = _open(args)
-        selection = pipeline.select(session, strategy=args.strategy, ref_fraction=args.ref_fraction, rho=args.rho)
+        selection = pipeline.select(
+            session, strategy=args.strategy, ref_fraction=args.ref_fraction, rho=args.rho
+        )
         print(f"references: {len(selection.reference_frames)} of {session.num_frames}")
         print(f"figures: {session.folder / 'selection_embedding.png'}")
     elif cmd == "annotate-from-gt":
@@ -202,7 +232,11 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         session = _open(args)
         bar, update = _progress_bar("propagate")
         result = pipeline.propagate(
-            session, workers=args.workers, scheduler=args.scheduler, aligner=args.aligner, progress=update
+            session,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            aligner=args.aligner,
+            progress=update,
         )
         bar.close()
         done = int(result.joints_mm.shape[0] - len(result.skipped))
@@ -214,7 +248,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
 
         result = pipeline.refine(session, progress=report)
-        print(f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm")
+        print(
+            f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
+        )
     elif cmd == "export":
         from handanno_core.export import export_session
 

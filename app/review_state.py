@@ -434,37 +434,11 @@ class Cancelled(Exception):
 def refine_all(
     session: Session, progress: Callable[[int, float], None] | None = None
 ) -> np.ndarray:
-    """Global refinement (thesis Eq. 4) of the session's current ``init_mm``; returns ``final_mm``
-    (N, J, 3) mm without saving it. References start from their lifted pose (``init_mm`` has no rows
-    for them), every other frame from its propagated pose."""
-    from handanno_core.pipeline import ensure_crops, root_reference
-    from handanno_core.refine import refine as run_refine
+    """Global refinement of the session's current results; returns ``final_mm`` (N, J, 3) mm
+    without saving it (the runner saves, or restores the backup on cancel)."""
+    from handanno_core.pipeline import refine
 
-    crops, centres, boxes = ensure_crops(session, quiet=True)
-    results = session.load_results()
-    init = np.array(results["init_mm"], dtype=np.float64)
-    refs = session.reference_frames
-    lifted = results["lifted_mm"]
-    use = refs[np.all(np.isfinite(lifted[refs]), axis=(1, 2))] if len(refs) else refs
-    init[use] = lifted[use]
-    if not np.isfinite(init).any():
-        raise SessionError(f"{session.folder}: nothing propagated yet")
-    result = run_refine(
-        init,
-        crops=crops,
-        boxes=boxes,
-        centres_mm=centres,
-        depth_of=None,
-        camera=session.camera,
-        skeleton=session.skeleton,
-        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
-        reference_frames=refs,
-        reference_annotations=session.annotations(refs),
-        closest_reference=root_reference(session.parent),
-        sequence_breaks=session.model.sequence_breaks,
-        cube_mm=session.model.settings.cube_mm,
-        progress=progress,
-    )
+    result = refine(session, progress=progress, save=False, quiet=True)
     return np.asarray(result.joints_mm, dtype=np.float64)
 
 

@@ -80,7 +80,9 @@ class FrameAnnotation:
             value = np.asarray(getattr(self, name), dtype=np.float64)
             partial = np.isnan(value).any(axis=1) & ~np.isnan(value).all(axis=1)
             if np.any(partial):
-                raise AnnotationError(f"{where}: {name} is half-NaN at joints {np.flatnonzero(partial).tolist()}")
+                raise AnnotationError(
+                    f"{where}: {name} is half-NaN at joints {np.flatnonzero(partial).tolist()}"
+                )
             if np.any(np.isinf(value)):
                 raise AnnotationError(f"{where}: {name} has infinite values")
         if not np.all(np.isin(self.depth_order, (-1, 0, 1))):
@@ -111,6 +113,7 @@ class FrameAnnotation:
     @classmethod
     def from_json(cls, data: dict, num_joints: int, where: str = "annotation") -> FrameAnnotation:
         try:
+
             def arr(rows: list, width: int) -> np.ndarray:
                 return np.array(
                     [[np.nan] * width if r is None else [float(x) for x in r] for r in rows],

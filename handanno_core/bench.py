@@ -105,7 +105,9 @@ def run_bench(
             timings = {"load": round(load_s, 3)}
 
             t = time.perf_counter()
-            pipeline.select(session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True)
+            pipeline.select(
+                session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True
+            )
             timings["select"] = round(time.perf_counter() - t, 3)
             refs = session.reference_frames
             pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
@@ -171,8 +173,10 @@ def format_table(doc: dict) -> str:
         f"| {'final: mean':>11} {'median':>5} {'max':>7} | {'nonref':>6} | {'lift':>5} "
         f"| {'t_sel':>5} {'t_lift':>5} {'t_prop':>6} {'t_ref':>6}"
     )
-    return "\n".join([f"{doc['dataset']} ({doc['frames']} frames), errors in mm, times in s", head]
-                     + [_row(r) for r in doc["runs"]])
+    return "\n".join(
+        [f"{doc['dataset']} ({doc['frames']} frames), errors in mm, times in s", head]
+        + [_row(r) for r in doc["runs"]]
+    )
 
 
 def plot_error_vs_fraction(doc: dict, path: Path) -> None:
@@ -183,7 +187,10 @@ def plot_error_vs_fraction(doc: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for strategy in dict.fromkeys(r["strategy"] for r in doc["runs"]):
-        rows = sorted((r for r in doc["runs"] if r["strategy"] == strategy), key=lambda r: r["ref_fraction_target"])
+        rows = sorted(
+            (r for r in doc["runs"] if r["strategy"] == strategy),
+            key=lambda r: r["ref_fraction_target"],
+        )
         x = [100 * r["references"] / doc["frames"] for r in rows]
         ax.plot(x, [r["final"]["mean_mm"] for r in rows], "o-", label=f"{strategy} final")
         ax.plot(x, [r["init"]["mean_mm"] for r in rows], "x--", alpha=0.6, label=f"{strategy} init")

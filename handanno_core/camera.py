@@ -107,4 +107,6 @@ MSRA_CAMERA = CameraIntrinsics(fx=241.42, fy=241.42, cx=160.0, cy=120.0, width=3
 #: NYU hand dataset Kinect (y flipped to our convention).
 NYU_CAMERA = CameraIntrinsics(fx=588.03, fy=587.07, cx=320.0, cy=240.0, width=640, height=480)
 #: Intel RealSense SR305 frames in shared/data/real-sr305.
-SR305_CAMERA = CameraIntrinsics(fx=476.007, fy=476.007, cx=313.683, cy=242.755, width=640, height=480)
+SR305_CAMERA = CameraIntrinsics(
+    fx=476.007, fy=476.007, cx=313.683, cy=242.755, width=640, height=480
+)

@@ -16,7 +16,14 @@ from typing import Any
 import numpy as np
 
 from .annotation import FrameAnnotation
-from .session import Batch, Session, SessionError, SetFrameAnnotation, SetReference, atomic_write_bytes
+from .session import (
+    Batch,
+    Session,
+    SessionError,
+    SetFrameAnnotation,
+    SetReference,
+    atomic_write_bytes,
+)
 
 EXPORT_FORMATS = ("json", "npz", "msra")
 _VISIBILITY_MARGIN_MM = 10.0
@@ -45,7 +52,12 @@ def _visibility(session: Session, joints_mm: np.ndarray) -> np.ndarray:
         except ValueError:
             continue
         uv = np.rint(camera.project(joints_mm[i])).astype(np.int64)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        inside = (
+            (uv[:, 0] >= 0)
+            & (uv[:, 0] < camera.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < camera.height)
+        )
         d = np.zeros(len(uv))
         d[inside] = depth[uv[inside, 1], uv[inside, 0]]
         visible[i] = inside & (d > 0) & (d >= joints_mm[i, :, 2] - offsets - _VISIBILITY_MARGIN_MM)
@@ -62,7 +74,9 @@ def collect(session: Session) -> dict[str, Any]:
     for f, ann in session.annotations(session.reference_frames).items():
         visible[f] = ann.visible
     confidence = np.where(np.isfinite(results["confidence"]), results["confidence"], 0.0)
-    confidence[is_reference] = np.where(np.isfinite(results["confidence"][is_reference]), confidence[is_reference], 1.0)
+    confidence[is_reference] = np.where(
+        np.isfinite(results["confidence"][is_reference]), confidence[is_reference], 1.0
+    )
     return {
         "joints_mm": joints,
         "uv_px": session.camera.project(joints),
@@ -76,7 +90,9 @@ def collect(session: Session) -> dict[str, Any]:
 def export_session(session: Session, fmt: str, path: str | Path) -> Path:
     """Write the export in ``fmt`` (json | npz | msra) to ``path``; returns the path written."""
     if fmt not in EXPORT_FORMATS:
-        raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(EXPORT_FORMATS)}")
+        raise ValueError(
+            f"unknown export format {fmt!r}; choose one of {', '.join(EXPORT_FORMATS)}"
+        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, export_bytes(session, fmt))

@@ -4,7 +4,8 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
 
     min_X  1/2 sum_k |pi(X_k) - uv_k|^2                       (px^2, joints with 2D)
          + 1/2 w_3d   sum_k |X_k - xyz_k|^2                    (px^2/mm^2 * mm^2, joints placed in 3D)
-         + 1/2 w_surf sum_k (z_k - D_k - o_k)^2                (tie-breaker, visible joints with depth)
+         + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
+         + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
          + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
     s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
            D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
@@ -15,9 +16,20 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
 ``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
 and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
 
-Why the surface tie-breaker: with exact 2D the one-sided depth intervals leave the whole hand free
-to slide up to ``eps`` along the viewing rays; the weak pull towards ``D_k + o_k`` picks the
-shallowest consistent pose, which is where joint centres of a hand seen from the front lie.
+Why the surface term: with exact 2D the one-sided depth intervals leave the whole hand free to
+slide up to ``eps`` along the viewing rays, and with noisy 2D a foreshortened bone turns a pixel of
+noise into centimetres of depth. The pull towards ``D_k + o_k + s`` (``w_surface`` = 0.1 px^2/mm^2,
+``surface_depth_mm`` s = 3 mm: the 3x3 closest-surface reading lies that much in front of the
+offset surface, median measured on the synthetic sequence) fixes visible joints near where joint
+centres of a hand seen from the front lie. Hidden joints without a depth order only have a lower
+bound; where the two mirror poses of a hidden finger both fit the 2D (bones nearly parallel to the
+image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth. Measured on 152
+synthetic references (estimated bones): exact 2D, worst joint 20 -> 10 mm, mean 1.63 -> 1.68 mm;
+2 px noise, mean 4.91 -> 4.87 mm.
+
+Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
+length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the
+surface behind it, or the finger in front of it (see :func:`initial_pose`).
 
 Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame: lateral axis
 from the palm normal at a finger's first joint, transported along the chain after that). The
@@ -49,7 +61,9 @@ template scaled to the annotated frames and are re-estimated from all lifted ref
 round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
 hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
 stretches or shrinks the bone; the new estimate is the median over frames. Rounds stop when no
-bone moves by more than 0.1 mm; a final lift uses the estimate as hard constraints.
+bone moves by more than 0.1 mm; a final lift uses the estimate as hard constraints, from both the
+last soft solution and the cold start, keeping the lower objective (the soft rounds can drift into
+the mirrored mode of a hidden finger).
 """
 
 from __future__ import annotations
@@ -110,6 +124,7 @@ class LiftResult:
     elastic: bool = False
     message: str = ""
     time_s: float = 0.0
+    objective: float = float("nan")
 
 
 @dataclass
@@ -163,6 +178,41 @@ def observed_depth(
     return out
 
 
+def _drop_inconsistent_depths(
+    d_obs: np.ndarray,
+    visible: np.ndarray,
+    offsets: np.ndarray,
+    skeleton: Skeleton,
+    lengths: np.ndarray,
+    slack_mm: float,
+) -> np.ndarray:
+    """``d_obs`` ``(J,)`` with the wrong-looking readings of impossible visible bones set to NaN
+    (rules in :func:`initial_pose`). Loops over the (few) inconsistent bones only."""
+    z = d_obs + offsets
+    p, c = skeleton.bones[:, 0], skeleton.bones[:, 1]
+    ok = visible[p] & visible[c] & np.isfinite(z[p]) & np.isfinite(z[c])
+    gap = np.where(ok, z[c] - z[p], 0.0)
+    bad = np.abs(gap) > lengths + slack_mm
+    if not np.any(bad):
+        return d_obs
+    # a reading that agrees with another visible neighbour is trusted; with no such support on
+    # either side both readings are dropped; with support on both, the farther one goes
+    fine = ok & ~bad
+    support = np.bincount(p[fine], minlength=len(z)) + np.bincount(c[fine], minlength=len(z))
+    out = d_obs.copy()
+    for pp, cc, g in zip(p[bad], c[bad], gap[bad], strict=True):
+        sp, sc = support[pp] > 0, support[cc] > 0
+        if sp and not sc:
+            out[cc] = np.nan
+        elif sc and not sp:
+            out[pp] = np.nan
+        elif sp and sc:
+            out[cc if g > 0 else pp] = np.nan
+        else:
+            out[[pp, cc]] = np.nan
+    return out
+
+
 def _template_direction(skeleton: Skeleton, joint: int, pose: np.ndarray) -> np.ndarray:
     p = skeleton.parent_array[joint]
     pp = skeleton.parent_array[p] if p >= 0 else -1
@@ -183,8 +233,16 @@ def initial_pose(
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray | None = None,
     depth_near_px: int = 1,
+    depth_check_mm: float | None = 15.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Initial joints ``(J, 3)`` mm and observed depths ``(J,)`` mm for a frame.
+
+    Observed depths that no pose with these bone lengths can meet are dropped (NaN): for a bone
+    whose both joints are visible, ``|(D_c + o_c) - (D_p + o_p)| > d_b + depth_check_mm`` means one
+    reading is wrong (synthetic sequence, 2 px noise: a thumb tip reading the palm 90 mm behind, an
+    index DIP reading a finger 100 mm in front). A reading backed by another consistent visible
+    bone is kept and the other dropped; with no backing on either side both are dropped; with
+    backing on both, the farther one. ``depth_check_mm=None`` disables the check.
 
     Joints with 2D are back-projected at the observed depth plus their surface offset (the median
     of the other joints' depths where there is no valid depth); joints placed in 3D start there;
@@ -196,6 +254,15 @@ def initial_pose(
     d_obs = observed_depth(depth_mm, ann.uv_px, near_px=depth_near_px)
     has2d = ann.has_2d
     has3d = ann.has_3d
+    lengths = (
+        np.asarray(bone_lengths_mm, dtype=np.float64)
+        if bone_lengths_mm is not None
+        else np.asarray(skeleton.template_bone_lengths_mm or [40.0] * (j - 1), dtype=np.float64)
+    )
+    if depth_check_mm is not None:
+        d_obs = _drop_inconsistent_depths(
+            d_obs, ann.visible & has2d, offsets, skeleton, lengths, depth_check_mm
+        )
     z = d_obs + offsets
     known = np.isfinite(z) & has2d
     ref_depths = np.concatenate([z[known], ann.xyz_mm[has3d, 2]])
@@ -306,6 +373,7 @@ class _Problem:
         w_3d: float,
         w_surface: float,
         surface_depth_mm: float = 0.0,
+        w_flat: float = 0.0,
         w_free: float,
         soft_bones: float | None,
         right_hand: bool,
@@ -333,6 +401,12 @@ class _Problem:
         self.surf_mask = valid_d & ann.visible
         self.surf_target = np.where(self.surf_mask, lo + surface_depth_mm, 0.0)
         self.w_surface = w_surface
+        # hidden joints without a depth order: weak pull towards the parent's depth
+        par_all = skeleton.parent_array
+        fm = self.has2d & ~ann.visible & (np.asarray(ann.depth_order) == 0) & (par_all >= 0)
+        self.flat_k = np.flatnonzero(fm)
+        self.flat_p = par_all[self.flat_k]
+        self.w_flat = w_flat
         # depth order rows
         par = skeleton.parent_array
         sel = (np.asarray(ann.depth_order) != 0) & (par >= 0)
@@ -433,6 +507,11 @@ class _Problem:
             r = (X[:, 2] - self.surf_target)[self.surf_mask]
             f += 0.5 * self.w_surface * float(np.sum(r**2))
             g[self.surf_mask, 2] += self.w_surface * r
+        if len(self.flat_k) and self.w_flat > 0:
+            r = X[self.flat_k, 2] - X[self.flat_p, 2]
+            f += 0.5 * self.w_flat * float(np.sum(r**2))
+            np.add.at(g[:, 2], self.flat_k, self.w_flat * r)
+            np.add.at(g[:, 2], self.flat_p, -self.w_flat * r)
         if np.any(self.free) and self.w_free > 0:
             r = (X - self.x0)[self.free]
             f += 0.5 * self.w_free * float(np.sum(r**2))
@@ -666,8 +745,9 @@ def lift_frame(
     init_mm: np.ndarray | None = None,
     order_margin_mm: float = 10.0,
     w_3d: float = 1.0,
-    w_surface: float = 0.001,
-    surface_depth_mm: float = 0.0,
+    w_surface: float = 0.1,
+    surface_depth_mm: float = 3.0,
+    w_flat: float = 0.01,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
@@ -712,6 +792,7 @@ def lift_frame(
         w_3d=w_3d,
         w_surface=w_surface,
         surface_depth_mm=surface_depth_mm,
+        w_flat=w_flat,
         w_free=1e-3,
         soft_bones=soft_bones,
         right_hand=right_hand,
@@ -752,6 +833,7 @@ def lift_frame(
         elastic=elastic,
         message=str(res.message),
         time_s=time.perf_counter() - t0,
+        objective=float(res.fun),
     )
 
 
@@ -830,6 +912,13 @@ def _run_all(jobs: list[tuple], workers: int, progress, stage: str) -> list[Lift
             if progress is not None:
                 progress(i + 1, total)
     return out
+
+
+def _better(a: LiftResult, b: LiftResult) -> LiftResult:
+    """The converged result with the lower objective (``a`` on ties)."""
+    if a.converged != b.converged:
+        return a if a.converged else b
+    return b if b.objective < a.objective - 1e-9 else a
 
 
 def initial_bone_lengths(
@@ -951,6 +1040,13 @@ def lift_references(
         for f in frames
     ]
     res = _run_all(jobs, workers, progress, "final")
+    if inits:
+        # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
+        # from the cold start and keep the better objective (measured: worst joint 20 -> 10 mm
+        # on the synthetic sequence, at the cost of one more lift per reference)
+        cold_jobs = [(a, dp, cm, sk, b, dict(kw)) for a, dp, cm, sk, b, _ in jobs]
+        cold = _run_all(cold_jobs, workers, None, "final-cold")
+        res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
     results = dict(zip(frames, res, strict=True))
     return LiftSet(
         joints_mm={f: r.joints_mm for f, r in results.items()},

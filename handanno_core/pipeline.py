@@ -15,7 +15,16 @@ import numpy as np
 
 from .camera import CameraIntrinsics
 from .datasets import BadFrameReport
-from .session import CROPS_FILE, CROPS_META_FILE, Batch, DatasetSpec, Session, SessionError, SetFrameAnnotation
+from .session import (
+    CROPS_FILE,
+    CROPS_META_FILE,
+    Batch,
+    DatasetSpec,
+    Session,
+    SessionError,
+    SetFrameAnnotation,
+    atomic_save_npz,
+)
 
 Progress = Callable[[int, int], None] | None
 
@@ -42,9 +51,14 @@ def new_session(
     from .datasets import open_sequence
 
     dataset_path = Path(dataset_path).resolve()
-    sequence = open_sequence(dataset_path, format=format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm)
+    sequence = open_sequence(
+        dataset_path, format=format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm
+    )
     spec = DatasetSpec(
-        path=str(dataset_path), format=sequence.format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm
+        path=str(dataset_path),
+        format=sequence.format,
+        intrinsics=intrinsics,
+        depth_scale_mm=depth_scale_mm,
     )
     return Session.create(
         folder,
@@ -76,7 +90,9 @@ def root_reference(parent: np.ndarray) -> np.ndarray:
 # Crops (cache)
 
 
-def ensure_crops(session: Session, *, progress: bool = True, quiet: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ensure_crops(
+    session: Session, *, quiet: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session."""
     from .crops import compute_crops, crop_boxes, locate_hands
 
@@ -96,13 +112,27 @@ def ensure_crops(session: Session, *, progress: bool = True, quiet: bool = False
     sequence = session.open_sequence()
     report = BadFrameReport()
     t0 = time.perf_counter()
-    centres = locate_hands(sequence, report=report, cube_mm=s.cube_mm)
+    centres = locate_hands(sequence, report=report, cube_mm=s.cube_mm, progress=not quiet)
     boxes = crop_boxes(centres, sequence.camera, cube_mm=s.cube_mm, size=s.crop_size)
-    crops = compute_crops(
-        sequence, centres, out_path=crops_path, cube_mm=s.cube_mm, size=s.crop_size, report=BadFrameReport()
+    # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
+    compute_crops(
+        sequence,
+        centres,
+        out_path=crops_path,
+        cube_mm=s.cube_mm,
+        size=s.crop_size,
+        report=BadFrameReport(),
+        progress=not quiet,
     )
-    np.savez(
-        meta_path, frames=session.num_frames, cube_mm=s.cube_mm, size=s.crop_size, centres_mm=centres, boxes=boxes
+    atomic_save_npz(
+        meta_path,
+        {
+            "frames": np.asarray(session.num_frames),
+            "cube_mm": np.asarray(s.cube_mm),
+            "size": np.asarray(s.crop_size),
+            "centres_mm": centres,
+            "boxes": boxes,
+        },
     )
     _log(f"crops: {session.num_frames} frames in {time.perf_counter() - t0:.1f} s", quiet)
     if report.errors:
@@ -150,7 +180,9 @@ def select(
     return selection
 
 
-def annotate_from_gt(session: Session, *, noise_px: float = 0.0, seed: int = 0, quiet: bool = False) -> int:
+def annotate_from_gt(
+    session: Session, *, noise_px: float = 0.0, seed: int = 0, quiet: bool = False
+) -> int:
     """Simulated annotator (benchmarks only): fill every reference frame from ground truth.
 
     Uses ground truth for the 2D joints, visibility and depth order only, as a real annotator would
@@ -160,16 +192,24 @@ def annotate_from_gt(session: Session, *, noise_px: float = 0.0, seed: int = 0, 
 
     sequence = session.open_sequence()
     if sequence.ground_truth is None:
-        raise SessionError(f"{session.model.dataset.path}: dataset has no ground truth to simulate an annotator")
+        raise SessionError(
+            f"{session.model.dataset.path}: dataset has no ground truth to simulate an annotator"
+        )
     refs = session.reference_frames
     if len(refs) == 0:
         raise SessionError(f"{session.folder}: no reference frames; run `handanno select` first")
     annotations = simulate_annotations(sequence, refs, noise_px=noise_px, seed=seed)
     batch = Batch(
-        commands=[SetFrameAnnotation(frame=f, annotation=a.to_json()).model_dump() for f, a in annotations.items()]
+        commands=[
+            SetFrameAnnotation(frame=f, annotation=a.to_json()).model_dump()
+            for f, a in annotations.items()
+        ]
     )
     session.execute(batch, client="simulated-annotator")
-    _log(f"annotated {len(annotations)} reference frames from ground truth (noise {noise_px:g} px)", quiet)
+    _log(
+        f"annotated {len(annotations)} reference frames from ground truth (noise {noise_px:g} px)",
+        quiet,
+    )
     return len(annotations)
 
 
@@ -201,8 +241,11 @@ def lift(session: Session, *, workers: int = 1, quiet: bool = False) -> dict[int
         confidence[f] = result.confidence[f]
     session.save_results(lifted_mm=lifted, confidence=confidence)
     session.set_bone_lengths(result.bone_lengths_mm)
-    _log(f"lifted {len(result.joints_mm)} reference frames; bone lengths (mm): "
-         + " ".join(f"{b:.1f}" for b in result.bone_lengths_mm), quiet)
+    _log(
+        f"lifted {len(result.joints_mm)} reference frames; bone lengths (mm): "
+        + " ".join(f"{b:.1f}" for b in result.bone_lengths_mm),
+        quiet,
+    )
     return result.joints_mm
 
 
@@ -210,7 +253,9 @@ def _reference_joints(session: Session, results: dict[str, np.ndarray]) -> dict[
     lifted = results["lifted_mm"]
     refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
     if not refs:
-        raise SessionError(f"{session.folder}: no lifted reference frames; run `handanno lift` first")
+        raise SessionError(
+            f"{session.folder}: no lifted reference frames; run `handanno lift` first"
+        )
     return {f: lifted[f] for f in refs}
 
 
@@ -270,33 +315,44 @@ def propagate(
     return result
 
 
-def refine(session: Session, *, progress: Callable | None = None, quiet: bool = False):
-    """Global refinement of all frames (thesis Eq. 4); stores ``final_mm``."""
+def refine(
+    session: Session, *, progress: Callable | None = None, save: bool = True, quiet: bool = False
+):
+    """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
+
+    References start from their current lifted pose (a reference made by a review correction has a
+    fresh lift but an old propagated ``init_mm``), every other frame from its propagated pose.
+    """
     from .refine import refine as run_refine
 
-    sequence = session.open_sequence()
     crops, centres, boxes = ensure_crops(session, quiet=quiet)
     results = session.load_results()
-    init = results["init_mm"]
-    if not np.isfinite(init).any():
-        raise SessionError(f"{session.folder}: nothing propagated yet; run `handanno propagate` first")
+    init = np.array(results["init_mm"], dtype=np.float64)
     refs = session.reference_frames
+    lifted_refs = refs[np.all(np.isfinite(results["lifted_mm"][refs]), axis=(1, 2))]
+    init[lifted_refs] = results["lifted_mm"][lifted_refs]
+    if not np.isfinite(init).any():
+        raise SessionError(
+            f"{session.folder}: nothing propagated yet; run `handanno propagate` first"
+        )
     result = run_refine(
         init,
         crops=crops,
         boxes=boxes,
         centres_mm=centres,
-        depth_of=sequence.depth,
-        camera=sequence.camera,
-        skeleton=sequence.skeleton,
+        depth_of=None,  # the observed depth is read from the crops
+        camera=session.camera,
+        skeleton=session.skeleton,
         bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
         reference_frames=refs,
         reference_annotations=session.annotations(refs),
         closest_reference=root_reference(session.parent),
         sequence_breaks=session.model.sequence_breaks,
+        cube_mm=session.model.settings.cube_mm,
         progress=progress,
     )
-    session.save_results(final_mm=result.joints_mm)
+    if save:
+        session.save_results(final_mm=result.joints_mm)
     return result
 
 
@@ -304,7 +360,9 @@ def refine(session: Session, *, progress: Callable | None = None, quiet: bool = 
 # Demo
 
 
-def ensure_demo_session(sessions_dir: str | Path, *, frames: int = 300, seed: int = 0, quiet: bool = False) -> Path:
+def ensure_demo_session(
+    sessions_dir: str | Path, *, frames: int = 300, seed: int = 0, quiet: bool = False
+) -> Path:
     """Create ``sessions_dir/demo`` from a synthetic sequence once (with a 5 % selection); return its folder."""
     from .synth import generate_sequence
 
@@ -323,4 +381,3 @@ def ensure_demo_session(sessions_dir: str | Path, *, frames: int = 300, seed: in
     select(session, strategy="forest", ref_fraction=0.05, figures=False, quiet=quiet)
     session.close()
     return folder
-

@@ -102,7 +102,9 @@ class _Command(BaseModel):
 
     def check(self, session: Session) -> None:
         if not 0 <= self.frame < session.model.frames:
-            raise ValueError(f"frame {self.frame} out of range (session has {session.model.frames} frames)")
+            raise ValueError(
+                f"frame {self.frame} out of range (session has {session.model.frames} frames)"
+            )
 
     def inverse(self, session: Session) -> Command:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -113,7 +115,9 @@ class _Command(BaseModel):
     # shared helpers
     def _joint_check(self, session: Session, joint: int) -> None:
         if not 0 <= joint < session.skeleton.num_joints:
-            raise ValueError(f"joint {joint} out of range (skeleton has {session.skeleton.num_joints} joints)")
+            raise ValueError(
+                f"joint {joint} out of range (skeleton has {session.skeleton.num_joints} joints)"
+            )
 
 
 class SetFrameAnnotation(_Command):
@@ -125,10 +129,14 @@ class SetFrameAnnotation(_Command):
     def check(self, session: Session) -> None:
         super().check(session)
         if self.annotation is not None:
-            FrameAnnotation.from_json(self.annotation, session.skeleton.num_joints, f"frame {self.frame}")
+            FrameAnnotation.from_json(
+                self.annotation, session.skeleton.num_joints, f"frame {self.frame}"
+            )
 
     def inverse(self, session: Session) -> Command:
-        return SetFrameAnnotation(frame=self.frame, annotation=session.model.annotations.get(str(self.frame)))
+        return SetFrameAnnotation(
+            frame=self.frame, annotation=session.model.annotations.get(str(self.frame))
+        )
 
     def apply(self, session: Session) -> None:
         if self.annotation is None:
@@ -208,7 +216,9 @@ class SetJoint3D(_JointEdit):
 
     def check(self, session: Session) -> None:
         super().check(session)
-        if self.xyz_mm is not None and (not np.all(np.isfinite(self.xyz_mm)) or self.xyz_mm[2] <= 0):
+        if self.xyz_mm is not None and (
+            not np.all(np.isfinite(self.xyz_mm)) or self.xyz_mm[2] <= 0
+        ):
             raise ValueError("3D position must be finite and in front of the camera")
 
     def apply(self, session: Session) -> None:
@@ -311,7 +321,10 @@ class Batch(BaseModel):
         return self.parsed()[0].frame if self.commands else -1
 
     def parsed(self) -> list[Command]:
-        return [c if isinstance(c, BaseModel) else _COMMAND_ADAPTER.validate_python(c) for c in self.commands]
+        return [
+            c if isinstance(c, BaseModel) else _COMMAND_ADAPTER.validate_python(c)
+            for c in self.commands
+        ]
 
     def check(self, session: Session) -> None:
         for c in self.parsed():
@@ -327,7 +340,15 @@ class Batch(BaseModel):
 
 
 Command = Annotated[
-    SetFrameAnnotation | SetJointState | SetJoint2D | SetJoint3D | SetVisibility | SetDepthOrder | SetReference | SetReview | Batch,
+    SetFrameAnnotation
+    | SetJointState
+    | SetJoint2D
+    | SetJoint3D
+    | SetVisibility
+    | SetDepthOrder
+    | SetReference
+    | SetReview
+    | Batch,
     Field(discriminator="kind"),
 ]
 _COMMAND_ADAPTER: TypeAdapter[Any] = TypeAdapter(Command)
@@ -464,7 +485,9 @@ class Session:
         if not folder.is_dir():
             raise SessionError(f"{folder}: no such session folder")
         if not path.exists():
-            raise SessionError(f"{path}: missing (is {folder} a handanno session? create one with `handanno new`)")
+            raise SessionError(
+                f"{path}: missing (is {folder} a handanno session? create one with `handanno new`)"
+            )
         try:
             model = SessionModel.model_validate_json(path.read_bytes())
         except (ValidationError, ValueError) as exc:
@@ -490,7 +513,9 @@ class Session:
                 if is_last:
                     # A torn final line is a write that never completed, so it was never acknowledged.
                     break
-                raise SessionError(f"{path}: line {number} is corrupt ({str(exc).splitlines()[0]})") from exc
+                raise SessionError(
+                    f"{path}: line {number} is corrupt ({str(exc).splitlines()[0]})"
+                ) from exc
         for entry in entries:
             if entry.seq > self.model.journal_seq:
                 parse_command(entry.command).apply(self)
@@ -525,9 +550,13 @@ class Session:
         data = self.model.annotations.get(str(frame))
         if data is None:
             return None
-        return FrameAnnotation.from_json(data, self.skeleton.num_joints, f"{self.folder / SESSION_FILE} frame {frame}")
+        return FrameAnnotation.from_json(
+            data, self.skeleton.num_joints, f"{self.folder / SESSION_FILE} frame {frame}"
+        )
 
-    def annotations(self, frames: list[int] | np.ndarray | None = None) -> dict[int, FrameAnnotation]:
+    def annotations(
+        self, frames: list[int] | np.ndarray | None = None
+    ) -> dict[int, FrameAnnotation]:
         keys = sorted(int(k) for k in self.model.annotations)
         if frames is not None:
             wanted = {int(f) for f in frames}
@@ -556,10 +585,15 @@ class Session:
             spec = self.model.dataset
             try:
                 self._sequence = open_sequence(
-                    spec.path, format=spec.format, intrinsics=spec.intrinsics, depth_scale_mm=spec.depth_scale_mm
+                    spec.path,
+                    format=spec.format,
+                    intrinsics=spec.intrinsics,
+                    depth_scale_mm=spec.depth_scale_mm,
                 )
             except Exception as exc:
-                raise SessionError(f"{self.folder / SESSION_FILE}: cannot open dataset {spec.path}: {exc}") from exc
+                raise SessionError(
+                    f"{self.folder / SESSION_FILE}: cannot open dataset {spec.path}: {exc}"
+                ) from exc
         return self._sequence
 
     # ------------------------------------------------------------------ editing
@@ -614,7 +648,9 @@ class Session:
             return Batch(commands=[i.model_dump() for i in reversed(inverses)])
         return command.inverse(self)
 
-    def _commit(self, command: Command, client: str, action: str, target: int | None) -> JournalEntry:
+    def _commit(
+        self, command: Command, client: str, action: str, target: int | None
+    ) -> JournalEntry:
         inverse = self._inverse_of(command)
         entry = JournalEntry(
             seq=self._next_seq,
@@ -662,7 +698,9 @@ class Session:
             self._journal_file.flush()
             os.fsync(self._journal_file.fileno())
         except OSError as exc:
-            raise SessionError(f"{self.folder / JOURNAL_FILE}: cannot write the edit journal: {exc}") from exc
+            raise SessionError(
+                f"{self.folder / JOURNAL_FILE}: cannot write the edit journal: {exc}"
+            ) from exc
 
     # ------------------------------------------------------------------ bulk state (not journaled edits)
     def set_selection(self, selection: dict[str, Any]) -> None:
@@ -670,7 +708,9 @@ class Session:
         with self.lock:
             parent = list(map(int, selection["parent"]))
             if len(parent) != self.num_frames:
-                raise ValueError(f"selection has {len(parent)} parents for {self.num_frames} frames")
+                raise ValueError(
+                    f"selection has {len(parent)} parents for {self.num_frames} frames"
+                )
             self.model.selection = SelectionModel(
                 strategy=selection.get("strategy"),
                 reference_frames=sorted(map(int, selection["reference_frames"])),
@@ -681,9 +721,13 @@ class Session:
             self.model.corrections = []
             self.save()
 
-    def set_bone_lengths(self, bone_lengths_mm: np.ndarray | None, pinned: bool | None = None) -> None:
+    def set_bone_lengths(
+        self, bone_lengths_mm: np.ndarray | None, pinned: bool | None = None
+    ) -> None:
         with self.lock:
-            self.model.bone_lengths_mm = None if bone_lengths_mm is None else [float(x) for x in bone_lengths_mm]
+            self.model.bone_lengths_mm = (
+                None if bone_lengths_mm is None else [float(x) for x in bone_lengths_mm]
+            )
             if pinned is not None:
                 self.model.bones_pinned = pinned
             self.save()
@@ -691,7 +735,9 @@ class Session:
     def save(self) -> None:
         """Write the snapshot atomically (the journal stays the source of truth for later edits)."""
         with self.lock:
-            atomic_write_bytes(self.folder / SESSION_FILE, self.model.model_dump_json(indent=1).encode())
+            atomic_write_bytes(
+                self.folder / SESSION_FILE, self.model.model_dump_json(indent=1).encode()
+            )
             self._edits_since_snapshot = 0
 
     def close(self) -> None:
@@ -718,7 +764,9 @@ class Session:
                     for key in data.files:
                         out[key] = data[key]
             except (OSError, ValueError) as exc:
-                raise SessionError(f"{path}: corrupt results file ({exc}); rerun `handanno propagate`") from exc
+                raise SessionError(
+                    f"{path}: corrupt results file ({exc}); rerun `handanno propagate`"
+                ) from exc
         return out
 
     def save_results(self, **arrays: np.ndarray) -> None:
@@ -745,4 +793,3 @@ class Session:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-

@@ -49,7 +49,10 @@ class Skeleton:
             raise ValueError(f"skeleton {self.name}: per-joint arrays must have length {j}")
         if sum(p < 0 for p in self.parents) != 1:
             raise ValueError(f"skeleton {self.name}: exactly one root joint expected")
-        if self.template_bone_lengths_mm is not None and len(self.template_bone_lengths_mm) != j - 1:
+        if (
+            self.template_bone_lengths_mm is not None
+            and len(self.template_bone_lengths_mm) != j - 1
+        ):
             raise ValueError(f"skeleton {self.name}: template needs {j - 1} bone lengths")
 
     # ------------------------------------------------------------------ structure
@@ -111,7 +114,9 @@ class Skeleton:
 
     def estimate_bone_lengths(self, poses_mm: np.ndarray) -> np.ndarray:
         """Robust (median) bone lengths ``(B,)`` in mm from poses ``(N, J, 3)``; NaN poses ignored."""
-        lengths = self.bone_lengths(np.asarray(poses_mm, dtype=np.float64).reshape(-1, self.num_joints, 3))
+        lengths = self.bone_lengths(
+            np.asarray(poses_mm, dtype=np.float64).reshape(-1, self.num_joints, 3)
+        )
         return np.nanmedian(lengths, axis=0)
 
     def palm_normal(self, poses_mm: np.ndarray, right_hand: bool = True) -> np.ndarray:
@@ -119,11 +124,15 @@ class Skeleton:
         if self.palm_joints is None:
             raise ValueError(f"skeleton {self.name} defines no palm joints")
         w, i, lt = self.palm_joints
-        n = np.cross(poses_mm[..., i, :] - poses_mm[..., w, :], poses_mm[..., lt, :] - poses_mm[..., w, :])
+        n = np.cross(
+            poses_mm[..., i, :] - poses_mm[..., w, :], poses_mm[..., lt, :] - poses_mm[..., w, :]
+        )
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
         return n if right_hand else -n
 
-    def joint_angles(self, poses_mm: np.ndarray, right_hand: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def joint_angles(
+        self, poses_mm: np.ndarray, right_hand: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``.
 
         At the first joint of a finger (MCP, thumb CMC) the towards-the-palm direction is the palm
@@ -142,7 +151,9 @@ class Skeleton:
             p = int(parents[k])
             a = _unit(poses[..., k, :] - poses[..., p, :])
             if p in lateral_of:
-                lateral = _unit(lateral_of[p] - np.sum(lateral_of[p] * a, axis=-1, keepdims=True) * a)
+                lateral = _unit(
+                    lateral_of[p] - np.sum(lateral_of[p] * a, axis=-1, keepdims=True) * a
+                )
             else:
                 n_perp = _unit(normal - np.sum(normal * a, axis=-1, keepdims=True) * a)
                 lateral = np.cross(a, n_perp)
@@ -174,44 +185,119 @@ MSRA21 = Skeleton(
     name="msra21",
     joint_names=(
         "wrist",
-        "index_mcp", "index_pip", "index_dip", "index_tip",
-        "middle_mcp", "middle_pip", "middle_dip", "middle_tip",
-        "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
-        "little_mcp", "little_pip", "little_dip", "little_tip",
-        "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
+        "index_mcp",
+        "index_pip",
+        "index_dip",
+        "index_tip",
+        "middle_mcp",
+        "middle_pip",
+        "middle_dip",
+        "middle_tip",
+        "ring_mcp",
+        "ring_pip",
+        "ring_dip",
+        "ring_tip",
+        "little_mcp",
+        "little_pip",
+        "little_dip",
+        "little_tip",
+        "thumb_cmc",
+        "thumb_mcp",
+        "thumb_ip",
+        "thumb_tip",
     ),
     parents=(-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19),
     surface_offsets_mm=(
         15.0,
-        9.0, 8.0, 7.0, 0.0,
-        9.0, 8.0, 7.0, 0.0,
-        9.0, 8.0, 7.0, 0.0,
-        8.0, 7.0, 6.0, 0.0,
-        12.0, 10.0, 8.0, 0.0,
+        9.0,
+        8.0,
+        7.0,
+        0.0,
+        9.0,
+        8.0,
+        7.0,
+        0.0,
+        9.0,
+        8.0,
+        7.0,
+        0.0,
+        8.0,
+        7.0,
+        6.0,
+        0.0,
+        12.0,
+        10.0,
+        8.0,
+        0.0,
     ),
     template_bone_lengths_mm=(
-        80.0, 40.0, 24.0, 20.0,
-        78.0, 45.0, 28.0, 22.0,
-        74.0, 42.0, 27.0, 21.0,
-        68.0, 33.0, 20.0, 19.0,
-        38.0, 42.0, 32.0, 26.0,
+        80.0,
+        40.0,
+        24.0,
+        20.0,
+        78.0,
+        45.0,
+        28.0,
+        22.0,
+        74.0,
+        42.0,
+        27.0,
+        21.0,
+        68.0,
+        33.0,
+        20.0,
+        19.0,
+        38.0,
+        42.0,
+        32.0,
+        26.0,
     ),
     palm_joints=(0, 1, 13),
     flexion_limits_deg=(
         _NAN,
-        _MCP, _PIP, _DIP, _NAN,
-        _MCP, _PIP, _DIP, _NAN,
-        _MCP, _PIP, _DIP, _NAN,
-        _MCP, _PIP, _DIP, _NAN,
-        (-30.0, 90.0), (-20.0, 80.0), (-20.0, 90.0), _NAN,
+        _MCP,
+        _PIP,
+        _DIP,
+        _NAN,
+        _MCP,
+        _PIP,
+        _DIP,
+        _NAN,
+        _MCP,
+        _PIP,
+        _DIP,
+        _NAN,
+        _MCP,
+        _PIP,
+        _DIP,
+        _NAN,
+        (-30.0, 90.0),
+        (-20.0, 80.0),
+        (-20.0, 90.0),
+        _NAN,
     ),
     abduction_limits_deg=(
         _NAN,
-        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
-        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
-        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
-        _ABD_MCP, _ABD_HINGE, _ABD_HINGE, _NAN,
-        (-60.0, 60.0), (-30.0, 30.0), (-20.0, 20.0), _NAN,
+        _ABD_MCP,
+        _ABD_HINGE,
+        _ABD_HINGE,
+        _NAN,
+        _ABD_MCP,
+        _ABD_HINGE,
+        _ABD_HINGE,
+        _NAN,
+        _ABD_MCP,
+        _ABD_HINGE,
+        _ABD_HINGE,
+        _NAN,
+        _ABD_MCP,
+        _ABD_HINGE,
+        _ABD_HINGE,
+        _NAN,
+        (-60.0, 60.0),
+        (-30.0, 30.0),
+        (-20.0, 20.0),
+        _NAN,
     ),
     fingertips=(4, 8, 12, 16, 20),
 )
@@ -219,19 +305,57 @@ MSRA21 = Skeleton(
 BLENDER24 = Skeleton(
     name="blender24",
     joint_names=(
-        "CT", "T1", "T2", "T3",
-        "CI", "I1", "I2", "I3", "I4",
-        "CM", "M1", "M2", "M3", "M4",
-        "CR", "R1", "R2", "R3", "R4",
-        "CP", "P1", "P2", "P3", "P4",
+        "CT",
+        "T1",
+        "T2",
+        "T3",
+        "CI",
+        "I1",
+        "I2",
+        "I3",
+        "I4",
+        "CM",
+        "M1",
+        "M2",
+        "M3",
+        "M4",
+        "CR",
+        "R1",
+        "R2",
+        "R3",
+        "R4",
+        "CP",
+        "P1",
+        "P2",
+        "P3",
+        "P4",
     ),
     parents=(4, 0, 1, 2, 9, 4, 5, 6, 7, -1, 9, 10, 11, 12, 9, 14, 15, 16, 17, 14, 19, 20, 21, 22),
     surface_offsets_mm=(
-        20.0, 10.0, 8.0, 2.0,
-        15.0, 9.0, 8.0, 7.0, 2.0,
-        15.0, 9.0, 8.0, 7.0, 2.0,
-        15.0, 9.0, 8.0, 7.0, 2.0,
-        15.0, 8.0, 7.0, 6.0, 2.0,
+        20.0,
+        10.0,
+        8.0,
+        2.0,
+        15.0,
+        9.0,
+        8.0,
+        7.0,
+        2.0,
+        15.0,
+        9.0,
+        8.0,
+        7.0,
+        2.0,
+        15.0,
+        9.0,
+        8.0,
+        7.0,
+        2.0,
+        15.0,
+        8.0,
+        7.0,
+        6.0,
+        2.0,
     ),
     fingertips=(3, 8, 13, 18, 23),
 )
@@ -240,11 +364,21 @@ ICVL16 = Skeleton(
     name="icvl16",
     joint_names=(
         "palm",
-        "thumb_root", "thumb_mid", "thumb_tip",
-        "index_root", "index_mid", "index_tip",
-        "middle_root", "middle_mid", "middle_tip",
-        "ring_root", "ring_mid", "ring_tip",
-        "little_root", "little_mid", "little_tip",
+        "thumb_root",
+        "thumb_mid",
+        "thumb_tip",
+        "index_root",
+        "index_mid",
+        "index_tip",
+        "middle_root",
+        "middle_mid",
+        "middle_tip",
+        "ring_root",
+        "ring_mid",
+        "ring_tip",
+        "little_root",
+        "little_mid",
+        "little_tip",
     ),
     parents=(-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 0, 10, 11, 0, 13, 14),
     surface_offsets_mm=(15.0,) + (9.0, 8.0, 0.0) * 5,
@@ -254,8 +388,20 @@ ICVL16 = Skeleton(
 NYU14 = Skeleton(
     name="nyu14",
     joint_names=(
-        "little_tip", "little_mid", "ring_tip", "ring_mid", "middle_tip", "middle_mid",
-        "index_tip", "index_mid", "thumb_tip", "thumb_mid", "thumb_root", "wrist1", "wrist2", "palm",
+        "little_tip",
+        "little_mid",
+        "ring_tip",
+        "ring_mid",
+        "middle_tip",
+        "middle_mid",
+        "index_tip",
+        "index_mid",
+        "thumb_tip",
+        "thumb_mid",
+        "thumb_root",
+        "wrist1",
+        "wrist2",
+        "palm",
     ),
     parents=(1, 13, 3, 13, 5, 13, 7, 13, 9, 10, 13, 13, 13, -1),
     surface_offsets_mm=(0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 10.0, 15.0, 15.0, 15.0),
@@ -270,4 +416,6 @@ def get_skeleton(name: str) -> Skeleton:
     try:
         return SKELETONS[name.lower()]
     except KeyError:
-        raise ValueError(f"unknown skeleton layout {name!r}; known: {', '.join(SKELETONS)}") from None
+        raise ValueError(
+            f"unknown skeleton layout {name!r}; known: {', '.join(SKELETONS)}"
+        ) from None

@@ -19,7 +19,21 @@ def pipeline_session(tmp_path_factory):
     data, sessions = root / "data", root / "sessions"
     assert main(["synth", str(data), "--frames", "120", "--seed", "3"]) == 0
     assert main(["--sessions-dir", str(sessions), "new", "s", str(data)]) == 0
-    assert main(["--sessions-dir", str(sessions), "select", "s", "--strategy", "forest", "--ref-fraction", "0.1"]) == 0
+    assert (
+        main(
+            [
+                "--sessions-dir",
+                str(sessions),
+                "select",
+                "s",
+                "--strategy",
+                "forest",
+                "--ref-fraction",
+                "0.1",
+            ]
+        )
+        == 0
+    )
     assert main(["--sessions-dir", str(sessions), "annotate-from-gt", "s"]) == 0
     assert main(["--sessions-dir", str(sessions), "lift", "s"]) == 0
     assert main(["--sessions-dir", str(sessions), "propagate", "s"]) == 0
@@ -36,7 +50,9 @@ def test_select_stores_the_documented_keys(pipeline_session, capsys):
     assert sel["strategy"] == "forest" and len(sel["parent"]) == 120
     assert abs(len(sel["reference_frames"]) - 12) <= 1
     assert all(sel["parent"][f] == -1 for f in sel["reference_frames"])
-    assert (folder / "selection_embedding.png").exists() and (folder / "selection_coverage.png").exists()
+    assert (folder / "selection_embedding.png").exists() and (
+        folder / "selection_coverage.png"
+    ).exists()
 
 
 def test_pipeline_result_is_accurate_on_synthetic_data(pipeline_session):
@@ -55,24 +71,54 @@ def test_export_formats_and_json_round_trip(pipeline_session):
     for fmt in ("json", "npz", "msra"):
         assert main(["export", str(folder), "--format", fmt, "-o", str(root / f"out.{fmt}")]) == 0
     doc = json.loads((root / "out.json").read_text())
-    assert len(doc["frames"]) == 120 and doc["references"] == sum(f["is_reference"] for f in doc["frames"])
+    assert len(doc["frames"]) == 120 and doc["references"] == sum(
+        f["is_reference"] for f in doc["frames"]
+    )
     frame = doc["frames"][5]
-    assert np.asarray(frame["joints_mm"]).shape == (21, 3) and np.asarray(frame["uv_px"]).shape == (21, 2)
+    assert np.asarray(frame["joints_mm"]).shape == (21, 3) and np.asarray(frame["uv_px"]).shape == (
+        21,
+        2,
+    )
     npz = np.load(root / "out.npz")
-    np.testing.assert_allclose(npz["joints_mm"], np.asarray([f["joints_mm"] for f in doc["frames"]]), atol=1e-3)
+    np.testing.assert_allclose(
+        npz["joints_mm"], np.asarray([f["joints_mm"] for f in doc["frames"]]), atol=1e-3
+    )
     lines = (root / "out.msra").read_text().splitlines()
     assert int(lines[0]) == 120 and len(lines[1].split()) == 63
     # MSRA convention: y up, z negative
     assert float(lines[1].split()[2]) == pytest.approx(-npz["joints_mm"][0, 0, 2], abs=1e-3)
 
     # import into a fresh session of the same data, export again: same joints and references
-    assert main(["--sessions-dir", str(root / "sessions"), "new", "copy", doc["dataset"]["path"]]) == 0
-    assert main(["--sessions-dir", str(root / "sessions"), "import", "copy", str(root / "out.json")]) == 0
-    assert main(["--sessions-dir", str(root / "sessions"), "export", "copy", "--format", "json", "-o", str(root / "again.json")]) == 0
+    assert (
+        main(["--sessions-dir", str(root / "sessions"), "new", "copy", doc["dataset"]["path"]]) == 0
+    )
+    assert (
+        main(["--sessions-dir", str(root / "sessions"), "import", "copy", str(root / "out.json")])
+        == 0
+    )
+    assert (
+        main(
+            [
+                "--sessions-dir",
+                str(root / "sessions"),
+                "export",
+                "copy",
+                "--format",
+                "json",
+                "-o",
+                str(root / "again.json"),
+            ]
+        )
+        == 0
+    )
     again = json.loads((root / "again.json").read_text())
-    assert [f["is_reference"] for f in again["frames"]] == [f["is_reference"] for f in doc["frames"]]
+    assert [f["is_reference"] for f in again["frames"]] == [
+        f["is_reference"] for f in doc["frames"]
+    ]
     np.testing.assert_allclose(
-        np.asarray([f["joints_mm"] for f in again["frames"]]), np.asarray([f["joints_mm"] for f in doc["frames"]]), atol=1e-3
+        np.asarray([f["joints_mm"] for f in again["frames"]]),
+        np.asarray([f["joints_mm"] for f in doc["frames"]]),
+        atol=1e-3,
     )
 
 

@@ -308,12 +308,9 @@ def test_malformed_annotations_raise(frames):
         lift_frame(ann, depth, CAM, SK, bones[:5])
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    reason="bone re-estimation halves the error only partly (0.80 vs 1.12 mm mean); see report",
-    strict=False,
-)
 def test_bone_lengths_estimated_from_exact_data():
+    """Bone-length estimation converges to the true lengths on exact data (24 rendered frames,
+    bones 5 % longer than the template with +-3 % per-bone variation)."""
     rng = np.random.default_rng(5)
     true = np.asarray(SK.template_bone_lengths_mm) * 1.05 * rng.uniform(0.97, 1.03, 20)
     anns, depths, poses = {}, {}, {}
@@ -325,14 +322,85 @@ def test_bone_lengths_estimated_from_exact_data():
     res = lift_references(anns, depths.__getitem__, CAM, SK)
     err = np.abs(res.bone_lengths_mm - true)
     start = np.abs(res.bone_history_mm[0] - true)
-    assert err.mean() < 1.5 and err.mean() < 0.5 * start.mean(), (err, start)
-    assert (
-        np.max(np.abs(res.bone_history_mm[-1] - res.bone_history_mm[-2])) < 0.1
-        or len(res.bone_history_mm) == 11
-    )
+    # measured: mean 0.35, max 0.87 mm (from 0.97 mm mean at the scaled template)
+    assert err.mean() < 0.6 and err.max() < 1.5 and err.mean() < 0.5 * start.mean(), (err, start)
+    # converged: the last round moved no bone by more than the tolerance
+    assert np.max(np.abs(res.bone_history_mm[-1] - res.bone_history_mm[-2])) < 0.1
+    assert len(res.bone_history_mm) < 11
+    e_est = np.mean([np.linalg.norm(res.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
+    assert e_est < 2.5
     pinned = lift_references(
         anns, depths.__getitem__, CAM, SK, bone_lengths_mm=true, pin_bone_lengths=True
     )
     np.testing.assert_array_equal(pinned.bone_lengths_mm, true)
     e = np.mean([np.linalg.norm(pinned.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
     assert e < 2.0
+
+
+def test_impossible_depth_reading_is_dropped(frames):
+    """A visible tip whose 2D slipped onto a surface far behind (the palm) must not drag the
+    finger back: the reading is inconsistent with the bone to its parent and is dropped."""
+    X, depth, ann = frames[4]
+    bones = SK.bone_lengths(X)
+    vis_tips = [t for t in (4, 8, 12, 16, 20) if ann.visible[t] and ann.visible[SK.parent_array[t]]]
+    assert vis_tips, "fixture frame needs a visible tip"
+    t = vis_tips[0]
+    depth = depth.copy()
+    u, v = np.rint(CAM.project(X[t])).astype(int)
+    depth[v - 1 : v + 2, u - 1 : u + 2] = X[t, 2] + 80.0  # the 3x3 under the tip reads far
+    r = lift_frame(ann, depth, CAM, SK, bones)
+    assert np.isnan(r.observed_depth_mm[t])
+    assert np.linalg.norm(r.joints_mm[t] - X[t]) < 8.0
+    assert np.linalg.norm(r.joints_mm - X, axis=1).mean() < 3.0
+
+
+def test_vectorized_angle_rows_match_skeleton_angles(frames):
+    """The flexion rows are zero exactly at the limits computed by Skeleton.joint_angles."""
+    X = frames[0][0]
+    x0, d_obs = initial_pose(frames[0][2], frames[0][1], CAM, SK, SK.bone_lengths(X))
+    prob = _Problem(
+        frames[0][2],
+        d_obs,
+        CAM,
+        SK,
+        SK.bone_lengths(X),
+        x0,
+        eps_mm=15.0,
+        angle_limits=True,
+        order_margin_mm=10.0,
+        w_3d=1.0,
+        w_surface=0.1,
+        w_free=1e-3,
+        soft_bones=None,
+        right_hand=True,
+    )
+    vals, _ = prob._angles(X)
+    vals = vals.reshape(4, -1)
+    fl, ab = SK.joint_angles(X)
+    fl_lim, ab_lim = SK.angle_limits()
+    # sign of each row equals the sign of the margin to its limit
+    assert np.all(np.sign(vals[0]) == np.sign(fl - fl_lim[:, 0]))
+    assert np.all(np.sign(vals[1]) == np.sign(fl_lim[:, 1] - fl))
+    assert np.all(np.sign(vals[2]) == np.sign(ab - ab_lim[:, 0]))
+    assert np.all(np.sign(vals[3]) == np.sign(ab_lim[:, 1] - ab))
+
+
+def test_inconsistent_depth_rules():
+    """Backed readings are kept; an unbacked impossible pair loses both readings."""
+    from handanno_core.lift import _drop_inconsistent_depths
+
+    X = random_pose(np.random.default_rng(2))
+    bones = SK.bone_lengths(X)
+    d = X[:, 2] - OFF  # exact readings
+    vis = np.ones(21, dtype=bool)
+    tip_far = d.copy()
+    tip_far[4] += 90.0  # index tip reads the palm behind it; DIP backed by the PIP
+    out = _drop_inconsistent_depths(tip_far, vis, OFF, SK, bones, 15.0)
+    assert np.isnan(out[4]) and np.isfinite(out[[1, 2, 3]]).all()
+    dip_near = d.copy()
+    dip_near[3] -= 100.0  # DIP reads a finger in front; PIP hidden, so nothing backs either
+    v2 = vis.copy()
+    v2[2] = False
+    out = _drop_inconsistent_depths(dip_near, v2, OFF, SK, bones, 15.0)
+    assert np.isnan(out[3]) and np.isnan(out[4]) and np.isfinite(out[[0, 1, 5, 8]]).all()
+    np.testing.assert_array_equal(_drop_inconsistent_depths(d, vis, OFF, SK, bones, 15.0), d)

@@ -26,8 +26,16 @@ from handanno_core.session import (
 
 @pytest.fixture
 def session(tmp_path):
-    s = Session.create(tmp_path / "s", DatasetSpec(path=str(tmp_path / "data"), format="msra"), 10, MSRA_CAMERA)
-    s.set_selection({"strategy": "uniform", "reference_frames": [0, 5], "parent": [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8]})
+    s = Session.create(
+        tmp_path / "s", DatasetSpec(path=str(tmp_path / "data"), format="msra"), 10, MSRA_CAMERA
+    )
+    s.set_selection(
+        {
+            "strategy": "uniform",
+            "reference_frames": [0, 5],
+            "parent": [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8],
+        }
+    )
     return s
 
 
@@ -53,7 +61,9 @@ def test_torn_last_journal_line_is_ignored_but_corrupt_middle_line_is_an_error(s
     session.execute(SetJoint2D(frame=0, joint=1, uv_px=(1, 2)))
     path = session.folder / "journal.jsonl"
     with open(path, "ab") as f:
-        f.write(b'{"seq": 2, "time": 1.0, "cl')  # crash in the middle of a write: never acknowledged
+        f.write(
+            b'{"seq": 2, "time": 1.0, "cl'
+        )  # crash in the middle of a write: never acknowledged
     assert Session.open(session.folder).annotation(0).uv_px[1].tolist() == [1, 2]
     path.write_bytes(b"garbage\n" + path.read_bytes())
     with pytest.raises(SessionError, match="journal.jsonl: line 1"):

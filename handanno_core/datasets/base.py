@@ -67,7 +67,9 @@ class BadFrameReport:
         return "\n".join(lines)
 
 
-def validate_depth(depth: np.ndarray, path: str | Path, frame: int, shape: tuple[int, int]) -> np.ndarray:
+def validate_depth(
+    depth: np.ndarray, path: str | Path, frame: int, shape: tuple[int, int]
+) -> np.ndarray:
     """Check a decoded depth map; return it as float32 mm or raise :class:`FrameError`."""
     if depth.shape != shape:
         raise FrameError(path, frame, f"depth has shape {depth.shape}, expected {shape}")

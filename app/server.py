@@ -224,11 +224,12 @@ def demo(
     host: str = "127.0.0.1",
     port: int = 8080,
     block: bool = True,
+    frames: int = 300,
 ) -> AnnoServer:
-    """Create ``sessions_dir/demo`` from a synthetic sequence once, then serve it."""
+    """Create ``sessions_dir/demo`` from a ``frames``-frame synthetic sequence once, then serve it."""
     from handanno_core.pipeline import ensure_demo_session
 
-    folder = ensure_demo_session(sessions_dir)
+    folder = ensure_demo_session(sessions_dir, frames=frames)
     return serve(folder, host=host, port=port, block=block)
 
 

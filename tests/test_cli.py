@@ -129,3 +129,22 @@ def test_bad_input_gives_clear_errors(tmp_path, capsys):
     assert "no-dataset" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["select", "s"])  # neither --ref-fraction nor --rho
+
+
+def test_demo_creates_the_session_once_and_serves_it(tmp_path, monkeypatch):
+    import app.server
+
+    served = []
+    monkeypatch.setattr(app.server, "serve", lambda folder, **kw: served.append((folder, kw)))
+    argv = ["--sessions-dir", str(tmp_path), "demo", "--frames", "40", "--port", "8123"]
+    assert main(argv) == 0
+    folder, kw = served[0]
+    assert folder == tmp_path / "demo" and kw["host"] == "127.0.0.1" and kw["port"] == 8123
+    session = Session.open(folder)
+    assert session.num_frames == 40 and len(session.reference_frames) == 2
+    data_mtime = (tmp_path / "demo-data" / "joint.txt").stat().st_mtime_ns
+    assert main(argv) == 0  # second start reuses the data and the session's selection
+    assert (tmp_path / "demo-data" / "joint.txt").stat().st_mtime_ns == data_mtime and len(
+        served
+    ) == 2
+    assert Session.open(folder).model.selection == session.model.selection

@@ -11,6 +11,7 @@ queue has been idle for ``save_after_s`` seconds.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 import traceback
@@ -27,13 +28,18 @@ from .frames import FrameStore
 LiftFunction = Callable[..., object]
 
 
+#: SLSQP iterations of the live re-lift while a joint is edited. A converged lift needs ~17-26
+#: iterations; frames that are infeasible under the current bone lengths (template bones early in a
+#: session) fall back to an elastic solve that can take 200+ ms. The preview stops earlier; `handanno
+#: lift` re-solves every reference to convergence.
+LIVE_MAX_ITER = 40
+
+
 def default_lift_function() -> LiftFunction | None:
-    """``handanno_core.lift.lift_frame`` or None if the lifting module is unavailable."""
-    try:
-        from handanno_core.lift import lift_frame
-    except ImportError:
-        return None
-    return lift_frame
+    """``handanno_core.lift.lift_frame`` with a bounded iteration count for live previews."""
+    from handanno_core.lift import lift_frame
+
+    return functools.partial(lift_frame, max_iter=LIVE_MAX_ITER)
 
 
 @dataclass

@@ -81,7 +81,7 @@ def test_demo_creates_then_serves(tmp_path, monkeypatch):
     s.close()
     calls = []
 
-    def fake_ensure(sessions_dir):
+    def fake_ensure(sessions_dir, frames=300):
         calls.append(Path(sessions_dir))
         return s.folder
 

@@ -38,6 +38,7 @@ from handanno_core.session import JournalEntry, SessionError
 
 from .annotate_state import AnnotateState
 from .frames import FrameData
+from .geometry import pull_in_front_of_surface
 from .hotkeys import bind_all
 from .worker import LiftOutcome
 
@@ -48,7 +49,6 @@ STATIC = Path(__file__).resolve().parent.parent / "static"
 ROOT = "/annotate"
 JOINT_RADIUS_M = 0.0045
 HANDLE2D_RADIUS_M = 0.0025
-SURFACE_MARGIN_MM = 6.0
 
 
 def load_colours() -> dict[str, Any]:
@@ -666,22 +666,8 @@ class AnnotateView:
         from the sensor it is exactly where it projects, and it is never buried in the cloud.
         Drags keep the offset (new joint = drop point + (true - drawn))."""
         data = self._frame_data
-        out = np.array(joints_mm, dtype=np.float64)
-        if data is None or data.depth is None:
-            return out
-        ok = np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
-        if not ok.any():
-            return out
-        cam = self.session.camera
-        uv = cam.project(out[ok])
-        col = np.clip(np.round(uv[:, 0]).astype(int), 0, cam.width - 1)
-        row = np.clip(np.round(uv[:, 1]).astype(int), 0, cam.height - 1)
-        surface = data.depth[row, col].astype(np.float64)
-        z = out[ok, 2]
-        pull = (surface > 0) & (z > surface - SURFACE_MARGIN_MM)
-        scale = np.where(pull, (surface - SURFACE_MARGIN_MM) / z, 1.0)
-        out[ok] *= scale[:, None]
-        return out
+        depth = None if data is None else data.depth
+        return pull_in_front_of_surface(joints_mm, depth, self.session.camera)
 
     def _render(self, lift: LiftOutcome | None = None, edit_seq: int | None = None) -> None:
         """Assign the joints, bones, labels, 2D handles and panel from the current state."""

@@ -207,3 +207,30 @@ def empty_geometry(camera: CameraIntrinsics, centre_mm: np.ndarray | None = None
         cloud_rgb=np.zeros((0, 3), np.uint8),
         image_rgb=image,
     )
+
+
+#: joints behind the observed surface are drawn this far in front of it
+SURFACE_MARGIN_MM = 6.0
+
+
+def pull_in_front_of_surface(
+    joints_mm: np.ndarray, depth_mm: np.ndarray | None, camera: CameraIntrinsics
+) -> np.ndarray:
+    """Joints ``(J, 3)`` mm for display: each joint behind the observed surface is moved along its
+    camera ray to ``SURFACE_MARGIN_MM`` in front of it, so the point cloud never hides it. Seen
+    from the sensor it is exactly where it projects. Drags keep the offset
+    (new joint = drop point + (true - drawn))."""
+    out = np.array(joints_mm, dtype=np.float64)
+    if depth_mm is None:
+        return out
+    ok = np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
+    if not ok.any():
+        return out
+    uv = camera.project(out[ok])
+    col = np.clip(np.round(uv[:, 0]).astype(int), 0, camera.width - 1)
+    row = np.clip(np.round(uv[:, 1]).astype(int), 0, camera.height - 1)
+    surface = depth_mm[row, col].astype(np.float64)
+    z = out[ok, 2]
+    pull = (surface > 0) & (z > surface - SURFACE_MARGIN_MM)
+    out[ok] *= np.where(pull, (surface - SURFACE_MARGIN_MM) / z, 1.0)[:, None]
+    return out

@@ -37,6 +37,7 @@ from handanno_core.session import JournalEntry, SessionError, SetReview
 
 from .annotate_view import joint_colours, load_colours
 from .frames import FrameData
+from .geometry import pull_in_front_of_surface
 from .review_state import LiveResults, ReviewRunner, correction_command, next_worst
 
 if TYPE_CHECKING:
@@ -44,7 +45,6 @@ if TYPE_CHECKING:
 
 ROOT = "/review"
 JOINT_RADIUS_M = 0.0045
-SURFACE_MARGIN_MM = 6.0
 STAGE_TEXT = {0: "not computed yet", 1: "lifted", 2: "propagated", 3: "refined"}
 EXPORT_FORMATS = {"JSON": ("json", "json"), "NPZ": ("npz", "npz"), "MSRA": ("msra", "txt")}
 _HUB_LOCK = threading.Lock()
@@ -529,21 +529,8 @@ class ReviewView:
         """Joints behind the observed surface are drawn pulled along their camera ray to just in
         front of it (same rule as the annotate view), so the cloud does not hide them."""
         data = self._frame_data
-        out = np.array(joints_mm, dtype=np.float64)
-        if data is None or data.depth is None:
-            return out
-        ok = np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
-        if not ok.any():
-            return out
-        cam = self.session.camera
-        uv = cam.project(out[ok])
-        col = np.clip(np.round(uv[:, 0]).astype(int), 0, cam.width - 1)
-        row = np.clip(np.round(uv[:, 1]).astype(int), 0, cam.height - 1)
-        surface = data.depth[row, col].astype(np.float64)
-        z = out[ok, 2]
-        pull = (surface > 0) & (z > surface - SURFACE_MARGIN_MM)
-        out[ok] *= np.where(pull, (surface - SURFACE_MARGIN_MM) / z, 1.0)[:, None]
-        return out
+        depth = None if data is None else data.depth
+        return pull_in_front_of_surface(joints_mm, depth, self.session.camera)
 
     def render_skeleton(self) -> None:
         data = self._frame_data

@@ -7,9 +7,7 @@ targets are projected through the browser's own camera (viser_helpers.screen_of)
 
 from __future__ import annotations
 
-import json
 import re
-import socket
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +17,8 @@ from viser_helpers import (
     browser,
     dismiss_webgl_toast,
     drag,
+    free_port,
+    journal,
     open_app,
     screen_of,
     wait_camera_still,
@@ -26,22 +26,9 @@ from viser_helpers import (
 )
 
 from app.server import AnnoServer, serve
-from handanno_core.session import JOURNAL_FILE, Session
+from handanno_core.session import Session
 
 SCREENSHOT = Path(__file__).resolve().parents[2] / "static" / "screenshots" / "annotate.png"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def journal(folder: Path) -> list[dict]:
-    path = folder / JOURNAL_FILE
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def reopen(folder: Path) -> Session:

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -15,6 +13,8 @@ from pathlib import Path
 import numpy as np
 from viser_helpers import (
     browser,
+    free_port,
+    journal,
     open_app,
     save_screenshot,
     screen_of,
@@ -23,15 +23,9 @@ from viser_helpers import (
 )
 
 from app.frames import FrameStore
-from handanno_core.session import JOURNAL_FILE, Session
+from handanno_core.session import Session
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_server(folder: Path, port: int) -> subprocess.Popen:
@@ -55,13 +49,6 @@ def start_server(folder: Path, port: int) -> subprocess.Popen:
 
     wait_until(up, timeout_s=30, interval_s=0.2, what="the server to answer HTTP")
     return proc
-
-
-def journal(folder: Path) -> list[dict]:
-    path = folder / JOURNAL_FILE
-    return (
-        [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
-    )
 
 
 def test_sigkill_loses_no_acknowledged_edit(session_folder: Path):

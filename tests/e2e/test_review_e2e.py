@@ -9,33 +9,28 @@ cores. Propagation is the real one, slowed per frame so that the page can be wat
 from __future__ import annotations
 
 import json
-import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-from viser_helpers import browser, drag, open_app, screen_of, wait_camera_still, wait_until
+from viser_helpers import (
+    browser,
+    drag,
+    free_port,
+    journal,
+    open_app,
+    screen_of,
+    wait_camera_still,
+    wait_until,
+)
 
 from app.review_state import next_worst
 from app.server import AnnoServer, serve
 from handanno_core.session import JOURNAL_FILE, Session
 
 STEP = 10
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def journal(folder: Path) -> list[dict]:
-    path = folder / JOURNAL_FILE
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def build_review_session(folder: Path, data: Path) -> Path:

@@ -119,6 +119,7 @@ class AnnotateView:
         self.state = AnnotateState(app.session, client=f"browser-{client.client_id}")
         self.skeleton = app.session.skeleton
         self._lock = threading.RLock()
+        self._told_hotkeys_paused = False
         # Every redraw runs on this view's own single thread, in order: edits, lift results and
         # navigation from different threads never interleave half-drawn states, and the session's
         # listener (which holds the session lock) only enqueues.
@@ -314,24 +315,29 @@ class AnnotateView:
         @self.frame_slider.on_update
         def _(event: Any) -> None:
             if event.client is not None and int(self.frame_slider.value) != self.state.index:
+                self._claim_scene()
                 self.go_to_index(int(self.frame_slider.value))
 
         @self.nav.on_click
         def _(event: Any) -> None:
+            self._claim_scene()
             self.next_frame() if event.target.value.startswith("Next") else self.prev_frame()
 
         @self.joint_dropdown.on_update
         def _(event: Any) -> None:
             joint = int(self.joint_dropdown.value.split()[0])
             if event.client is not None and joint != self.state.joint:
+                self._claim_scene()
                 self.select_joint(joint)
 
         @self.visibility_button.on_click
         def _(_: Any) -> None:
+            self._claim_scene()
             self.toggle_visibility()
 
         @self.depth_button.on_click
         def _(_: Any) -> None:
+            self._claim_scene()
             self.cycle_depth_order()
 
         @self.click_mode.on_update
@@ -340,29 +346,63 @@ class AnnotateView:
 
         @self.edit_buttons.on_click
         def _(event: Any) -> None:
+            self._claim_scene()
             {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[
                 event.target.value
             ]()
 
         @self.camera_button.on_click
         def _(_: Any) -> None:
+            self._claim_scene()
             self.reset_camera()
 
+        actions = {
+            "next_frame": self.next_frame,
+            "prev_frame": self.prev_frame,
+            "next_joint": lambda: self.select_joint(self.state.joint + 1),
+            "prev_joint": lambda: self.select_joint(self.state.joint - 1),
+            "toggle_visibility": self.toggle_visibility,
+            "cycle_depth_order": self.cycle_depth_order,
+            "clear_joint": self.clear_joint,
+            "toggle_click_mode": self._toggle_click_mode,
+            "undo": self.undo,
+            "redo": self.redo,
+        }
         bind_all(
             gui,
-            {
-                "next_frame": lambda _c: self.next_frame(),
-                "prev_frame": lambda _c: self.prev_frame(),
-                "next_joint": lambda _c: self.select_joint(self.state.joint + 1),
-                "prev_joint": lambda _c: self.select_joint(self.state.joint - 1),
-                "toggle_visibility": lambda _c: self.toggle_visibility(),
-                "cycle_depth_order": lambda _c: self.cycle_depth_order(),
-                "clear_joint": lambda _c: self.clear_joint(),
-                "toggle_click_mode": lambda _c: self._toggle_click_mode(),
-                "undo": lambda _c: self.undo(),
-                "redo": lambda _c: self.redo(),
-            },
+            {name: self._hotkey_action(action) for name, action in actions.items()},
         )
+
+    def _review_view(self) -> Any:
+        return self.app.views.get(self.client.client_id, {}).get("Review")
+
+    def _scene_shown(self) -> bool:
+        """False while this browser shows the Review tab's scene (the annotate nodes hidden)."""
+        return not getattr(self._review_view(), "scene_active", False)
+
+    def _claim_scene(self) -> None:
+        """Using the Annotate panel brings its scene back where the Review scene was shown."""
+        review = self._review_view()
+        if review is not None and review.scene_active:
+            review.deactivate_scene()
+
+    def _hotkey_action(self, action: Any) -> Any:
+        """Hotkeys are page-wide in viser: while the Review scene is shown they would move or edit
+        an annotate frame the user cannot see, so they do nothing then (and say so once)."""
+
+        def run(_client: Any) -> None:
+            if self._scene_shown():
+                action()
+            elif not self._told_hotkeys_paused:
+                self._told_hotkeys_paused = True
+                self.client.add_notification(
+                    "Annotate hotkeys paused",
+                    "The Review scene is shown. Use the Annotate panel, or 'Show annotate "
+                    "scene' in the Review tab, to annotate again.",
+                    auto_close_seconds=6.0,
+                )
+
+        return run
 
     # ================================================================== navigation
     @property

@@ -28,11 +28,14 @@ from .frames import FrameStore
 LiftFunction = Callable[..., object]
 
 
-#: SLSQP iterations of the live re-lift while a joint is edited. A converged lift needs ~17-26
-#: iterations; frames that are infeasible under the current bone lengths (template bones early in a
-#: session) fall back to an elastic solve that can take 200+ ms. The preview stops earlier; `handanno
-#: lift` re-solves every reference to convergence.
-LIVE_MAX_ITER = 40
+#: SLSQP iterations of the live re-lift while a joint is edited (measured on the demo: hard solves
+#: converge in 13-28 iterations at ~0.9 ms each, elastic ones in 16-22 at ~2.5 ms each, since their
+#: slacks add 21 variables and 46 rows). The preview stops at 30 where a solve would take longer
+#: (a frame with only its first joints placed; `handanno lift` re-solves every reference to
+#: convergence), which keeps the slowest elastic preview under 100 ms. A frame whose lift needed
+#: slack (a 2D point off the finger reads the surface behind it) is re-lifted in elastic mode
+#: directly, skipping a hard solve that would fail again.
+LIVE_MAX_ITER = 30
 
 
 def default_lift_function() -> LiftFunction | None:
@@ -52,6 +55,7 @@ class LiftOutcome:
     submitted_at: float  # perf_counter() of the (latest) submit
     finished_at: float  # perf_counter() when the lift returned
     duration_s: float
+    needed_slack: bool = False  # some depth interval could not be met (LiftResult.elastic)
 
 
 class LiftWorker:
@@ -181,6 +185,7 @@ class LiftWorker:
         init = (
             previous.joints_mm if previous is not None and previous.joints_mm is not None else None
         )
+        start_elastic = previous is not None and previous.needed_slack
         try:
             result = self.lift_fn(
                 annotation,
@@ -191,6 +196,7 @@ class LiftWorker:
                 eps_mm=settings.eps_mm,
                 angle_limits=settings.angle_limits,
                 init_mm=init,
+                start_elastic=start_elastic,
             )
         except Exception as exc:
             traceback.print_exc()
@@ -198,7 +204,8 @@ class LiftWorker:
         joints = np.asarray(result.joints_mm, dtype=np.float64)  # type: ignore[attr-defined]
         conf = np.asarray(getattr(result, "confidence", np.ones(len(joints))), dtype=np.float64)
         now = time.perf_counter()
-        return LiftOutcome(frame, joints, conf, None, seq, submitted, now, now - t0)
+        needed_slack = bool(getattr(result, "elastic", False))
+        return LiftOutcome(frame, joints, conf, None, seq, submitted, now, now - t0, needed_slack)
 
     def _save_results(self) -> None:
         """Write lifted joints of every frame lifted so far into results.npz (atomic)."""

@@ -10,6 +10,8 @@ Scenarios on reference frames of the demo session (synthetic sequence, simulated
 * ``adjust_2d``: move one joint of a fully annotated frame by a few pixels (the live-editing case:
   the lift is warm-started from the frame's previous solution);
 * ``adjust_3d``: move one joint in 3D (a handle drag released);
+* ``tip_slips``: a visible fingertip's 2D point moved off the finger onto a surface 20-60 mm
+  behind it (within 8 px), nudged, and put back (the lift's elastic case);
 * ``first_joints``: place the 1st..3rd joint on a new frame (cold lift, mostly unconstrained).
 
 Usage: ``.venv/bin/python benchmarks/bench_app_latency.py [--edits 30] [--frames 300]``.
@@ -36,6 +38,29 @@ sys.path.insert(0, str(REPO))
 
 from app.server import serve  # noqa: E402
 from handanno_core.session import SetFrameAnnotation, SetJoint2D, SetJoint3D  # noqa: E402
+
+TIPS = (4, 8, 12, 16, 20)  # MSRA21 fingertips (the demo's skeleton)
+
+
+def slip_target(depth: np.ndarray, uv: np.ndarray, radius_px: int = 8) -> np.ndarray | None:
+    """The pixel within ``radius_px`` of ``uv`` (at least 3 px away) whose valid depth lies 20-60 mm
+    behind the surface at ``uv``, farthest such; None if there is none."""
+    h, w = depth.shape
+    u0, v0 = np.rint(uv).astype(int)
+    r = np.arange(-radius_px, radius_px + 1)
+    du, dv = np.meshgrid(r, r)
+    uu, vv = u0 + du.ravel(), v0 + dv.ravel()
+    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h) & (np.hypot(du, dv).ravel() >= 3)
+    uu, vv = uu[inside], vv[inside]
+    here = depth[np.clip(v0, 0, h - 1), np.clip(u0, 0, w - 1)]
+    if not here > 0:
+        return None
+    behind = depth[vv, uu].astype(np.float64) - here
+    ok = (depth[vv, uu] > 0) & (behind > 20) & (behind < 60)
+    if not ok.any():
+        return None
+    k = np.flatnonzero(ok)[np.argmax(behind[ok])]
+    return np.array([uu[k], vv[k]], dtype=np.float64)
 
 
 def free_port() -> int:
@@ -92,13 +117,19 @@ def main() -> int:
     else:
         folder = ensure_demo_session(tmp, frames=args.frames, quiet=True)
     setup_s = time.perf_counter() - t0
+    load_start = os.getloadavg()[0]
     app = serve(folder, port=free_port(), block=False)
     session = app.session
     seq = session.open_sequence()
     gt = seq.ground_truth.joints_mm
     refs = [int(f) for f in session.reference_frames]
     rng = np.random.default_rng(0)
-    results: dict[str, list[float]] = {"adjust_2d": [], "adjust_3d": [], "first_joints": []}
+    results: dict[str, list[float]] = {
+        "adjust_2d": [],
+        "adjust_3d": [],
+        "tip_slips": [],
+        "first_joints": [],
+    }
     breakdown: dict[str, list[float]] = {
         "execute_ms": [],
         "lift_ms": [],
@@ -106,6 +137,7 @@ def main() -> int:
         "edit_drawn_ms": [],
     }
     failures: list[str] = []
+    needed_slack = dict.fromkeys(results, 0)  # lifts that could not meet a depth interval
     chromium = shutil.which("chromium")
     try:
         with sync_playwright() as p:
@@ -145,6 +177,7 @@ def main() -> int:
                     )
                 )
                 results[scenario].append(1000 * (upd[1] - start))
+                needed_slack[scenario] += int(lifted.needed_slack)
                 breakdown["execute_ms"].append(1000 * (executed - start))
                 breakdown["lift_ms"].append(1000 * lifted.duration_s)
                 breakdown["app_overhead_ms"].append(
@@ -183,6 +216,20 @@ def main() -> int:
                         "adjust_3d",
                     )
                     time.sleep(0.05)
+                # A fingertip click that slips off the finger onto a surface behind it (palm,
+                # another finger), nudged, and put back: the depth interval there is one no pose
+                # can meet, the lift's elastic case.
+                depth = seq.depth(frame)
+                for t in TIPS:
+                    slipped = slip_target(depth, ann.uv_px[t]) if ann.visible[t] else None
+                    if slipped is None:
+                        continue
+                    for uv in (slipped, slipped + rng.uniform(-1, 1, 2), slipped, ann.uv_px[t]):
+                        measure(
+                            SetJoint2D(frame=frame, joint=t, uv_px=(float(uv[0]), float(uv[1]))),
+                            "tip_slips",
+                        )
+                        time.sleep(0.05)
             # New frames: the first three joints.
             for frame in refs[3 : 3 + max(1, args.edits // 3)]:
                 view.go_to_index(view.state.frames.index(frame))
@@ -215,13 +262,15 @@ def main() -> int:
             "edit_drawn_ms": "execute -> the edited joint drawn at its new place (before the lift)",
         },
         "lift_failures": failures,
+        "lifts_needing_elastic_slack": needed_slack,
         "conditions": {
             "session": f"demo (synthetic, {args.frames} frames, {len(refs)} references, 320x240)",
             "browser": "headless Chromium (SwiftShader) connected to the server",
             "cpu_count": os.cpu_count(),
             "machine": platform.platform(),
             "python": platform.python_version(),
-            "note": "2-core machine shared with other jobs: timings are under load",
+            "edits_per_scenario": args.edits,
+            "load_average_1min": [round(load_start, 2), round(os.getloadavg()[0], 2)],
             "setup_s": round(setup_s, 1),
         },
     }

@@ -48,7 +48,12 @@ If the hard problem is infeasible or SLSQP fails (typically a 2D point on the wr
 its observed depth is wrong), the frame is re-solved in *elastic mode*: each depth interval gets a
 slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone,
 order or angle constraints are still violated by more than 0.5 mm is returned with
-``converged=False`` and halved confidence.
+``converged=False`` and halved confidence. An infeasible hard solve is recognised early: its
+constraint violation stays stuck at its first value, and a callback stops it once the violation
+(> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit
+(measured: 2 px noisy references lift 20 % faster, same errors). A feasible iterate that merely ran
+out of iterations is kept (not re-solved). The app's live re-lift passes ``start_elastic`` for a
+frame whose previous lift needed slack, skipping the hard attempt altogether.
 
 Speed notes: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
 can be 50x slower, so every solve runs inside :func:`handanno_core.blas.single_blas_thread`.
@@ -110,8 +115,9 @@ class LiftResult:
     joints and joints without valid depth). reprojection_px: ``(J,)`` distance between the lifted
     joint's projection and its 2D annotation (NaN where there is no 2D). observed_depth_mm: ``(J,)``
     depth ``D_k`` used for the joint's interval (NaN where none). bone_error_mm: largest
-    ``| |X_c - X_p| - d_b |`` at the solution. elastic: the hard depth intervals were infeasible
-    (or SLSQP failed) and the frame was re-solved with L1-penalised interval violations.
+    ``| |X_c - X_p| - d_b |`` at the solution. elastic: the frame was solved with L1-penalised
+    interval violations and some depth interval is violated by more than 0.5 mm (its observed
+    depth is probably wrong: a 2D point off the finger).
     """
 
     joints_mm: np.ndarray
@@ -451,6 +457,10 @@ class _Problem:
         self.slot = np.full(self.j, -1)
         self.slot[self.el_joints] = np.arange(len(self.el_joints))
 
+    def slacks_mm(self, x: np.ndarray) -> np.ndarray:
+        """``(S,)`` mm: the elastic slacks at ``x`` (empty outside elastic mode)."""
+        return _SCALE_Z * np.asarray(x[3 * self.j : 3 * self.j + self.n_slack])
+
     @property
     def n_slack(self) -> int:
         return len(self.el_joints) if self.elastic else 0
@@ -752,6 +762,7 @@ def lift_frame(
     soft_bones: float | None = None,
     right_hand: bool = True,
     elastic_weight: float = 2.0,
+    start_elastic: bool = False,
     max_iter: int = 200,
     tol: float = 1e-6,
 ) -> LiftResult:
@@ -764,7 +775,11 @@ def lift_frame(
     order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
-    (used for bone-length estimation). Returns a :class:`LiftResult`.
+    (used for bone-length estimation). start_elastic: solve the elastic problem first instead of
+    only after the hard one failed (live re-lifts of a frame whose previous lift needed slack: the
+    hard solve would spend its iterations failing again); an elastic solution whose slacks are all
+    zero meets every hard constraint and is reported as such (``elastic=False``).
+    Returns a :class:`LiftResult`.
     """
     t0 = time.perf_counter()
     d = _check_inputs(annotation, skeleton, bone_lengths_mm)
@@ -797,21 +812,28 @@ def lift_frame(
         soft_bones=soft_bones,
         right_hand=right_hand,
     )
+    hard_bones = soft_bones is None
     # start inside the depth bounds
     z0 = np.clip(x0_pose[:, 2], prob.z_lo, prob.z_hi)
-    prob.x0 = x0_pose.copy()
-    prob.x0[:, 2] = z0
-    prob.set_elastic(False)
-    res = _solve(prob, soft_bones is None, max_iter, tol)
+    res = None
+    if not start_elastic:
+        res = _solve_hard(prob, x0_pose, z0, hard_bones, max_iter, tol)
     elastic = False
-    if not _acceptable(res, prob, soft_bones is None):
+    if res is None or not (
+        _acceptable(res, prob, hard_bones)
+        # a feasible iterate that only ran out of iterations is kept: elastic mode is for
+        # infeasibility, and re-solving would spend as many iterations again
+        or (res.status == _SLSQP_ITERATION_LIMIT and _feasible(res, prob, hard_bones))
+    ):
         # infeasible or failed: the observed depth under some joint is probably wrong (2D on
         # the wrong surface). Re-solve in elastic mode from the original start.
         prob.x0 = x0_pose.copy()
         prob.set_elastic(True, elastic_weight)
-        res2 = _solve(prob, soft_bones is None, max_iter, tol)
+        res2 = _solve(prob, hard_bones, max_iter, tol)
         if np.all(np.isfinite(res2.x)):
-            res, elastic = res2, True
+            res, elastic = res2, bool(np.max(prob.slacks_mm(res2.x), initial=0.0) > 0.5)
+        elif res is None:
+            res = _solve_hard(prob, x0_pose, z0, hard_bones, max_iter, tol)
         else:
             prob.set_elastic(False)
             prob.x0[:, 2] = z0
@@ -837,6 +859,20 @@ def lift_frame(
     )
 
 
+#: scipy SLSQP's exit status "Iteration limit reached"
+_SLSQP_ITERATION_LIMIT = 9
+
+
+def _solve_hard(
+    prob: _Problem, x0_pose: np.ndarray, z0: np.ndarray, hard_bones: bool, max_iter: int, tol: float
+):
+    """Solve with hard depth intervals (bounds) from ``x0_pose`` moved inside them (``z0``)."""
+    prob.set_elastic(False)
+    prob.x0 = x0_pose.copy()
+    prob.x0[:, 2] = z0
+    return _solve(prob, hard_bones, max_iter, tol)
+
+
 def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
     constraints = []
     if hard_bones:
@@ -853,18 +889,54 @@ def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
             bounds=prob.bounds(),
             constraints=constraints,
             options={"maxiter": max_iter, "ftol": tol},
+            callback=None if prob.elastic else _StallGuard(prob, hard_bones),
         )
 
 
+class _StallGuard:
+    """SLSQP callback that stops a hard solve whose constraint violation is stuck.
+
+    On an infeasible frame SLSQP's linearised subproblems are inconsistent and the iterate stops
+    moving: the violation stays at its first value (17-22 mm, measured on live demo edits) until
+    the iteration limit, 100-160 ms wasted before the elastic re-solve. Feasible solves reduce it
+    below 5 mm within 5 iterations (74 of 74 measured). A violation above ``min_mm`` that has not
+    dropped by 1 % over ``window`` iterations ends the solve (scipy's StopIteration protocol).
+    """
+
+    def __init__(self, prob: _Problem, hard_bones: bool, window: int = 4, min_mm: float = 5.0):
+        self.prob, self.hard_bones = prob, hard_bones
+        self.window, self.min_mm = window, min_mm
+        self.history: list[float] = []
+
+    def __call__(self, intermediate_result) -> None:
+        v = _violation_mm(self.prob, intermediate_result.x, self.hard_bones)
+        self.history.append(v)
+        if len(self.history) > self.window and v > self.min_mm:
+            before = self.history[-1 - self.window]
+            if before - v < 0.01 * before:
+                raise StopIteration
+
+
+def _violation_mm(prob: _Problem, x: np.ndarray, hard_bones: bool) -> float:
+    """Largest violation (mm) of the bone equalities and inequality rows at ``x`` (inf if NaN)."""
+    if not np.all(np.isfinite(x)):
+        return float("inf")
+    v = 0.0
+    if hard_bones:
+        v = float(np.max(np.abs(prob.sk.bone_lengths(prob.pose(x)) - prob.d)))
+    if prob.num_ineq():
+        v = max(v, -float(np.min(prob.ineq(x))))
+    return v
+
+
+def _feasible(res, prob: _Problem, hard_bones: bool) -> bool:
+    """Bones and inequality rows hold to 0.5 mm at ``res.x`` (bounds hold by construction)."""
+    return _violation_mm(prob, res.x, hard_bones) <= 0.5
+
+
 def _acceptable(res, prob: _Problem, hard_bones: bool) -> bool:
-    if not np.all(np.isfinite(res.x)):
-        return False
-    X = prob.pose(res.x)
-    if hard_bones and np.max(np.abs(prob.sk.bone_lengths(X) - prob.d)) > 0.5:
-        return False
-    if prob.num_ineq() and np.min(prob.ineq(res.x)) < -0.5:
-        return False
-    return bool(res.success)
+    """Feasible and SLSQP reports convergence."""
+    return _feasible(res, prob, hard_bones) and bool(res.success)
 
 
 def _confidence(

@@ -212,9 +212,7 @@ def test_frame_without_depth_gives_message_not_exception(session):
     assert frames.get(0) is good  # cached
 
 
-def fake_lift(
-    annotation, depth, camera, skeleton, bone_lengths_mm, *, eps_mm, angle_limits, init_mm
-):
+def fake_lift(annotation, depth, camera, skeleton, bone_lengths_mm, **_):
     """Test stand-in for lift_frame: back-projects 2D joints at 400 mm, others at the wrist."""
     uv = np.where(
         annotation.has_2d[:, None], annotation.uv_px, annotation.uv_px[annotation.has_2d][0]
@@ -259,6 +257,31 @@ def test_worker_lifts_after_edits_and_coalesces(session):
         worker.stop()
     lifted = session.load_results()["lifted_mm"]
     np.testing.assert_allclose(lifted[0], worker.latest[0].joints_mm)  # saved on stop
+
+
+def test_worker_relifts_a_frame_that_needed_slack_in_elastic_mode(session):
+    """After a lift that could not meet some depth interval, the next lift of that frame starts
+    in elastic mode; once a lift meets them all, lifts go back to hard-first."""
+    seen = []
+    needs_slack = iter([True, True, False, False])
+
+    def lift(annotation, *args, start_elastic=False, **kwargs):
+        seen.append(start_elastic)
+        out = fake_lift(annotation, *args, **kwargs)
+        out.elastic = next(needs_slack)
+        return out
+
+    worker = LiftWorker(session, FrameStore(session), lift_fn=lift).start()
+    try:
+        st = AnnotateState(session, "c")
+        for j in range(4):
+            st.place_2d(np.array([150.0 + j, 130.0]))
+            worker.submit(0)
+            assert worker.wait_idle(5)
+        assert worker.latest[0].needed_slack is False
+    finally:
+        worker.stop()
+    assert seen == [False, True, True, False]
 
 
 def test_worker_reports_errors_without_dying(session):

@@ -404,3 +404,68 @@ def test_inconsistent_depth_rules():
     out = _drop_inconsistent_depths(dip_near, v2, OFF, SK, bones, 15.0)
     assert np.isnan(out[3]) and np.isnan(out[4]) and np.isfinite(out[[0, 1, 5, 8]]).all()
     np.testing.assert_array_equal(_drop_inconsistent_depths(d, vis, OFF, SK, bones, 15.0), d)
+
+
+def _bad_tip_depth(X, depth, tip=4, behind_mm=30.0):
+    """``depth`` with the 3x3 under ``tip`` reading ``behind_mm`` behind it (2D off the finger):
+    an interval no pose with these bones can meet, and too close to be dropped as impossible."""
+    bad = depth.copy()
+    u, v = np.rint(CAM.project(X[tip])).astype(int)
+    bad[v - 1 : v + 2, u - 1 : u + 2] = X[tip, 2] + behind_mm
+    return bad
+
+
+def test_start_elastic_gives_the_fallback_result_directly(frames):
+    """Live re-lifts of a frame that needed slack start in elastic mode (skipping a hard solve
+    that would fail again): same result as the hard-then-elastic fallback; on a feasible frame
+    the elastic solution has no slack and is reported as a hard one."""
+    X, depth, ann = frames[5]
+    bones = SK.bone_lengths(X)
+    bad = _bad_tip_depth(X, depth)
+    fallback = lift_frame(ann, bad, CAM, SK, bones)
+    direct = lift_frame(ann, bad, CAM, SK, bones, start_elastic=True)
+    assert fallback.elastic and direct.elastic
+    assert direct.converged
+    assert np.abs(direct.joints_mm - fallback.joints_mm).max() < 0.5
+    hard = lift_frame(ann, depth, CAM, SK, bones)
+    relaxed = lift_frame(ann, depth, CAM, SK, bones, start_elastic=True)
+    assert not hard.elastic and not relaxed.elastic and relaxed.converged
+    assert np.abs(relaxed.joints_mm - hard.joints_mm).max() < 0.05
+    _check_constraints(relaxed, ann, bones)
+
+
+def test_feasible_iterate_at_iteration_limit_is_kept(frames):
+    """Running out of iterations on a feasible iterate is not infeasibility: no elastic re-solve
+    (which would spend as many iterations again), result flagged not converged."""
+    X, depth, ann = frames[0]
+    bones = SK.bone_lengths(X)
+    r = lift_frame(ann, depth, CAM, SK, bones, max_iter=8)
+    assert not r.elastic and not r.converged
+    assert r.iterations == 8
+    assert np.max(np.abs(SK.bone_lengths(r.joints_mm) - bones)) < 0.5
+
+
+def test_stalled_hard_solve_stops_early(frames, monkeypatch):
+    """An infeasible hard solve whose violation is stuck is stopped after a few iterations (not
+    run to max_iter) before the elastic re-solve; feasible solves run to convergence."""
+    import handanno_core.lift as lift_module
+
+    solves = []
+    real_solve = lift_module._solve
+
+    def spy(prob, *args):
+        res = real_solve(prob, *args)
+        solves.append((prob.elastic, int(res.nit), bool(res.success)))
+        return res
+
+    monkeypatch.setattr(lift_module, "_solve", spy)
+    X, depth, ann = frames[5]
+    bones = SK.bone_lengths(X)
+    r = lift_frame(ann, _bad_tip_depth(X, depth), CAM, SK, bones, max_iter=200)
+    assert r.elastic and r.converged
+    (hard_elastic, hard_nit, hard_ok), (second_elastic, _, _) = solves
+    assert not hard_elastic and not hard_ok and hard_nit <= 10 and second_elastic
+    solves.clear()
+    X, depth, ann = frames[0]
+    r = lift_frame(ann, depth, CAM, SK, SK.bone_lengths(X), max_iter=200)
+    assert r.converged and not r.elastic and solves == [(False, r.iterations, True)]

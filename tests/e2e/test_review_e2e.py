@@ -374,3 +374,27 @@ def test_accept_flag_export_and_import(ctx: Ctx, tmp_path):
     )
     res = Session.open(folder).load_results()
     assert np.allclose(res["final_mm"][3], np.asarray(doc["frames"][3]["joints_mm"]), atol=1e-3)
+
+
+def test_annotate_hotkeys_pause_while_the_review_scene_is_shown(ctx: Ctx):
+    """viser's hotkeys are page-wide: with the Review scene shown, V or arrow keys must not edit
+    or move the hidden annotate frame. Using the Annotate panel brings its scene (and keys) back."""
+    page, view, folder = ctx.page, ctx.view(), ctx.folder
+    annotate = ctx.app.views[view.client.client_id]["Annotate"]
+    view.activate_scene()
+    assert view.scene_active
+    joint, entries = annotate.state.joint, len(journal(folder))
+    page.keyboard.press("ArrowRight")
+    page.keyboard.press("v")
+    wait_until(
+        lambda: page.get_by_text("Annotate hotkeys paused").first.is_visible(),
+        what="the paused-hotkeys notification",
+    )
+    time.sleep(0.5)  # both key events have reached the server by now
+    assert annotate.state.joint == joint and len(journal(folder)) == entries
+    page.get_by_role("tab", name="Annotate").click()
+    page.get_by_role("button", name="Sensor view").click()
+    wait_until(lambda: not view.scene_active, what="the annotate scene back")
+    page.keyboard.press("ArrowRight")
+    wait_until(lambda: annotate.state.joint == joint + 1, what="next joint by hotkey")
+    page.get_by_role("tab", name="Review").click()

@@ -6,8 +6,8 @@ Scene (client-scoped, under ``/annotate``, metres centred on the hand, see geome
   are snapped server-side from ``scene.on_click`` rays);
 * ``/annotate/image`` - the colour-mapped depth image on a plane behind the hand, lined up with
   the cloud; a click on it sets the selected joint's 2D position;
-* ``/annotate/handles2d`` - the 2D annotations as small markers on the image plane (draggable
-  within the plane);
+* ``/annotate/handles2d`` - the 2D annotations as flat rings on the image plane, wider than the
+  joint spheres in front of them (draggable within the plane, grabbed by the visible band);
 * ``/annotate/joints`` - the 21 joints as ONE batched mesh (draggable in 3D), positions from the
   live lift (or the annotation until the first lift arrives); the selected joint highlighted;
 * ``/annotate/bones`` - skeleton line segments; ``/annotate/labels/<k>`` - joint labels.
@@ -48,7 +48,13 @@ if TYPE_CHECKING:
 STATIC = Path(__file__).resolve().parent.parent / "static"
 ROOT = "/annotate"
 JOINT_RADIUS_M = 0.0045
-HANDLE2D_RADIUS_M = 0.0025
+#: 2D markers are flat rings on the image plane. From the sensor view (the default) each joint's
+#: sphere sits right in front of its marker, so the ring is drawn CLEARANCE times wider than the
+#: sphere's footprint on the plane: its outer band stays visible and grabbable. Inner radius is
+#: RING_INNER of the outer one (the depth image shows through the hole).
+HANDLE2D_MIN_RADIUS_M = 0.004
+HANDLE2D_CLEARANCE = 1.6
+RING_INNER = 0.7
 
 
 def load_colours() -> dict[str, Any]:
@@ -120,6 +126,7 @@ class AnnotateView:
         self.skeleton = app.session.skeleton
         self._lock = threading.RLock()
         self._told_hotkeys_paused = False
+        self._handle2d_grab_px = np.zeros(2)  # grab point - marker centre of a 2D drag, px
         # Every redraw runs on this view's own single thread, in order: edits, lift results and
         # navigation from different threads never interleave half-drawn states, and the session's
         # listener (which holds the session lock) only enqueues.
@@ -187,10 +194,11 @@ class AnnotateView:
             receive_shadow=False,
         )
         sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        ring = trimesh.creation.annulus(r_min=RING_INNER, r_max=1.0, height=0.05, sections=32)
         self.handles2d = scene.add_batched_meshes_simple(
             f"{ROOT}/handles2d",
-            vertices=sphere.vertices,
-            faces=sphere.faces,
+            vertices=ring.vertices,
+            faces=ring.faces,
             batched_wxyzs=ident,
             batched_positions=zeros,
             batched_scales=np.zeros(j),
@@ -552,15 +560,21 @@ class AnnotateView:
         data = self._frame_data
         if k is None or data is None or data.depth is None:
             return
-        if event.phase == "start":
-            self.state.select_joint(k)
-            return
         # The drag point lies on a camera-aligned plane: cast the ray from the browser camera.
         origin = np.asarray(self.client.camera.position, dtype=np.float64)
-        direction = np.asarray(event.end_position) - origin
-        uv = data.geometry.ray_to_pixel(origin, direction)
+        if event.phase == "start":
+            self.state.select_joint(k)
+            # the ring is grabbed by its band, off its centre: keep that offset while dragging
+            grab = data.geometry.ray_to_pixel(origin, np.asarray(event.start_position) - origin)
+            ann = self._annotation
+            self._handle2d_grab_px = (
+                grab - ann.uv_px[k] if grab is not None and ann.has_2d[k] else np.zeros(2)
+            )
+            return
+        uv = data.geometry.ray_to_pixel(origin, np.asarray(event.end_position) - origin)
         if uv is None:
             return
+        uv = uv - self._handle2d_grab_px
         if event.phase == "update":
             with self._lock:
                 positions = np.asarray(self.handles2d.batched_positions, dtype=np.float64).copy()
@@ -729,8 +743,12 @@ class AnnotateView:
         )
         has2d = ann.has_2d
         h2d = geo.pixel_to_scene(np.where(has2d[:, None], ann.uv_px, 0.0), offset_mm=2.0)
-        h2d_scales = np.where(has2d, HANDLE2D_RADIUS_M, 0.0)
-        h2d_scales[sel] *= 1.5 if has2d[sel] else 1.0
+        # footprint of each joint's sphere on the image plane (perspective from the sensor)
+        depth_mm = np.where(shown, pos_f[:, 2] * 1000.0 + geo.centre_mm[2], geo.plane_z_mm)
+        footprint = scales * geo.plane_z_mm / np.maximum(depth_mm, 1.0)
+        h2d_scales = np.where(
+            has2d, np.maximum(HANDLE2D_MIN_RADIUS_M, HANDLE2D_CLEARANCE * footprint), 0.0
+        )
         bones = self.skeleton.bones
         seg = pos_f[bones]  # (B, 2, 3)
         seg_ok = shown[bones].all(axis=1)

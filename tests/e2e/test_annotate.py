@@ -112,6 +112,31 @@ def test_annotate_flow(ctx: Ctx):
     saved = page.get_by_text(re.compile(r"✓ saved \d\d:\d\d:\d\d \(edit #2\)"))
     wait_until(saved.is_visible, what="the saved indicator")
 
+    # 1b. Drag joint 1's 2D ring by its band, on the side away from the joint sphere in front of
+    # it (these two clicks are no hand, so the lift does not reproject exactly onto them), 25 px
+    # to the right: the 2D position moves by the drag, not to the point where the ring was grabbed.
+    assert ctx.app.worker.wait_idle(120)  # let the lift land first: it moves the joint spheres
+    view.flush()
+    wait_camera_still(page)
+    geo = view._frame_data.geometry
+    centre_scene = geo.pixel_to_scene(uv1, offset_mm=2.0)
+    centre = np.asarray(screen_of(page, "/annotate", centre_scene))
+    outer_m = float(view.handles2d.batched_scales[1])
+    outer = np.linalg.norm(screen_of(page, "/annotate", centre_scene + [outer_m, 0, 0]) - centre)
+    away = centre - np.asarray(ctx.joint_point(1))
+    away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
+    grab = centre + 0.85 * outer * away
+    screen_per_px = ctx.image_point(uv1 + (10.0, 0.0))[0] - ctx.image_point(uv1)[0]
+    drag(page, tuple(grab), (grab[0] + 25, grab[1]))
+    wait_until(
+        lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 3,
+        what="a 2D ring drag edit",
+    )
+    cmd = journal(folder)[-1]["command"]
+    assert (cmd["frame"], cmd["joint"]) == (frame, 1)
+    expected = uv1 + (25.0 * 10.0 / screen_per_px, 0.0)
+    assert np.allclose(cmd["uv_px"], expected, atol=1.5), (cmd["uv_px"], expected)
+
     # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
     assert ctx.app.worker.wait_idle(120)  # let the lift land first: it moves the joint spheres
     view.flush()

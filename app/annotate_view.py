@@ -122,7 +122,7 @@ class AnnotateView:
         self.app = app
         self.client = client
         self.session = app.session
-        self.state = AnnotateState(app.session, client=f"browser-{client.client_id}")
+        self.state = AnnotateState(app.session, client=app.client_name(client))
         self.skeleton = app.session.skeleton
         self._lock = threading.RLock()
         self._told_hotkeys_paused = False

@@ -125,7 +125,7 @@ class ReviewView:
         self.live = self.hub.live
         self.runner = self.hub.runner
         self.skeleton = app.session.skeleton
-        self.client_name = f"browser-{client.client_id}"
+        self.client_name = app.client_name(client)
         self._lock = threading.RLock()
         self.frame = 0
         self._frame_data: FrameData | None = None

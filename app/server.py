@@ -17,10 +17,12 @@ the views; lift results are forwarded to the views too.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import threading
 import time
 import traceback
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -42,6 +44,34 @@ def load_help_markdown() -> str:
         return (STATIC / "help.md").read_text()
     except OSError:
         return "## Hotkeys\n\n" + hotkey_table_markdown()
+
+
+#: localStorage key of this app's per-browser id (viser namespaces it under its own prefix).
+BROWSER_ID_KEY = "handanno.browser_id"
+_BROWSER_ID = re.compile(r"[0-9a-f]{12}")
+
+
+def browser_identity(client: Any, timeout_s: float = 3.0) -> str:
+    """``browser-<id>``: the name this browser's edits carry in the journal.
+
+    The id is random and kept in the browser's localStorage, so a page reload (or a restarted
+    server) gives the same name, and with it the same undo history, which the session rebuilds per
+    name from the journal. Where storage is blocked or does not answer, a fresh random id: such a
+    browser never takes over another's history (viser's client ids restart at 0 with the server).
+    """
+    stored = None
+    try:
+        stored = client.local_storage.get_item(BROWSER_ID_KEY, timeout=timeout_s)
+    except (RuntimeError, TimeoutError, AttributeError):
+        pass
+    if stored is not None and _BROWSER_ID.fullmatch(stored):
+        return f"browser-{stored}"
+    new_id = uuid.uuid4().hex[:12]
+    try:
+        client.local_storage.set_item(BROWSER_ID_KEY, new_id)
+    except (RuntimeError, AttributeError):
+        pass
+    return f"browser-{new_id}"
 
 
 class AnnoServer:
@@ -68,6 +98,7 @@ class AnnoServer:
         self.help_markdown = load_help_markdown()
         self.worker = LiftWorker(session, self.frames, lift_fn=lift_fn, on_result=self._on_lift)
         self.views: dict[int, dict[str, Any]] = {}
+        self.client_names: dict[int, str] = {}  # viser client id -> journal name (see above)
         self._views_lock = threading.Lock()
         #: callbacks(view, outcome) after a view assigned a lifted skeleton (benchmarks).
         self.skeleton_listeners: list[Callable[[Any, LiftOutcome], None]] = []
@@ -103,8 +134,16 @@ class AnnoServer:
             return [v["Annotate"] for v in self.views.values() if "Annotate" in v]
 
     # ------------------------------------------------------------------ clients
+    def client_name(self, client: viser.ClientHandle) -> str:
+        """The journal name of ``client``'s edits (stable across reloads of that browser)."""
+        name = self.client_names.get(client.client_id)
+        if name is None:
+            name = self.client_names[client.client_id] = browser_identity(client)
+        return name
+
     def _on_connect(self, client: viser.ClientHandle) -> None:
         views: dict[str, Any] = {}
+        self.client_name(client)  # before the views: they journal under it
         try:
             if len(self.view_classes) > 1:
                 tabs = client.gui.add_tab_group()
@@ -125,6 +164,7 @@ class AnnoServer:
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self._views_lock:
             views = self.views.pop(client.client_id, {})
+        self.client_names.pop(client.client_id, None)
         for view in views.values():
             close = getattr(view, "close", None)
             if close is not None:

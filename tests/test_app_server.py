@@ -94,3 +94,40 @@ def test_demo_creates_then_serves(tmp_path, monkeypatch):
         assert app.session.folder == s.folder
     finally:
         app.stop()
+
+
+class FakeStorage:
+    """Stand-in for viser's ClientHandle.local_storage (a dict; optionally blocked)."""
+
+    def __init__(self, items=None, blocked=False):
+        self.items = dict(items or {})
+        self.blocked = blocked
+
+    def get_item(self, key, timeout=None):
+        if self.blocked:
+            raise RuntimeError("Failed to read localStorage: SecurityError")
+        return self.items.get(key)
+
+    def set_item(self, key, value):
+        self.items[key] = value
+
+
+def test_browser_identity_is_kept_in_local_storage():
+    """A browser keeps its journal name across reloads (same storage); a blocked or tampered
+    storage gets a fresh random name, never another browser's."""
+    from types import SimpleNamespace
+
+    first = SimpleNamespace(local_storage=FakeStorage())
+    name = app_server.browser_identity(first)
+    assert name.startswith("browser-") and len(name) == len("browser-") + 12
+    reloaded = SimpleNamespace(local_storage=FakeStorage(first.local_storage.items))
+    assert app_server.browser_identity(reloaded) == name
+    other = SimpleNamespace(local_storage=FakeStorage())
+    assert app_server.browser_identity(other) != name
+    blocked = SimpleNamespace(local_storage=FakeStorage(blocked=True))
+    a, b = app_server.browser_identity(blocked), app_server.browser_identity(blocked)
+    assert a != b and a != name
+    tampered = SimpleNamespace(
+        local_storage=FakeStorage({app_server.BROWSER_ID_KEY: "../../x; rm -rf"})
+    )
+    assert app_server.browser_identity(tampered) != "browser-../../x; rm -rf"

@@ -22,6 +22,7 @@ from viser_helpers import (
     open_app,
     screen_of,
     wait_camera_still,
+    wait_for_node,
     wait_until,
 )
 
@@ -261,3 +262,32 @@ def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
         lambda: not page.get_by_text("⚠ frame 20: no depth").is_visible(), what="message gone"
     )
     assert view._frame_data.depth is not None
+
+
+def test_undo_survives_a_page_reload(ctx: Ctx):
+    """Edits carry a per-browser name kept in localStorage, so after a reload Ctrl+Z still undoes
+    the edit made before it (the session rebuilds undo stacks per name from the journal)."""
+    page, folder = ctx.page, ctx.folder
+    old = ctx.view
+    old.flush()
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    n = len(journal(folder))
+    page.keyboard.press("v")
+    wait_until(lambda: len(journal(folder)) > n, what="the visibility edit")
+    edit = journal(folder)[-1]
+    assert edit["command"]["kind"] == "set_visible" and edit["client"].startswith("browser-")
+    page.reload()
+    wait_for_node(page, "/annotate/joints")
+    dismiss_webgl_toast(page)
+    wait_until(
+        lambda: (views := ctx.app.annotate_views()) and views[0] is not old and len(views) == 1,
+        what="the reloaded page's view",
+    )
+    new = ctx.view
+    assert new.state.client == edit["client"]
+    new.flush()
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    page.keyboard.press("Control+z")
+    wait_until(lambda: journal(folder)[-1]["action"] == "undo", what="an undo after the reload")
+    undo = journal(folder)[-1]
+    assert undo["target"] == edit["seq"] and undo["client"] == edit["client"]

@@ -260,15 +260,16 @@ def test_worker_lifts_after_edits_and_coalesces(session):
 
 
 def test_worker_relifts_a_frame_that_needed_slack_in_elastic_mode(session):
-    """After a lift that could not meet some depth interval, the next lift of that frame starts
-    in elastic mode; once a lift meets them all, lifts go back to hard-first."""
+    """After a lift that could not meet some depth intervals, the next lift of that frame starts
+    in elastic mode with slacks on those joints; once a lift meets them all, lifts go back to
+    hard-first."""
     seen = []
-    needs_slack = iter([True, True, False, False])
+    slack_of_call = iter([[4], [4, 8], [], []])
 
-    def lift(annotation, *args, start_elastic=False, **kwargs):
-        seen.append(start_elastic)
+    def lift(annotation, *args, start_elastic=False, elastic_joints=None, **kwargs):
+        seen.append((start_elastic, [int(k) for k in elastic_joints]))
         out = fake_lift(annotation, *args, **kwargs)
-        out.elastic = next(needs_slack)
+        out.slack_joints = np.asarray(next(slack_of_call), dtype=np.int64)
         return out
 
     worker = LiftWorker(session, FrameStore(session), lift_fn=lift).start()
@@ -281,7 +282,7 @@ def test_worker_relifts_a_frame_that_needed_slack_in_elastic_mode(session):
         assert worker.latest[0].needed_slack is False
     finally:
         worker.stop()
-    assert seen == [False, True, True, False]
+    assert seen == [(False, []), (True, [4]), (True, [4, 8]), (False, [])]
 
 
 def test_worker_reports_errors_without_dying(session):

@@ -415,7 +415,7 @@ def _bad_tip_depth(X, depth, tip=4, behind_mm=30.0):
     return bad
 
 
-def test_start_elastic_gives_the_fallback_result_directly(frames):
+def test_start_elastic_gives_the_fallback_result_directly(frames, monkeypatch):
     """Live re-lifts of a frame that needed slack start in elastic mode (skipping a hard solve
     that would fail again): same result as the hard-then-elastic fallback; on a feasible frame
     the elastic solution has no slack and is reported as a hard one."""
@@ -424,9 +424,35 @@ def test_start_elastic_gives_the_fallback_result_directly(frames):
     bad = _bad_tip_depth(X, depth)
     fallback = lift_frame(ann, bad, CAM, SK, bones)
     direct = lift_frame(ann, bad, CAM, SK, bones, start_elastic=True)
-    assert fallback.elastic and direct.elastic
+    assert fallback.elastic and direct.elastic and list(fallback.slack_joints) == [4]
     assert direct.converged
     assert np.abs(direct.joints_mm - fallback.joints_mm).max() < 0.5
+    # slacks on the joint that needed one only: one small solve, same solution
+    import handanno_core.lift as lift_module
+
+    slacks_per_solve = []
+    real_solve = lift_module._solve
+
+    def spy(prob, *args):
+        slacks_per_solve.append(prob.n_slack)
+        return real_solve(prob, *args)
+
+    monkeypatch.setattr(lift_module, "_solve", spy)
+    X2, depth2, ann2 = frames[2]
+    bones2 = SK.bone_lengths(X2)
+    bad2 = _bad_tip_depth(X2, depth2, tip=8, behind_mm=25.0)
+    wide = lift_frame(ann2, bad2, CAM, SK, bones2, start_elastic=True)
+    assert list(wide.slack_joints) == [8]
+    slacks_per_solve.clear()
+    narrow = lift_frame(ann2, bad2, CAM, SK, bones2, start_elastic=True, elastic_joints=[8])
+    assert narrow.converged and list(narrow.slack_joints) == [8] and slacks_per_solve == [1]
+    assert np.abs(narrow.joints_mm - wide.joints_mm).max() < 0.05
+    # ... and a wrong guess (a joint whose interval is fine) falls back to slacks on all joints
+    slacks_per_solve.clear()
+    guess = lift_frame(ann2, bad2, CAM, SK, bones2, start_elastic=True, elastic_joints=[12])
+    assert guess.converged and list(guess.slack_joints) == [8]
+    assert len(slacks_per_solve) == 2 and slacks_per_solve[0] == 1 and slacks_per_solve[1] > 10
+    assert np.abs(guess.joints_mm - wide.joints_mm).max() < 0.05
     hard = lift_frame(ann, depth, CAM, SK, bones)
     relaxed = lift_frame(ann, depth, CAM, SK, bones, start_elastic=True)
     assert not hard.elastic and not relaxed.elastic and relaxed.converged

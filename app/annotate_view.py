@@ -40,6 +40,7 @@ from .annotate_state import AnnotateState
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
 from .hotkeys import bind_all
+from .scene_nodes import UNIT_SPHERE, add_bones, add_hand_cloud, add_joint_meshes, show_hand_cloud
 from .worker import LiftOutcome
 
 if TYPE_CHECKING:
@@ -174,15 +175,7 @@ class AnnotateView:
         scene.set_up_direction("-y")  # OpenCV camera frame: y down
         cam = self.session.camera
         j = self.skeleton.num_joints
-        ident = np.tile([1.0, 0.0, 0.0, 0.0], (j, 1))
-        zeros = np.zeros((j, 3))
-        self.cloud = scene.add_point_cloud(
-            f"{ROOT}/cloud",
-            points=np.zeros((1, 3), np.float32),
-            colors=(0, 0, 0),
-            point_size=0.002,
-            point_shape="rounded",
-        )
+        self.cloud = add_hand_cloud(scene, f"{ROOT}/cloud")
         self.image = scene.add_image(
             f"{ROOT}/image",
             np.zeros((cam.height, cam.width, 3), np.uint8),
@@ -193,41 +186,16 @@ class AnnotateView:
             cast_shadow=False,
             receive_shadow=False,
         )
-        sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
         ring = trimesh.creation.annulus(r_min=RING_INNER, r_max=1.0, height=0.05, sections=32)
-        self.handles2d = scene.add_batched_meshes_simple(
-            f"{ROOT}/handles2d",
-            vertices=ring.vertices,
-            faces=ring.faces,
-            batched_wxyzs=ident,
-            batched_positions=zeros,
-            batched_scales=np.zeros(j),
-            batched_colors=self.base_colours,
-            cast_shadow=False,
-            receive_shadow=False,
-            lod="off",
-        )
-        self.joints = scene.add_batched_meshes_simple(
+        self.handles2d = add_joint_meshes(scene, f"{ROOT}/handles2d", ring, self.base_colours)
+        self.joints = add_joint_meshes(
+            scene,
             f"{ROOT}/joints",
-            vertices=sphere.vertices,
-            faces=sphere.faces,
-            batched_wxyzs=ident,
-            batched_positions=zeros,
-            batched_scales=np.zeros(j),
-            batched_colors=self.base_colours,
+            UNIT_SPHERE,
+            self.base_colours,
             batched_opacities=np.ones(j, np.float32),
-            cast_shadow=False,
-            receive_shadow=False,
-            lod="off",
         )
-        bones = self.skeleton.bones
-        self.bones = scene.add_line_segments(
-            f"{ROOT}/bones",
-            points=np.zeros((len(bones), 2, 3), np.float32),
-            colors=np.repeat(self.base_colours[bones[:, 1]][:, None, :], 2, axis=1),
-            thickness=3.0,
-            thickness_units="screen",
-        )
+        self.bones = add_bones(scene, f"{ROOT}/bones", self.skeleton.bones, self.base_colours)
         self.labels = [
             scene.add_label(
                 f"{ROOT}/labels/{k}",
@@ -454,13 +422,7 @@ class AnnotateView:
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
-            has_cloud = len(geo.cloud_mm) > 0
-            self.cloud.points = geo.to_scene(
-                geo.cloud_mm if has_cloud else geo.centre_mm[None]
-            ).astype(np.float32)
-            self.cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
-            self.cloud.point_size = float(1.6 * geo.centre_mm[2] / self.session.camera.fx / 1000.0)
-            self.cloud.visible = has_cloud
+            self.cloud.visible = show_hand_cloud(self.cloud, geo)
             rw, rh = geo.image_render_size
             self.image.image = geo.image_rgb
             self.image.render_width = rw

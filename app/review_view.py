@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
 import viser
 import viser.uplot
 
@@ -39,6 +38,7 @@ from .annotate_view import joint_colours, load_colours
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
 from .review_state import LiveResults, ReviewRunner, correction_command, next_worst
+from .scene_nodes import UNIT_SPHERE, add_bones, add_hand_cloud, add_joint_meshes, show_hand_cloud
 
 if TYPE_CHECKING:
     from .server import AnnoServer
@@ -149,37 +149,12 @@ class ReviewView:
     # ================================================================== construction
     def _build_scene(self) -> None:
         scene = self.client.scene
-        j = self.skeleton.num_joints
-        sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
-        self.cloud = scene.add_point_cloud(
-            f"{ROOT}/cloud",
-            points=np.zeros((1, 3), np.float32),
-            colors=(0, 0, 0),
-            point_size=0.002,
-            point_shape="rounded",
-            visible=False,
+        self.cloud = add_hand_cloud(scene, f"{ROOT}/cloud", visible=False)
+        self.joints = add_joint_meshes(
+            scene, f"{ROOT}/joints", UNIT_SPHERE, self.base_colours, visible=False
         )
-        self.joints = scene.add_batched_meshes_simple(
-            f"{ROOT}/joints",
-            vertices=sphere.vertices,
-            faces=sphere.faces,
-            batched_wxyzs=np.tile([1.0, 0.0, 0.0, 0.0], (j, 1)),
-            batched_positions=np.zeros((j, 3)),
-            batched_scales=np.zeros(j),
-            batched_colors=self.base_colours,
-            cast_shadow=False,
-            receive_shadow=False,
-            lod="off",
-            visible=False,
-        )
-        bones = self.skeleton.bones
-        self.bones = scene.add_line_segments(
-            f"{ROOT}/bones",
-            points=np.zeros((len(bones), 2, 3), np.float32),
-            colors=np.repeat(self.base_colours[bones[:, 1]][:, None, :], 2, axis=1),
-            thickness=3.0,
-            thickness_units="screen",
-            visible=False,
+        self.bones = add_bones(
+            scene, f"{ROOT}/bones", self.skeleton.bones, self.base_colours, visible=False
         )
 
         @self.joints.on_drag("left")
@@ -341,13 +316,7 @@ class ReviewView:
         with self._lock, self.client.atomic():
             self.frame = frame
             self._frame_data = data
-            has_cloud = len(geo.cloud_mm) > 0
-            self.cloud.points = geo.to_scene(
-                geo.cloud_mm if has_cloud else geo.centre_mm[None]
-            ).astype(np.float32)
-            self.cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
-            self.cloud.point_size = float(1.6 * geo.centre_mm[2] / self.session.camera.fx / 1000.0)
-            self.cloud.visible = has_cloud and self.scene_active
+            self.cloud.visible = show_hand_cloud(self.cloud, geo) and self.scene_active
             if int(self.slider.value) != frame:
                 self.slider.value = frame
         self.render_skeleton()

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from review_session import build_review_session
 
 from app.review_state import (
     OFF_HAND_MM,
@@ -36,7 +37,6 @@ from handanno_core.session import (
 from handanno_core.skeleton import MSRA21
 
 FRAMES = 40
-STEP = 10
 
 
 # ------------------------------------------------------------------------------------------ scores
@@ -127,28 +127,6 @@ def test_depth_residuals_from_crops():
 
 
 # ------------------------------------------------------------------------------------------ session fixture
-def build_session(folder: Path, data: Path) -> Path:
-    """References every 10th frame, annotated by the simulated annotator; lifted joints taken from
-    ground truth so that the fixture is fast (the lift is tested elsewhere)."""
-    from handanno_core.pipeline import annotate_from_gt, new_session
-
-    session = new_session(folder, data, format="msra", overwrite=True)
-    refs = list(range(0, session.num_frames, STEP))
-    parent = [-1 if f in refs else (f - 1 if f % STEP else -1) for f in range(session.num_frames)]
-    session.set_selection({"strategy": "uniform", "reference_frames": refs, "parent": parent})
-    annotate_from_gt(session, quiet=True)
-    gt = session.open_sequence().ground_truth.joints_mm
-    lifted = np.full_like(gt, np.nan)
-    lifted[refs] = gt[refs]
-    conf = np.full(gt.shape[:2], np.nan)
-    conf[refs] = 1.0
-    session.save_results(lifted_mm=lifted, confidence=conf)
-    session.set_bone_lengths(session.skeleton.estimate_bone_lengths(gt))
-    session.model.settings.aligner = "dis"  # the fast aligner keeps this file under its time budget
-    session.close()
-    return folder
-
-
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory) -> Path:
     from handanno_core.synth import generate_sequence
@@ -160,7 +138,7 @@ def data_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture()
 def session(data_dir, tmp_path):
-    s = Session.open(build_session(tmp_path / "sess", data_dir))
+    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
     yield s
     s.close()
 

@@ -101,7 +101,17 @@ class DepthSequence(abc.ABC):
 
     @property
     def ground_truth(self) -> GroundTruth | None:
-        """Ground-truth joints or None. Only evaluation and the simulated annotator may use it."""
+        """Ground-truth joints or None. Only evaluation and the simulated annotator may use it.
+
+        Read by :meth:`_load_ground_truth` on first access and kept (a failed read is retried)."""
+        try:
+            return self._ground_truth
+        except AttributeError:
+            self._ground_truth: GroundTruth | None = self._load_ground_truth()
+            return self._ground_truth
+
+    def _load_ground_truth(self) -> GroundTruth | None:
+        """Read the ground truth (readers override this); None where the dataset has none."""
         return None
 
     @property

@@ -78,8 +78,6 @@ class BlenderSequence(DepthSequence):
         self._depth_files = [depth[i] for i in ids]
         self._label_files = [labels.get(i) for i in ids]
         super().__init__(root, intrinsics or BLENDER_CAMERA, BLENDER24)
-        self._gt: GroundTruth | None = None
-        self._gt_loaded = False
 
     def __len__(self) -> int:
         return len(self._depth_files)
@@ -109,15 +107,8 @@ class BlenderSequence(DepthSequence):
         mm = np.where(invalid, 0.0, metres * 1000.0).astype(np.float32)
         return validate_depth(mm, path, index, shape)
 
-    @property
-    def ground_truth(self) -> GroundTruth | None:
-        """Joints ``(N, 24, 3)`` mm (OpenCV frame) from the labels; None if no frame has a label."""
-        if not self._gt_loaded:
-            self._gt = self._load_ground_truth()
-            self._gt_loaded = True
-        return self._gt
-
     def _load_ground_truth(self) -> GroundTruth | None:
+        """Joints ``(N, 24, 3)`` mm (OpenCV frame) from the labels; None if no frame has a label."""
         if all(f is None for f in self._label_files):
             return None
         missing = [

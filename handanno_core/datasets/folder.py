@@ -146,8 +146,7 @@ class FolderSequence(DepthSequence):
             raise FrameError(path, index, f"depth has shape {raw.shape}, expected {shape}")
         return validate_depth(raw.astype(np.float32), path, index, shape)
 
-    @property
-    def ground_truth(self) -> GroundTruth | None:
+    def _load_ground_truth(self) -> GroundTruth | None:
         """``joints.npy`` ``(N, J, 3)`` mm if present, else None."""
         if not self._joints_path.is_file():
             return None

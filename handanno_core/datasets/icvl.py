@@ -87,7 +87,6 @@ class ICVLSequence(DepthSequence):
         if not self.depth_scale_mm > 0:
             raise DatasetError(f"{path}: depth_scale_mm must be > 0, got {depth_scale_mm}")
         super().__init__(root, intrinsics or ICVL_CAMERA, ICVL16)
-        self._gt: GroundTruth | None = None
 
     def __len__(self) -> int:
         return len(self._names)
@@ -102,12 +101,9 @@ class ICVLSequence(DepthSequence):
         shape = (self.camera.height, self.camera.width)
         return read_png16(path, index, shape, self.depth_scale_mm)
 
-    @property
-    def ground_truth(self) -> GroundTruth:
+    def _load_ground_truth(self) -> GroundTruth:
         """Joints ``(N, 16, 3)`` mm in the OpenCV frame, back-projected from (u, v, d) labels."""
-        if self._gt is None:
-            self._gt = GroundTruth(self.camera.backproject(self._uvd[..., :2], self._uvd[..., 2]))
-        return self._gt
+        return GroundTruth(self.camera.backproject(self._uvd[..., :2], self._uvd[..., 2]))
 
 
 def read_png16(path: Path, index: int, shape: tuple[int, int], scale: float) -> np.ndarray:

@@ -120,8 +120,6 @@ class MSRASequence(DepthSequence):
         if intrinsics is None:
             intrinsics = self._find_camera(root, folders)
         super().__init__(root, intrinsics, MSRA21)
-        self._gt: GroundTruth | None = None
-        self._gt_loaded = False
 
     @staticmethod
     def _find_camera(root: Path, folders: list[str]) -> CameraIntrinsics:
@@ -162,19 +160,12 @@ class MSRASequence(DepthSequence):
         path = self.frame_path(index)
         return read_msra_frame(path, index, (self.camera.height, self.camera.width))
 
-    @property
-    def ground_truth(self) -> GroundTruth | None:
+    def _load_ground_truth(self) -> GroundTruth | None:
         """Joints ``(N, 21, 3)`` mm, OpenCV frame; parsed from ``joint.txt`` on first access.
 
         None when no gesture folder has a ``joint.txt``; :class:`DatasetError` when only some have
         one, or a file is malformed or its N disagrees with the frame count.
         """
-        if not self._gt_loaded:
-            self._gt = self._load_ground_truth()
-            self._gt_loaded = True
-        return self._gt
-
-    def _load_ground_truth(self) -> GroundTruth | None:
         files = [Path(f) / JOINT_FILE for f in self._folders]
         present = [f.is_file() for f in files]
         if not any(present):

@@ -94,8 +94,6 @@ class NYUSequence(DepthSequence):
             )
         self.camera_index = camera_index
         super().__init__(root, intrinsics or NYU_CAMERA, NYU14)
-        self._gt: GroundTruth | None = None
-        self._gt_loaded = False
 
     def __len__(self) -> int:
         return len(self._numbers)
@@ -124,15 +122,8 @@ class NYUSequence(DepthSequence):
             )
         return validate_depth(decode_nyu_png(image), path, index, shape)
 
-    @property
-    def ground_truth(self) -> GroundTruth | None:
-        """Joints ``(N, 14, 3)`` mm (OpenCV frame) from ``joint_data.mat``, or None if absent."""
-        if not self._gt_loaded:
-            self._gt = self._load_ground_truth()
-            self._gt_loaded = True
-        return self._gt
-
     def _load_ground_truth(self) -> GroundTruth | None:
+        """Joints ``(N, 14, 3)`` mm (OpenCV frame) from ``joint_data.mat``, or None if absent."""
         mat = self.path / JOINT_FILE
         if not mat.is_file():
             return None

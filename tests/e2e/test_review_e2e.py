@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from review_session import STEP, build_review_session
 from viser_helpers import (
     browser,
     drag,
@@ -29,28 +30,6 @@ from viser_helpers import (
 from app.review_state import next_worst
 from app.server import AnnoServer, serve
 from handanno_core.session import JOURNAL_FILE, Session
-
-STEP = 10
-
-
-def build_review_session(folder: Path, data: Path) -> Path:
-    from handanno_core.pipeline import annotate_from_gt, new_session
-
-    session = new_session(folder, data, format="msra", overwrite=True)
-    refs = list(range(0, session.num_frames, STEP))
-    parent = [-1 if f in refs else f - 1 for f in range(session.num_frames)]
-    session.set_selection({"strategy": "uniform", "reference_frames": refs, "parent": parent})
-    annotate_from_gt(session, quiet=True)
-    gt = session.open_sequence().ground_truth.joints_mm
-    lifted = np.full_like(gt, np.nan)
-    lifted[refs] = gt[refs]
-    conf = np.full(gt.shape[:2], np.nan)
-    conf[refs] = 1.0
-    session.save_results(lifted_mm=lifted, confidence=conf)
-    session.set_bone_lengths(session.skeleton.estimate_bone_lengths(gt))
-    session.model.settings.aligner = "dis"
-    session.close()
-    return folder
 
 
 class FastLift:

@@ -29,7 +29,7 @@ from typing import Any
 
 import viser
 
-from handanno_core.session import JournalEntry, Session, SessionError
+from handanno_core.session import JournalEntry, Session, SessionError, default_writer_command
 
 from .annotate_state import entry_frame
 from .annotate_view import STATIC, AnnotateView
@@ -237,7 +237,9 @@ def serve(
     Raises :class:`SessionError` (with a message naming the file) for a missing or corrupt session.
     With ``block=True`` runs until Ctrl+C.
     """
-    session = Session.open(Path(session_folder))
+    # One writer per session (issue 16): refuse to start while another process writes it; the
+    # message names that process's PID and command.
+    session = Session.open(Path(session_folder), writer=default_writer_command())
     try:
         session.open_sequence()
     except SessionError as exc:

@@ -19,13 +19,19 @@ def _intrinsics(text: str | None):
     parts = text.split(",")
     if len(parts) not in (4, 6):
         raise argparse.ArgumentTypeError("--intrinsics expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
-    fx, fy, cx, cy = map(float, parts[:4])
-    width, height = (
-        (int(parts[4]), int(parts[5]))
-        if len(parts) == 6
-        else (int(round(2 * cx)), int(round(2 * cy)))
-    )
-    return CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+    try:
+        fx, fy, cx, cy = map(float, parts[:4])
+        width, height = (
+            (int(parts[4]), int(parts[5]))
+            if len(parts) == 6
+            else (int(round(2 * cx)), int(round(2 * cy)))
+        )
+        return CameraIntrinsics.checked(
+            "--intrinsics", fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height
+        )
+    except (ValueError, OverflowError) as exc:  # non-numbers, inf/nan, absurd values
+        msg = str(exc) if str(exc).startswith("--intrinsics") else f"--intrinsics: {exc}"
+        raise argparse.ArgumentTypeError(msg) from None
 
 
 def _floats(text: str) -> list[float]:

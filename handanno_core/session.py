@@ -107,6 +107,8 @@ class SelectionModel(BaseModel):
     parent: list[int] = Field(default_factory=list)
     threshold: float | None = None
     ref_fraction: float | None = None
+    #: frames the selection could not use (unreadable, or no hand pixels): never references
+    skipped_frames: list[int] = Field(default_factory=list)
 
 
 class SessionModel(BaseModel):
@@ -1059,6 +1061,7 @@ class Session:
                 parent=parent,
                 threshold=selection.get("threshold"),
                 ref_fraction=selection.get("ref_fraction"),
+                skipped_frames=sorted(map(int, selection.get("skipped_frames", []))),
             )
             self.model.corrections = []
             self.save()

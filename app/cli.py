@@ -18,7 +18,7 @@ def _intrinsics(text: str | None):
 
     parts = text.split(",")
     if len(parts) not in (4, 6):
-        raise argparse.ArgumentTypeError("--intrinsics expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
+        raise ValueError(f"--intrinsics {text!r}: expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
     try:
         fx, fy, cx, cy = map(float, parts[:4])
         width, height = (
@@ -30,8 +30,8 @@ def _intrinsics(text: str | None):
             "--intrinsics", fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height
         )
     except (ValueError, OverflowError) as exc:  # non-numbers, inf/nan, absurd values
-        msg = str(exc) if str(exc).startswith("--intrinsics") else f"--intrinsics: {exc}"
-        raise argparse.ArgumentTypeError(msg) from None
+        msg = str(exc) if str(exc).startswith("--intrinsics") else f"--intrinsics {text!r}: {exc}"
+        raise ValueError(msg) from None
 
 
 def _floats(text: str) -> list[float]:
@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     session_arg(p)
     p.add_argument("dataset", metavar="DATASET")
     p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
-    p.add_argument("--intrinsics", type=_intrinsics, metavar="FX,FY,CX,CY[,W,H]")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,W,H]")
     p.add_argument("--depth-scale", type=float, help="mm per PNG unit for --format folder")
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
@@ -242,7 +242,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             folder,
             args.dataset,
             format=args.format,
-            intrinsics=args.intrinsics,
+            intrinsics=_intrinsics(args.intrinsics),
             depth_scale_mm=args.depth_scale,
             overwrite=args.force,
         )

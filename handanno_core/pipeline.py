@@ -254,10 +254,14 @@ def usable_frames(session: Session, crops: np.ndarray) -> tuple[np.ndarray, dict
     reasons: dict[int, str] = {}
     bad = np.flatnonzero(~usable)
     sequence = session.open_sequence() if len(bad) else None
+    names = sequence.frame_names if sequence is not None else None
     for f in bad[:50]:  # name the first ones precisely; the rest share the generic reason
+        where = f"{sequence.path / names[f] if names else sequence.path} (frame {f})"
         try:
             depth = sequence.depth(int(f))
-            reasons[int(f)] = "no depth at all" if not np.any(depth > 0) else "no hand pixels"
+            reasons[int(f)] = f"{where}: " + (
+                "no depth at all" if not np.any(depth > 0) else "no hand pixels"
+            )
         except (FrameError, ValueError, OSError) as exc:
             reasons[int(f)] = str(exc)
     for f in bad[50:]:

@@ -578,6 +578,8 @@ def safe_session_path(name: str, sessions_dir: str | Path) -> Path:
 def resolve_session(session: str | Path, sessions_dir: str | Path = "sessions") -> Path:
     """CLI rule: a path (contains a separator or exists) is used as is; a bare name lives in ``sessions_dir``."""
     s = str(session)
+    if s.strip(".") == "":  # ".", "..": never a session name, and not a session folder either
+        raise SessionError(f"invalid session {s!r}: give a session name or a path to its folder")
     if os.sep in s or "/" in s or Path(s).exists():
         return Path(s)
     return safe_session_path(s, sessions_dir)

@@ -34,6 +34,7 @@ from handanno_core.session import JournalEntry, Session, SessionError, default_w
 from .annotate_state import entry_frame
 from .annotate_view import STATIC, AnnotateView
 from .frames import FrameStore
+from .guard import harden
 from .hotkeys import hotkey_table_markdown
 from .review_view import ReviewView  # issue 8 (review helper)
 from .worker import LiftFunction, LiftOutcome, LiftWorker
@@ -110,6 +111,8 @@ class AnnoServer:
             dark_mode=False,
         )
         self.server.scene.set_up_direction("-y")
+        # issue 16: no share tunnel, bounded uploads, per-client rate limit (app/guard.py)
+        self.guard = harden(self.server)
         self.worker.start()
         self._unsubscribe = session.subscribe(self._on_entry)
         self.server.on_client_connect(self._on_connect)

@@ -455,6 +455,20 @@ def parse_command(data: dict[str, Any]) -> Command:
 # Atomic file helpers
 
 
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename or a new file in ``folder`` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Replace ``path`` by ``data`` in one step (temporary file, fsync, ``os.replace``), mode FILE_MODE."""
     path = Path(path)
@@ -466,6 +480,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        _fsync_dir(path.parent)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -482,6 +497,7 @@ def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        _fsync_dir(path.parent)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -968,9 +984,12 @@ class Session:
                 self.model.session_id = uuid.uuid4().hex
                 self.save()
             try:
+                created = not path.exists()
                 self._journal_file = os.open(
                     path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, FILE_MODE
                 )
+                if created:
+                    _fsync_dir(self.folder)  # the new journal's name survives a power loss too
             except OSError as exc:
                 raise SessionError(f"{path}: cannot open the edit journal: {exc}") from exc
         fd = self._journal_file

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import multiprocessing
 import time
 
@@ -24,6 +25,8 @@ from viser import _messages
 
 from app.guard import MAX_UPLOAD_BYTES
 from app.server import serve
+from handanno_core.export import import_json
+from handanno_core.session import SessionError
 
 
 def encode(message: _messages.Message) -> bytes:
@@ -202,3 +205,60 @@ def test_oversized_upload_is_refused_and_partial_uploads_are_freed(app):
     asyncio.run(run())
     assert not found["states"]  # the half-sent upload was freed on disconnect
     assert any("the limit is" in why for why in app.guard["uploads_refused"])
+
+
+def _doc(case: str) -> bytes:
+    frames = [
+        {"frame": i, "joints_mm": [[0.0, 0.0, 400.0]] * 21, "confidence": [1.0] * 21}
+        for i in range(6)
+    ]
+    if case == "frame -1":
+        frames[0]["frame"] = -1
+    elif case == "joint behind the camera":
+        frames[2]["joints_mm"][3] = [0.0, 0.0, -10.0]
+    elif case == "not json":
+        return b"{nope"
+    return json.dumps(
+        {"format": "handanno-export", "skeleton": "msra21", "frames": frames}
+    ).encode()
+
+
+@pytest.mark.parametrize("case", ["frame -1", "joint behind the camera", "not json"])
+def test_app_import_shows_the_cli_message_and_leaves_the_session_unchanged(app, tmp_path, case):
+    """An uploaded bad export gets the same one-line message as ``handanno import`` (the upload's
+    name in place of the path), and the session's files are untouched."""
+    content = _doc(case)
+    path = tmp_path / "bad.json"
+    path.write_bytes(content)
+    (tmp_path / "copy").mkdir()
+    copy = make_session(tmp_path / "copy")  # same shape as the served session
+    with pytest.raises(SessionError) as info:
+        import_json(copy, path)
+    expected = str(info.value).replace(str(path), "bad.json")
+    before = {p.name: p.read_bytes() for p in app.session.folder.iterdir() if p.is_file()}
+
+    async def run() -> str:
+        async with RawClient(app.port) as c:
+            await c.wait_for(lambda m: m["type"] == "GuiUploadButtonMessage", 20)
+            upload = next(m for _, m in c.messages if m["type"] == "GuiUploadButtonMessage")
+            await c.send(
+                _messages.FileTransferStartUpload(
+                    upload["uuid"], "t1", "bad.json", "application/json", 1, len(content)
+                )
+            )
+            await c.send(_messages.FileTransferPart(upload["uuid"], "t1", 0, content))
+            await c.wait_for(
+                lambda m: m["type"] == "NotificationShowMessage" and "Import failed" in str(m), 10
+            )
+            shown = next(
+                m
+                for _, m in c.messages
+                if m["type"] == "NotificationShowMessage" and "Import failed" in str(m)
+            )
+            return shown["props"]["body"]
+
+    assert asyncio.run(run()) == expected
+    after = {p.name: p.read_bytes() for p in app.session.folder.iterdir() if p.is_file()}
+    assert {k: v for k, v in after.items() if k != "session.lock"} == {
+        k: v for k, v in before.items() if k != "session.lock"
+    }

@@ -4,8 +4,8 @@ disk thrown in, and count acknowledged edits lost or duplicated.
 Usage: ``.venv/bin/python benchmarks/bench_faults.py [--runs 30] [--seed 0]``
 
 Each run starts a writer process on one session that executes single-joint edits as fast as it can
-and prints each acknowledged sequence number; it is SIGKILLed after a random 0.05-0.6 s. Every
-third run the parent then appends a torn fragment to the journal (a write cut by a crash); every
+and prints each acknowledged sequence number; it is SIGKILLed a random 0.05-0.6 s after it has
+opened the session. Every third run the parent then appends a torn fragment to the journal (a write cut by a crash); every
 fifth run the writer runs under RLIMIT_FSIZE so appends start failing mid-line (refused edits are
 printed as refused). The next run reopens the session (replay, cut of the torn tail) and goes on.
 At the end the journal is parsed strictly (complete lines, checksums, continuous sequence numbers)
@@ -49,6 +49,7 @@ if limit:
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     size = os.path.getsize(os.path.join(folder, "journal.jsonl"))
     resource.setrlimit(resource.RLIMIT_FSIZE, (size + limit, resource.RLIM_INFINITY))
+print("ready", flush=True)
 k = start
 while True:
     try:
@@ -83,7 +84,9 @@ def main() -> None:
                 stdout=subprocess.PIPE,
                 text=True,
             )
-            time.sleep(rng.uniform(0.05, 0.6) + 0.5)  # + start-up time of the interpreter
+            ready = proc.stdout.readline()  # the session is open (replayed, torn tail cut)
+            assert ready.strip() == "ready", ready
+            time.sleep(rng.uniform(0.05, 0.6))
             proc.send_signal(signal.SIGKILL)
             out, _ = proc.communicate()
             for line in out.splitlines():

@@ -12,11 +12,12 @@ small hooks on a :class:`viser.ViserServer` bound that:
   that size needs, or a third concurrent upload from one browser), drops parts that would overrun
   the declared size or come from another client, and tells the browser why; viser already frees a
   client's partial uploads when it disconnects;
-* :class:`ClientRateLimiter` gives every client a token bucket (``rate_per_s``, ``burst``) for the
-  messages that make the server work. A client over its budget has its GUI updates coalesced per
-  control (the newest value is kept and delivered as tokens refill, so a slider always ends where
-  the user left it; a flood of clicks on one button becomes one click) and its other messages
-  dropped, so a flood from one browser cannot queue work ahead of everybody else.
+* :class:`ClientRateLimiter` gives every client token buckets for the messages that make the
+  server work (clicks and GUI updates; drag streams apart, with more room). A client over its
+  budget has its messages coalesced per control (the newest value is kept and delivered as tokens
+  refill, so a slider or a gizmo always ends where the user left it; a flood of clicks on one
+  button becomes one click), and beyond 64 distinct waiting messages dropped, so a flood from one
+  browser cannot queue work ahead of everybody else.
 
 Only private viser attributes of version 1.1 are touched (``_websock_server``, the GUI API's upload
 handlers); each hook checks they exist and fails loudly at start-up otherwise.
@@ -146,10 +147,51 @@ def _cap_gui_uploads(
     ws.register_handler(_messages.FileTransferPart, on_part)
 
 
+#: Messages a browser streams while the user drags (60 Hz): metered by their own, roomier bucket.
+_STREAMS = (
+    _messages.TransformControlsUpdateMessage,
+    _messages.TransformControlsDragStartMessage,
+    _messages.TransformControlsDragEndMessage,
+    _messages.SceneNodeDragMessage,
+)
+#: Most distinct messages one client may have waiting; beyond, its messages are dropped.
+MAX_PENDING = 64
+
+
+def _coalesce_key(message: Any) -> tuple:
+    """Messages with equal keys are interchangeable but for their latest content."""
+    if isinstance(message, _messages.GuiUpdateMessage):
+        return ("gui", message.uuid, tuple(sorted(message.updates)))
+    if isinstance(message, _messages.SceneNodeDragMessage):
+        return ("drag", message.name, message.instance_index, message.phase)
+    ident = getattr(message, "uuid", None) or getattr(message, "name", None)
+    return (type(message).__name__, ident)
+
+
 @dataclass
 class _Bucket:
-    tokens: float
-    last: float
+    rate: float
+    burst: float
+    tokens: float = 0.0
+    last: float = field(default_factory=time.monotonic)
+
+    def __post_init__(self) -> None:
+        self.tokens = self.burst
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+@dataclass
+class _Client:
+    clicks: _Bucket
+    drags: _Bucket
     pending: OrderedDict = field(default_factory=OrderedDict)
     draining: bool = False
     dropped: int = 0
@@ -157,24 +199,34 @@ class _Bucket:
 
 
 class ClientRateLimiter:
-    """Per-client token bucket in front of viser's message dispatch; see the module docstring.
+    """Per-client token buckets in front of viser's message dispatch; see the module docstring.
 
-    A human clicks at most ~10 times a second and viser sends a dragged slider's value about as
-    often, so ``rate_per_s=20``, ``burst=40`` never touches real use.
+    Discrete messages (GUI updates, clicks): ``rate_per_s=30``, ``burst=60`` -- a human clicks at
+    most ~10 times a second. Drag streams (gizmos, scene-node drags; viser sends them at up to
+    60 Hz): ``drag_rate_per_s=120``, ``drag_burst=240``. Over budget, messages wait, coalesced per
+    control (:func:`_coalesce_key`: the newest value wins, a drag's start/update/end stay apart),
+    and are delivered in order as tokens refill; more than :data:`MAX_PENDING` distinct waiting
+    messages are dropped.
     """
 
-    def __init__(self, server: viser.ViserServer, rate_per_s: float = 20.0, burst: int = 40):
-        self.rate = float(rate_per_s)
-        self.burst = float(burst)
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        rate_per_s: float = 30.0,
+        burst: int = 60,
+        drag_rate_per_s: float = 120.0,
+        drag_burst: int = 240,
+    ):
+        self.rates = (float(rate_per_s), float(burst), float(drag_rate_per_s), float(drag_burst))
         self._ws = _websock(server)
-        self._buckets: dict[int, _Bucket] = {}
+        self._clients: dict[int, _Client] = {}
         # viser hands every message to two dispatchers: the server's (server-wide GUI and scene)
         # and the client connection's (that client's own GUI, e.g. handanno's panels). Metered
         # messages are decided once, in the connection's dispatcher, which then calls both.
         self._server_inner: Callable[..., Any] = self._ws._handle_incoming_message
         self._ws._handle_incoming_message = self._server_level  # instance attribute: viser calls it
         self._ws.on_client_connect(self._hook_connection)
-        self._ws.on_client_disconnect(lambda conn: self._buckets.pop(conn.client_id, None))
+        self._ws.on_client_disconnect(lambda conn: self._clients.pop(conn.client_id, None))
 
     def _hook_connection(self, conn: Any) -> None:
         client_inner = conn._handle_incoming_message
@@ -191,17 +243,11 @@ class ClientRateLimiter:
 
     def stats(self, client_id: int) -> tuple[int, int]:
         """(dropped, coalesced) messages of ``client_id`` so far."""
-        b = self._buckets.get(int(client_id))
-        return (b.dropped, b.coalesced) if b is not None else (0, 0)
+        c = self._clients.get(int(client_id))
+        return (c.dropped, c.coalesced) if c is not None else (0, 0)
 
-    def _take(self, b: _Bucket) -> bool:
-        now = time.monotonic()
-        b.tokens = min(self.burst, b.tokens + (now - b.last) * self.rate)
-        b.last = now
-        if b.tokens >= 1.0:
-            b.tokens -= 1.0
-            return True
-        return False
+    def _bucket(self, c: _Client, message: Any) -> _Bucket:
+        return c.drags if isinstance(message, _STREAMS) else c.clicks
 
     async def _metered(self, client_id: int, message: Any, client_inner: Callable) -> None:
         async def dispatch(m: Any) -> None:
@@ -211,38 +257,42 @@ class ClientRateLimiter:
         if isinstance(message, _UNMETERED):
             await client_inner(client_id, message)
             return
-        b = self._buckets.get(client_id)
-        if b is None:
-            b = self._buckets[client_id] = _Bucket(tokens=self.burst, last=time.monotonic())
-        if not isinstance(message, _messages.GuiUpdateMessage):
-            if self._take(b):
-                await dispatch(message)
-            else:
-                b.dropped += 1
-            return
-        if not b.pending and self._take(b):
+        c = self._clients.get(client_id)
+        if c is None:
+            rate, burst, drag_rate, drag_burst = self.rates
+            c = self._clients[client_id] = _Client(
+                _Bucket(rate, burst), _Bucket(drag_rate, drag_burst)
+            )
+        if not c.pending and self._bucket(c, message).take():
             await dispatch(message)
             return
-        key = (message.uuid, tuple(sorted(message.updates)))
-        if key in b.pending:
-            b.coalesced += 1
-            merged = {**b.pending.pop(key).updates, **message.updates}
-            message = _messages.GuiUpdateMessage(message.uuid, merged)
-        b.pending[key] = message
-        if not b.draining:
-            b.draining = True
-            asyncio.get_running_loop().create_task(self._drain(client_id, b, dispatch))
+        key = _coalesce_key(message)
+        if key in c.pending:
+            c.coalesced += 1
+            old = c.pending.pop(key)
+            if isinstance(message, _messages.GuiUpdateMessage):
+                message = _messages.GuiUpdateMessage(
+                    message.uuid, {**old.updates, **message.updates}
+                )
+        elif len(c.pending) >= MAX_PENDING:
+            c.dropped += 1
+            return
+        c.pending[key] = message
+        if not c.draining:
+            c.draining = True
+            asyncio.get_running_loop().create_task(self._drain(client_id, c, dispatch))
 
-    async def _drain(self, client_id: int, b: _Bucket, dispatch: Callable) -> None:
+    async def _drain(self, client_id: int, c: _Client, dispatch: Callable) -> None:
         try:
-            while b.pending and self._buckets.get(client_id) is b:
-                if not self._take(b):
-                    await asyncio.sleep(1.0 / self.rate)
+            while c.pending and self._clients.get(client_id) is c:
+                key = next(iter(c.pending))
+                bucket = self._bucket(c, c.pending[key])
+                if not bucket.take():
+                    await asyncio.sleep(1.0 / bucket.rate)
                     continue
-                _, message = b.pending.popitem(last=False)
-                await dispatch(message)
+                await dispatch(c.pending.pop(key))
         finally:
-            b.draining = False
+            c.draining = False
 
 
 def harden(server: viser.ViserServer) -> dict[str, Any]:

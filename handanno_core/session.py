@@ -34,7 +34,6 @@ import logging
 import os
 import re
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -48,27 +47,16 @@ from pydantic import BaseModel, Field, TypeAdapter, ValidationError
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
+from .results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
 from .skeleton import Skeleton, get_skeleton
 
 SESSION_FILE = "session.json"
 JOURNAL_FILE = "journal.jsonl"
-RESULTS_FILE = "results.npz"
 CROPS_FILE = "crops.npy"
 CROPS_META_FILE = "crops_meta.npz"
 LOCK_FILE = "session.lock"
-RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence")
 
-
-def _file_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
-#: Mode of every file a session writes (journal, snapshot, results, caches, lock): 0666 less the
-#: umask at import, so a session's files never differ in who may read them (mkstemp's 0600 is
-#: widened to it).
-FILE_MODE = _file_mode()
 
 log = logging.getLogger(__name__)
 
@@ -453,54 +441,6 @@ def parse_command(data: dict[str, Any]) -> Command:
 
 # ---------------------------------------------------------------------------------------------
 # Atomic file helpers
-
-
-def _fsync_dir(folder: Path) -> None:
-    """Make a rename or a new file in ``folder`` durable (a no-op where directories cannot be opened)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Replace ``path`` by ``data`` in one step (temporary file, fsync, ``os.replace``), mode FILE_MODE."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), FILE_MODE)
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write ``arrays`` as an ``.npz`` that replaces ``path`` only once complete and fsynced."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), FILE_MODE)
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------------------------------
@@ -989,7 +929,7 @@ class Session:
                     path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, FILE_MODE
                 )
                 if created:
-                    _fsync_dir(self.folder)  # the new journal's name survives a power loss too
+                    fsync_dir(self.folder)  # the new journal's name survives a power loss too
             except OSError as exc:
                 raise SessionError(f"{path}: cannot open the edit journal: {exc}") from exc
         fd = self._journal_file
@@ -1126,34 +1066,18 @@ class Session:
 
     # ------------------------------------------------------------------ results
     def _expected_result_shape(self, key: str) -> tuple[int, ...]:
-        n, j = self.num_frames, self.skeleton.num_joints
-        return (n, j) if key == "confidence" else (n, j, 3)
+        return result_shape(key, self.num_frames, self.skeleton.num_joints)
 
     def load_results(self) -> dict[str, np.ndarray]:
-        """Results arrays; missing ones are NaN-filled: ``*_mm`` (N,J,3), ``confidence`` (N,J).
-
-        A truncated, empty or foreign ``results.npz`` (wrong shapes) raises :class:`SessionError`
-        naming the file. Inside :meth:`staged_results` this thread sees its staged arrays.
-        """
-        out = {k: np.full(self._expected_result_shape(k), np.nan) for k in RESULT_KEYS}
-        path = self.folder / RESULTS_FILE
-        if path.exists():
-            hint = f"move it away and rerun `handanno lift` and `handanno propagate` ({path})"
-            try:
-                with np.load(path, allow_pickle=False) as data:
-                    for key in data.files:
-                        if key in out:
-                            out[key] = np.asarray(data[key], dtype=np.float64)
-            except Exception as exc:  # BadZipFile, EOFError, ValueError, OSError, zlib.error
-                raise SessionError(
-                    f"{path}: corrupt results file ({type(exc).__name__}: {_one_line(exc)}); {hint}"
-                ) from exc
-            for key, value in out.items():
-                if value.shape != self._expected_result_shape(key):
-                    raise SessionError(
-                        f"{path}: {key} has shape {value.shape}, expected "
-                        f"{self._expected_result_shape(key)} for this session; {hint}"
-                    )
+        """Results arrays (:func:`~handanno_core.results.read_results`); inside
+        :meth:`staged_results` this thread sees its staged arrays. A corrupt or foreign
+        ``results.npz`` raises :class:`SessionError` naming the file."""
+        try:
+            out = read_results(
+                self.folder / RESULTS_FILE, self.num_frames, self.skeleton.num_joints
+            )
+        except ResultsError as exc:
+            raise SessionError(str(exc)) from exc
         staged = getattr(self._stage, "arrays", None)
         if staged:
             out.update({k: v.copy() for k, v in staged.items()})

@@ -619,7 +619,7 @@ class AnnotateView:
         if entry.client != self.state.client:
             self.client.add_notification(
                 "Frame edited elsewhere",
-                f"another annotator ({entry.client}) changed frame {frame}",
+                f"another annotator changed frame {frame}",  # never another client's id (issue 16)
                 color="blue",
                 auto_close_seconds=4.0,
             )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -17,14 +18,20 @@ def _intrinsics(text: str | None):
 
     parts = text.split(",")
     if len(parts) not in (4, 6):
-        raise argparse.ArgumentTypeError("--intrinsics expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
-    fx, fy, cx, cy = map(float, parts[:4])
-    width, height = (
-        (int(parts[4]), int(parts[5]))
-        if len(parts) == 6
-        else (int(round(2 * cx)), int(round(2 * cy)))
-    )
-    return CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+        raise ValueError(f"--intrinsics {text!r}: expects FX,FY,CX,CY[,WIDTH,HEIGHT]")
+    try:
+        fx, fy, cx, cy = map(float, parts[:4])
+        width, height = (
+            (int(parts[4]), int(parts[5]))
+            if len(parts) == 6
+            else (int(round(2 * cx)), int(round(2 * cy)))
+        )
+        return CameraIntrinsics.checked(
+            "--intrinsics", fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height
+        )
+    except (ValueError, OverflowError) as exc:  # non-numbers, inf/nan, absurd values
+        msg = str(exc) if str(exc).startswith("--intrinsics") else f"--intrinsics {text!r}: {exc}"
+        raise ValueError(msg) from None
 
 
 def _floats(text: str) -> list[float]:
@@ -83,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     session_arg(p)
     p.add_argument("dataset", metavar="DATASET")
     p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
-    p.add_argument("--intrinsics", type=_intrinsics, metavar="FX,FY,CX,CY[,W,H]")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,W,H]")
     p.add_argument("--depth-scale", type=float, help="mm per PNG unit for --format folder")
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
@@ -152,18 +159,43 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return _run(args) or 0
-    except (SessionError, DatasetError, FileNotFoundError) as exc:
-        print(f"handanno {args.command}: error: {exc}", file=sys.stderr)
+    except (SessionError, DatasetError, OSError, ValueError) as exc:
+        # Bad input (issue 16): one line naming the file and what is wrong, never a traceback;
+        # HANDANNO_DEBUG=1 shows the traceback (for bugs, not for bad input).
+        if os.environ.get("HANDANNO_DEBUG"):
+            raise
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"handanno {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted; every acknowledged edit is in the session journal", file=sys.stderr)
         return 130
+    finally:
+        _close_opened()
 
 
-def _open(args):
-    from handanno_core.session import Session, resolve_session
+#: sessions a command opened for writing; closed (snapshot, lock released) when it ends
+_OPENED: list = []
 
-    return Session.open(resolve_session(args.session, args.sessions_dir))
+
+def _close_opened() -> None:
+    while _OPENED:
+        session = _OPENED.pop()
+        try:
+            session.close()
+        except Exception as exc:  # the journal already holds every edit
+            print(f"handanno: warning: {exc}", file=sys.stderr)
+
+
+def _open(args, write: bool = False):
+    """The session of ``args``; ``write=True`` takes its writer lock for the whole command, so a
+    command that writes refuses to start while ``serve`` (or another command) writes the session."""
+    from handanno_core.session import Session, default_writer_command, resolve_session
+
+    folder = resolve_session(args.session, args.sessions_dir)
+    session = Session.open(folder, writer=default_writer_command() if write else None)
+    _OPENED.append(session)
+    return session
 
 
 def _progress_bar(desc: str):
@@ -193,7 +225,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
 
         folder = resolve_session(args.session, args.sessions_dir)
         Session.open(folder).close()  # fail fast, in the terminal, on a missing or corrupt session
-        serve(folder, host=args.host, port=args.port)
+        serve(folder, host=args.host, port=args.port)  # takes the writer lock (issue 16)
     elif cmd == "synth":
         from handanno_core.datasets import open_sequence
         from handanno_core.synth import generate_sequence
@@ -210,26 +242,27 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             folder,
             args.dataset,
             format=args.format,
-            intrinsics=args.intrinsics,
+            intrinsics=_intrinsics(args.intrinsics),
             depth_scale_mm=args.depth_scale,
             overwrite=args.force,
         )
+        _OPENED.append(session)
         print(session.summary())
     elif cmd == "info":
         print(_open(args).summary())
     elif cmd == "select":
-        session = _open(args)
+        session = _open(args, write=True)
         selection = pipeline.select(
             session, strategy=args.strategy, ref_fraction=args.ref_fraction, rho=args.rho
         )
         print(f"references: {len(selection.reference_frames)} of {session.num_frames}")
         print(f"figures: {session.folder / 'selection_embedding.png'}")
     elif cmd == "annotate-from-gt":
-        pipeline.annotate_from_gt(_open(args), noise_px=args.noise_px, seed=args.seed)
+        pipeline.annotate_from_gt(_open(args, write=True), noise_px=args.noise_px, seed=args.seed)
     elif cmd == "lift":
-        pipeline.lift(_open(args), workers=args.workers)
+        pipeline.lift(_open(args, write=True), workers=args.workers)
     elif cmd == "propagate":
-        session = _open(args)
+        session = _open(args, write=True)
         bar, update = _progress_bar("propagate")
         result = pipeline.propagate(
             session,
@@ -242,7 +275,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         done = int(result.joints_mm.shape[0] - len(result.skipped))
         print(f"propagated {done} of {session.num_frames} frames")
     elif cmd == "refine":
-        session = _open(args)
+        session = _open(args, write=True)
 
         def report(iteration: int, energy: float) -> None:
             print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
@@ -259,7 +292,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     elif cmd == "import":
         from handanno_core.export import import_json
 
-        n = import_json(_open(args), args.json_file)
+        n = import_json(_open(args, write=True), args.json_file)
         print(f"imported joints for {n} frames")
     elif cmd == "bench":
         from handanno_core.bench import run_bench

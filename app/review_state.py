@@ -435,7 +435,7 @@ def refine_all(
     session: Session, progress: Callable[[int, float], None] | None = None
 ) -> np.ndarray:
     """Global refinement of the session's current results; returns ``final_mm`` (N, J, 3) mm
-    without saving it (the runner saves, or restores the backup on cancel)."""
+    without saving it (the runner saves it with propagation's results, in one replace)."""
     from handanno_core.pipeline import refine
 
     result = refine(session, progress=progress, save=False, quiet=True)
@@ -638,7 +638,6 @@ class ReviewRunner:
         from handanno_core.propagate import descendants
 
         session = self.session
-        backup = session.load_results()
         frames: np.ndarray | None = None
         if corrections:
             self._set(phase="lift", message=", ".join(map(str, sorted(corrections))))
@@ -654,16 +653,15 @@ class ReviewRunner:
                     )
                 self.live.put(frame, joints, conf, 1)
                 self._emit("frame", frame)
-                backup["lifted_mm"][frame] = joints  # the new reference's lift stays either way
-                backup["confidence"][frame] = conf
             frames = descendants(session.parent, sorted(corrections))
         parent = session.parent
         todo = np.flatnonzero(parent >= 0) if frames is None else frames[parent[frames] >= 0]
         self._set(
             phase="propagate", done=0, total=len(todo), frames=[int(f) for f in todo], message=""
         )
-        partial_init = np.full_like(backup["init_mm"], np.nan)
-        partial_conf = np.full_like(backup["confidence"], np.nan)
+        shape = (session.num_frames, session.skeleton.num_joints)
+        partial_init = np.full((*shape, 3), np.nan)
+        partial_conf = np.full(shape, np.nan)
         last_checkpoint = time.monotonic()
 
         def on_result(frame: int, joints: np.ndarray, conf: np.ndarray) -> None:
@@ -690,17 +688,19 @@ class ReviewRunner:
             self._check()
             self._set(done=int(done), total=int(total))
 
-        if len(todo):
-            self.propagate_fn(
-                session,
-                workers=self.workers,
-                frames=None if frames is None else frames,
-                progress=progress,
-                on_result=on_result,
-                quiet=True,
-            )
-        # From here results.npz holds the new init_mm: restore the backup if refinement is cancelled.
-        try:
+        # issue 16: propagation's init_mm and refinement's final_mm reach results.npz together in
+        # one atomic replace (session.staged_results), so a cancel, an error or a kill at any
+        # instant leaves results.npz exactly as it was before the job.
+        with session.staged_results():
+            if len(todo):
+                self.propagate_fn(
+                    session,
+                    workers=self.workers,
+                    frames=None if frames is None else frames,
+                    progress=progress,
+                    on_result=on_result,
+                    quiet=True,
+                )
             self._check()
             self._set(phase="refine", done=0, total=30, message="")
 
@@ -710,15 +710,8 @@ class ReviewRunner:
 
             final = self.refine_fn(session, progress=refine_progress)
             self._check()
-        except BaseException:
-            session.save_results(
-                init_mm=backup["init_mm"],
-                confidence=backup["confidence"],
-                final_mm=backup["final_mm"],
-            )
-            raise
-        self._set(phase="saving")
-        session.save_results(final_mm=final)
+            self._set(phase="saving")
+            session.save_results(final_mm=final)
         self.live.put_all(final, 3)
         n = len(todo)
         self._finish("done", f"done: {n} frame(s) propagated, all frames refined")

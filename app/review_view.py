@@ -478,7 +478,7 @@ class ReviewView:
         if frame == self.frame and entry.client != self.client_name:
             self.client.add_notification(
                 "Frame edited elsewhere",
-                f"another annotator ({entry.client}) changed frame {frame}",
+                f"another annotator changed frame {frame}",  # never another client's id (issue 16)
                 color="blue",
                 auto_close_seconds=4.0,
             )

@@ -29,11 +29,12 @@ from typing import Any
 
 import viser
 
-from handanno_core.session import JournalEntry, Session, SessionError
+from handanno_core.session import JournalEntry, Session, SessionError, default_writer_command
 
 from .annotate_state import entry_frame
 from .annotate_view import STATIC, AnnotateView
 from .frames import FrameStore
+from .guard import harden
 from .hotkeys import hotkey_table_markdown
 from .review_view import ReviewView  # issue 8 (review helper)
 from .worker import LiftFunction, LiftOutcome, LiftWorker
@@ -110,6 +111,8 @@ class AnnoServer:
             dark_mode=False,
         )
         self.server.scene.set_up_direction("-y")
+        # issue 16: no share tunnel, bounded uploads, per-client rate limit (app/guard.py)
+        self.guard = harden(self.server)
         self.worker.start()
         self._unsubscribe = session.subscribe(self._on_entry)
         self.server.on_client_connect(self._on_connect)
@@ -237,7 +240,9 @@ def serve(
     Raises :class:`SessionError` (with a message naming the file) for a missing or corrupt session.
     With ``block=True`` runs until Ctrl+C.
     """
-    session = Session.open(Path(session_folder))
+    # One writer per session (issue 16): refuse to start while another process writes it; the
+    # message names that process's PID and command.
+    session = Session.open(Path(session_folder), writer=default_writer_command())
     try:
         session.open_sequence()
     except SessionError as exc:

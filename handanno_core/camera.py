@@ -11,20 +11,51 @@ import json
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+#: Largest image side accepted (px). Depth sensors stay far below (Kinect v2 512x424, Azure Kinect
+#: 1024x1024, RealSense 1280x720); the cap bounds a frame at 4096 x 4096 x 4 B = 64 MiB of
+#: float32 before anything is allocated, whatever a camera file or an image header claims.
+MAX_IMAGE_SIDE_PX = 4096
+#: Largest focal length accepted (px): 100x the longest side; beyond that it is not a camera.
+MAX_FOCAL_PX = 100.0 * MAX_IMAGE_SIDE_PX
 
 
 class CameraIntrinsics(BaseModel):
-    """Pinhole intrinsics in pixels; ``width``/``height`` are the image size in pixels."""
+    """Pinhole intrinsics in pixels; ``width``/``height`` are the image size in pixels.
 
-    model_config = ConfigDict(frozen=True)
+    Refused (``ValueError`` saying which value): non-finite values, focal lengths outside
+    (0, MAX_FOCAL_PX], a principal point farther than one image size outside the image, image
+    sides above :data:`MAX_IMAGE_SIDE_PX`.
+    """
 
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
+    model_config = ConfigDict(frozen=True, allow_inf_nan=False)
+
+    fx: float = Field(gt=0, le=MAX_FOCAL_PX)
+    fy: float = Field(gt=0, le=MAX_FOCAL_PX)
     cx: float
     cy: float
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
+    width: int = Field(gt=0, le=MAX_IMAGE_SIDE_PX)
+    height: int = Field(gt=0, le=MAX_IMAGE_SIDE_PX)
+
+    @model_validator(mode="after")
+    def _principal_point_near_the_image(self) -> CameraIntrinsics:
+        if not (
+            -self.width <= self.cx <= 2 * self.width and -self.height <= self.cy <= 2 * self.height
+        ):
+            raise ValueError(
+                f"principal point ({self.cx:g}, {self.cy:g}) lies far outside the "
+                f"{self.width}x{self.height} image"
+            )
+        return self
+
+    @classmethod
+    def checked(cls, where: str, **values: float) -> CameraIntrinsics:
+        """Build from user input; a bad value raises ``ValueError("<where>: <field>: <why>")``."""
+        try:
+            return cls(**values)
+        except ValidationError as exc:
+            raise ValueError(f"{where}: {_first_error(exc)}") from None
 
     # ------------------------------------------------------------------ projection
     def project(self, xyz_mm: np.ndarray) -> np.ndarray:
@@ -93,13 +124,22 @@ class CameraIntrinsics(BaseModel):
             data = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise ValueError(f"{path}: cannot read camera intrinsics: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: invalid camera intrinsics: expected a JSON object")
         try:
             return cls.model_validate({k: data[k] for k in data if k in cls.model_fields})
-        except Exception as exc:
-            raise ValueError(f"{path}: invalid camera intrinsics: {exc}") from exc
+        except ValidationError as exc:
+            raise ValueError(f"{path}: invalid camera intrinsics: {_first_error(exc)}") from None
 
     def to_json(self, path: str | Path) -> None:
         Path(path).write_text(self.model_dump_json(indent=2))
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err.get("loc", ()))
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    return f"{loc}: {msg} (got {err.get('input')!r})" if loc else msg
 
 
 #: MSRA-2015 / ICVL sensor (Creative Interactive Gesture Camera), y flipped to our convention.

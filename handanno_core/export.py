@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from .annotation import FrameAnnotation
 from .session import (
@@ -94,9 +97,26 @@ def export_session(session: Session, fmt: str, path: str | Path) -> Path:
             f"unknown export format {fmt!r}; choose one of {', '.join(EXPORT_FORMATS)}"
         )
     path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        kind = "symbolic link" if path.is_symlink() else _file_kind(path)
+        raise SessionError(f"{path}: is a {kind}; export writes regular files only (not replaced)")
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, export_bytes(session, fmt))
     return path
+
+
+def _file_kind(path: Path) -> str:
+    mode = os.lstat(path).st_mode
+    for test, name in (
+        (stat.S_ISDIR, "folder"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISSOCK, "socket"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
 
 
 def export_bytes(session: Session, fmt: str) -> bytes:
@@ -142,39 +162,145 @@ def export_bytes(session: Session, fmt: str) -> bytes:
     return json.dumps(doc).encode()
 
 
+#: Plausible joint positions for import (mm, camera frame): in front of the camera between 5 cm and
+#: 5 m, at most 5 m off its axis. Depth sensors measure hands well inside this box.
+IMPORT_Z_RANGE_MM = (50.0, 5000.0)
+IMPORT_XY_MAX_MM = 5000.0
+
+
+class _ImportFrame(BaseModel):
+    """One frame of a handanno JSON export, checked against the session (``context``)."""
+
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False)
+
+    frame: int
+    is_reference: bool = False
+    joints_mm: list[tuple[float, float, float]] | None = None
+    confidence: list[float | None] | None = None
+    annotation: dict[str, Any] | None = None
+
+    @field_validator("frame")
+    @classmethod
+    def _frame_in_range(cls, v: int, info: ValidationInfo) -> int:
+        n = info.context["frames"]
+        if not 0 <= v < n:
+            raise ValueError(f"frame {v} out of range (session has {n} frames)")
+        return v
+
+    @field_validator("joints_mm")
+    @classmethod
+    def _plausible_joints(cls, v, info: ValidationInfo):
+        if v is None:
+            return v
+        j = info.context["joints"]
+        if len(v) != j:
+            raise ValueError(f"{len(v)} joints, the skeleton has {j}")
+        xyz = np.asarray(v, dtype=np.float64)
+        lo, hi = IMPORT_Z_RANGE_MM
+        bad = (xyz[:, 2] < lo) | (xyz[:, 2] > hi) | (np.abs(xyz[:, :2]) > IMPORT_XY_MAX_MM).any(1)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"joint {k} at {tuple(round(float(c), 1) for c in xyz[k])} mm is not a plausible "
+                f"hand position (z in [{lo:g}, {hi:g}] mm, |x|, |y| <= {IMPORT_XY_MAX_MM:g} mm)"
+            )
+        return v
+
+    @field_validator("confidence")
+    @classmethod
+    def _confidence_in_unit_range(cls, v, info: ValidationInfo):
+        if v is None:
+            return v
+        j = info.context["joints"]
+        if len(v) != j:
+            raise ValueError(f"{len(v)} confidences, the skeleton has {j}")
+        if any(c is not None and not 0.0 <= c <= 1.0 for c in v):
+            raise ValueError("confidences must lie in [0, 1]")
+        return v
+
+
+class _ImportDoc(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+    format: Literal["handanno-export"]
+    skeleton: str
+    frames: list[_ImportFrame]
+
+
+def _import_error(path: Path, exc: ValidationError) -> SessionError:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err.get("loc", ()))
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    return SessionError(f"{path}: {loc}: {msg}" if loc else f"{path}: {msg}")
+
+
 def import_json(session: Session, path: str | Path, client: str = "import") -> int:
     """Import a handanno JSON export: reference annotations (one undoable edit) and the 3D joints.
 
-    Returns the number of frames with joints imported. Raises SessionError naming the file on bad input.
+    The whole file is checked first (:class:`_ImportDoc`: frame indices in range and unique, the
+    session's frame count and skeleton, finite joints at plausible positions, confidences in
+    [0, 1], well-formed annotations); on any problem a :class:`SessionError` names the file, the
+    entry and the reason, and the session is left unchanged. Frames without ``joints_mm`` keep the
+    session's current result. Returns the number of frames with joints imported.
     """
     path = Path(path)
     try:
         doc = json.loads(path.read_bytes())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         raise SessionError(f"{path}: not a readable JSON export ({exc})") from exc
-    if doc.get("format") != "handanno-export":
+    if not isinstance(doc, dict) or doc.get("format") != "handanno-export":
         raise SessionError(f"{path}: not a handanno export (missing 'format': 'handanno-export')")
-    frames = doc.get("frames", [])
-    if len(frames) != session.num_frames or doc.get("skeleton") != session.model.skeleton:
+    n, j = session.num_frames, session.skeleton.num_joints
+    try:
+        parsed = _ImportDoc.model_validate(doc, context={"frames": n, "joints": j})
+    except ValidationError as exc:
+        raise _import_error(path, exc) from None
+    if len(parsed.frames) != n or parsed.skeleton != session.model.skeleton:
         raise SessionError(
-            f"{path}: export has {len(frames)} frames / skeleton {doc.get('skeleton')}, session has "
-            f"{session.num_frames} / {session.model.skeleton}"
+            f"{path}: export has {len(parsed.frames)} frames / skeleton {parsed.skeleton}, "
+            f"session has {n} / {session.model.skeleton}"
         )
-    j = session.skeleton.num_joints
-    joints = np.full((session.num_frames, j, 3), np.nan)
-    confidence = np.full((session.num_frames, j), np.nan)
+    seen = [f.frame for f in parsed.frames]
+    if len(set(seen)) != n:
+        dup = next(f for f in seen if seen.count(f) > 1)
+        raise SessionError(f"{path}: frame {dup} appears more than once")
+    if not any(f.joints_mm is not None or f.annotation is not None for f in parsed.frames):
+        raise SessionError(f"{path}: no frame has joints or an annotation; nothing to import")
+    results = session.load_results()
+    joints, confidence = results["final_mm"], results["confidence"]
     commands = []
-    for entry in frames:
-        i = int(entry["frame"])
-        if entry.get("joints_mm") is not None:
-            joints[i] = np.asarray(entry["joints_mm"], dtype=np.float64).reshape(j, 3)
-        confidence[i] = np.asarray(entry["confidence"], dtype=np.float64)
-        if entry.get("annotation") is not None:
-            ann = FrameAnnotation.from_json(entry["annotation"], j, f"{path} frame {i}")
-            commands.append(SetFrameAnnotation(frame=i, annotation=ann.to_json()).model_dump())
-        if entry.get("is_reference") and i not in set(session.model.selection.reference_frames):
-            commands.append(SetReference(frame=i, is_reference=True).model_dump())
-    if commands:
-        session.execute(Batch(commands=commands), client=client)
-    session.save_results(final_mm=joints, confidence=confidence)
-    return int(np.all(np.isfinite(joints), axis=(1, 2)).sum())
+    references = set(session.model.selection.reference_frames)
+    for entry in parsed.frames:
+        i = entry.frame
+        if entry.joints_mm is not None:
+            joints[i] = np.asarray(entry.joints_mm, dtype=np.float64)
+            if entry.confidence is not None:
+                confidence[i] = np.array(entry.confidence, dtype=np.float64)
+        if entry.annotation is not None:
+            where = f"{path}: frames.{i}.annotation"
+            try:
+                ann = FrameAnnotation.from_json(entry.annotation, j, where)
+            except ValueError as exc:
+                raise SessionError(" ".join(str(exc).split())) from None
+            placed = np.isfinite(ann.xyz_mm).all(axis=1)
+            if np.isinf(ann.uv_px).any() or np.isinf(ann.xyz_mm).any():
+                raise SessionError(f"{where}: infinite positions")
+            if np.any(ann.xyz_mm[placed, 2] <= 0):
+                raise SessionError(f"{where}: a joint placed behind the camera (z <= 0)")
+            commands.append(SetFrameAnnotation(frame=i, annotation=ann.to_json()))
+        if entry.is_reference and i not in references:
+            commands.append(SetReference(frame=i, is_reference=True))
+    batch = Batch(commands=[c.model_dump() for c in commands])
+    try:
+        batch.check(session)
+    except ValueError as exc:
+        raise SessionError(f"{path}: {' '.join(str(exc).split())}") from None
+    with session.lock:
+        entry = session.execute(batch, client=client) if commands else None
+        try:
+            session.save_results(final_mm=joints, confidence=confidence)
+        except BaseException:
+            if entry is not None:  # all or nothing: take the annotations back out
+                session.undo(client)
+            raise
+    return sum(f.joints_mm is not None for f in parsed.frames)

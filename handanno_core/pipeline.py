@@ -8,13 +8,14 @@ Stages never call each other behind the user's back except :func:`ensure_crops`,
 from __future__ import annotations
 
 import time
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .datasets import BadFrameReport
+from .datasets import BadFrameReport, FrameError
 from .session import (
     CROPS_FILE,
     CROPS_META_FILE,
@@ -89,6 +90,53 @@ def root_reference(parent: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Crops (cache)
 
+_FINGERPRINT_BLOCKS = 64
+_FINGERPRINT_BLOCK_BYTES = 1 << 16
+
+
+def crops_fingerprint(path: Path) -> int:
+    """CRC-32 of a crop cache's size and 64 evenly spaced 64 KiB blocks (~4 MiB read, whatever
+    the file size): catches a truncated, foreign or half-rewritten ``crops.npy`` cheaply."""
+    size = path.stat().st_size
+    crc = zlib.crc32(str(size).encode())
+    with open(path, "rb") as f:
+        for k in range(_FINGERPRINT_BLOCKS):
+            f.seek(k * size // _FINGERPRINT_BLOCKS)
+            crc = zlib.crc32(f.read(_FINGERPRINT_BLOCK_BYTES), crc)
+    return crc
+
+
+def _cached_crops(
+    session: Session, crops_path: Path, meta_path: Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """The cached ``(crops, centres, boxes)``, or why the cache cannot be used (a one-line reason)."""
+    s = session.model.settings
+    n = session.num_frames
+    if not crops_path.exists() or not meta_path.exists():
+        missing = crops_path if not crops_path.exists() else meta_path
+        return f"{missing}: missing"
+    try:
+        with np.load(meta_path, allow_pickle=False) as meta:
+            if (
+                int(meta["frames"]) != n
+                or float(meta["cube_mm"]) != s.cube_mm
+                or int(meta["size"]) != s.crop_size
+            ):
+                return f"{meta_path}: made for other settings (frames, cube or crop size)"
+            centres, boxes = np.asarray(meta["centres_mm"]), np.asarray(meta["boxes"])
+            stored = int(meta["crops_fingerprint"]) if "crops_fingerprint" in meta.files else None
+        if centres.shape != (n, 3) or boxes.shape != (n, 4):
+            return f"{meta_path}: centres/boxes of shapes {centres.shape}/{boxes.shape}, expected ({n}, 3)/({n}, 4)"
+        if stored is not None and stored != crops_fingerprint(crops_path):
+            return f"{crops_path}: checksum does not match {meta_path.name} (stale or damaged)"
+        crops = np.load(crops_path, mmap_mode="r", allow_pickle=False)
+    except Exception as exc:  # BadZipFile, EOFError, KeyError, ValueError (short file), OSError
+        return f"{meta_path.parent}: unreadable crop cache ({type(exc).__name__}: {exc})"
+    expected = (n, s.crop_size, s.crop_size)
+    if crops.shape != expected:
+        return f"{crops_path}: shape {crops.shape}, expected {expected}"
+    return crops, centres, boxes
+
 
 def ensure_crops(
     session: Session, *, quiet: bool = False
@@ -99,16 +147,11 @@ def ensure_crops(
     s = session.model.settings
     crops_path = session.folder / CROPS_FILE
     meta_path = session.folder / CROPS_META_FILE
-    if crops_path.exists() and meta_path.exists():
-        with np.load(meta_path) as meta:
-            ok = (
-                int(meta["frames"]) == session.num_frames
-                and float(meta["cube_mm"]) == s.cube_mm
-                and int(meta["size"]) == s.crop_size
-            )
-            centres, boxes = meta["centres_mm"], meta["boxes"]
-        if ok:
-            return np.load(crops_path, mmap_mode="r"), centres, boxes
+    if crops_path.exists() or meta_path.exists():
+        cached = _cached_crops(session, crops_path, meta_path)
+        if isinstance(cached, tuple):
+            return cached
+        _log(f"{cached}; rebuilding the crop cache", quiet)
     sequence = session.open_sequence()
     report = BadFrameReport()
     t0 = time.perf_counter()
@@ -132,6 +175,7 @@ def ensure_crops(
             "size": np.asarray(s.crop_size),
             "centres_mm": centres,
             "boxes": boxes,
+            "crops_fingerprint": np.asarray(crops_fingerprint(crops_path)),
         },
     )
     _log(f"crops: {session.num_frames} frames in {time.perf_counter() - t0:.1f} s", quiet)
@@ -158,18 +202,34 @@ def select(
     from .select import select_references
 
     crops, _, _ = ensure_crops(session, quiet=quiet)
+    usable, reasons = usable_frames(session, crops)
+    if not usable.any():
+        raise SessionError(
+            f"{session.model.dataset.path}: none of the {session.num_frames} frames is usable as "
+            f"a reference (first: {reasons[min(reasons)]})"
+        )
+    if reasons:
+        listed = "; ".join(f"frame {f}: {r}" for f, r in list(reasons.items())[:10])
+        more = f"; and {len(reasons) - 10} more" if len(reasons) > 10 else ""
+        _log(f"selection skips {len(reasons)} unusable frame(s): {listed}{more}", quiet)
+    index = np.flatnonzero(usable)
     descriptors = compute_descriptors(crops, kind=session.model.settings.descriptor)
-    selection = select_references(
-        descriptors,
+    breaks = np.searchsorted(index, np.asarray(session.model.sequence_breaks, dtype=np.int64))
+    sub = select_references(
+        descriptors[index],
         strategy,
-        ref_fraction=ref_fraction,
+        ref_fraction=None
+        if ref_fraction is None
+        else min(1.0, ref_fraction * len(usable) / len(index)),
         rho=rho,
-        sequence_breaks=session.model.sequence_breaks,
+        sequence_breaks=sorted({int(b) for b in breaks if 0 < b < len(index)}),
     )
+    selection = _expand_selection(sub, index, session.num_frames, session.model.sequence_breaks)
     data = selection.to_dict()
     data["ref_fraction"] = ref_fraction
+    data["skipped_frames"] = sorted(reasons)
     session.set_selection(data)
-    if figures:
+    if figures and len(index) >= 3:  # (the embedding plot needs a few frames)
         from .select import coverage_curve, plot_coverage, plot_embedding
 
         plot_embedding(descriptors, selection, session.folder / "selection_embedding.png")
@@ -178,6 +238,64 @@ def select(
             thresholds, fraction = coverage_curve(gt.joints_mm, selection)
             plot_coverage(thresholds, fraction, session.folder / "selection_coverage.png")
     return selection
+
+
+def usable_frames(session: Session, crops: np.ndarray) -> tuple[np.ndarray, dict[int, str]]:
+    """Frames that may become references: ``(N,)`` bool and a reason for each one that may not.
+
+    A frame is unusable when its crop holds no hand pixel: its depth was unreadable, non-finite or
+    all zero (the crop stage leaves such frames at background) or nothing was in the hand's cube.
+    Reads the crops in chunks (``crops`` may be a memory map of any length).
+    """
+    n = len(crops)
+    usable = np.zeros(n, dtype=bool)
+    for a in range(0, n, 4096):
+        usable[a : a + 4096] = np.any(np.asarray(crops[a : a + 4096]) < 1.0, axis=(1, 2))
+    reasons: dict[int, str] = {}
+    bad = np.flatnonzero(~usable)
+    sequence = session.open_sequence() if len(bad) else None
+    names = sequence.frame_names if sequence is not None else None
+    for f in bad[:50]:  # name the first ones precisely; the rest share the generic reason
+        where = f"{sequence.path / names[f] if names else sequence.path} (frame {f})"
+        try:
+            depth = sequence.depth(int(f))
+            reasons[int(f)] = f"{where}: " + (
+                "no depth at all" if not np.any(depth > 0) else "no hand pixels"
+            )
+        except (FrameError, ValueError, OSError) as exc:
+            reasons[int(f)] = str(exc)
+    for f in bad[50:]:
+        reasons[int(f)] = "no hand pixels or unreadable"
+    return usable, reasons
+
+
+def _expand_selection(sub, index: np.ndarray, n: int, sequence_breaks: list[int]):
+    """Map a selection made on the usable frames ``index`` back to all ``n`` frames.
+
+    An unusable frame is never a reference; its parent is the nearest usable frame of its
+    segment (else the nearest usable frame at all), so it is still propagated.
+    """
+    from .select import Selection
+
+    refs = index[np.asarray(sub.reference_frames, dtype=np.int64)]
+    parent = np.full(n, -1, dtype=np.int64)
+    sub_parent = np.asarray(sub.parent, dtype=np.int64)
+    parent[index] = np.where(sub_parent >= 0, index[np.maximum(sub_parent, 0)], -1)
+    others = np.setdiff1d(np.arange(n), index)
+    if len(others):
+        segment = np.searchsorted(
+            np.asarray(sorted(sequence_breaks), dtype=np.int64), np.arange(n), side="right"
+        )
+        for f in others:
+            same = index[segment[index] == segment[f]]
+            pool = same if len(same) else index
+            parent[f] = pool[np.argmin(np.abs(pool - f))]
+    return Selection(
+        strategy=sub.strategy,
+        reference_frames=refs,
+        parent=parent,
+        threshold=sub.threshold,
+    )
 
 
 def annotate_from_gt(

@@ -12,36 +12,61 @@ Layout of ``sessions/<name>/``:
 Every edit is a small command object (SLEAP style) with ``apply`` and an ``inverse`` computed from
 the state it replaces, so undo and redo are journal entries too and a crash at any instant loses no
 acknowledged edit. Writes of whole files are atomic (temporary file + ``os.replace``).
+
+Journal integrity (issue 16): each entry is one ``os.write`` of the whole line, fsynced; a failed
+write or fsync truncates the file back to its previous size, so a refused edit never resurfaces.
+Each line carries ``crc`` (CRC-32 of the session id and the canonical JSON of the entry), and the
+sequence numbers must be continuous: replay names ``journal.jsonl:LINE: reason`` for a corrupt,
+foreign (another session's) or out-of-range entry. A torn last line (a write that never completed,
+so never acknowledged) is cut before the next append and its bytes kept beside the journal as
+``journal.jsonl.torn-<time>``. One process writes a session at a time: the first write (or
+:meth:`Session.acquire_writer`) takes an advisory ``flock`` on ``session.lock`` that names the owner
+(PID, command, start time) and dies with the process, so a stale lock is taken over naturally.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
+import json
+import logging
 import os
 import re
-import tempfile
+import sys
 import threading
 import time
-from collections.abc import Callable
+import uuid
+import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field, TypeAdapter, ValidationError
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
+from .results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
 from .skeleton import Skeleton, get_skeleton
 
 SESSION_FILE = "session.json"
 JOURNAL_FILE = "journal.jsonl"
-RESULTS_FILE = "results.npz"
 CROPS_FILE = "crops.npy"
 CROPS_META_FILE = "crops_meta.npz"
-RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence")
+LOCK_FILE = "session.lock"
+
+
+log = logging.getLogger(__name__)
 
 
 class SessionError(RuntimeError):
     """A session folder is missing, corrupt or cannot be written. The message names the file."""
+
+
+class SessionLockedError(SessionError):
+    """Another process (named in the message by PID and command) is writing this session."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -70,6 +95,8 @@ class SelectionModel(BaseModel):
     parent: list[int] = Field(default_factory=list)
     threshold: float | None = None
     ref_fraction: float | None = None
+    #: frames the selection could not use (unreadable, or no hand pixels): never references
+    skipped_frames: list[int] = Field(default_factory=list)
 
 
 class SessionModel(BaseModel):
@@ -91,6 +118,9 @@ class SessionModel(BaseModel):
     #: frames that became references through review corrections (annotation cost beyond the selection)
     corrections: list[int] = Field(default_factory=list)
     journal_seq: int = 0
+    #: random id of this session, part of every journal entry's checksum (so an entry copied from
+    #: another session's journal is refused); empty in sessions made before issue 16.
+    session_id: str = ""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -158,36 +188,75 @@ class _JointEdit(_Command):
     def _store(self, session: Session, ann: FrameAnnotation) -> None:
         session.model.annotations[str(self.frame)] = ann.to_json()
 
-    def inverse(self, session: Session) -> Command:
-        # Restore only this joint, so undoing one annotator's edit never touches another's joints.
+    def _old_state(self, session: Session) -> dict[str, Any]:
         ann = self._annotation(session)
         k = self.joint
+        return {
+            "uv_px": None if np.isnan(ann.uv_px[k]).any() else tuple(ann.uv_px[k]),
+            "xyz_mm": None if np.isnan(ann.xyz_mm[k]).any() else tuple(ann.xyz_mm[k]),
+            "visible": bool(ann.visible[k]),
+            "order": int(ann.depth_order[k]),
+        }
+
+    #: the joint fields this edit changes; its inverse restores exactly these (per joint, per
+    #: field), so undoing one annotator's 2D edit never reverts another's depth order on that joint.
+    fields: ClassVar[tuple[str, ...]] = ()
+
+    def changed_fields(self) -> tuple[str, ...]:
+        return self.fields
+
+    def inverse(self, session: Session) -> Command:
+        old = self._old_state(session)
+        keep = {f: old[f] for f in self.changed_fields()}
         return SetJointState(
             frame=self.frame,
-            joint=k,
-            uv_px=None if np.isnan(ann.uv_px[k]).any() else tuple(ann.uv_px[k]),
-            xyz_mm=None if np.isnan(ann.xyz_mm[k]).any() else tuple(ann.xyz_mm[k]),
-            visible=bool(ann.visible[k]),
-            order=int(ann.depth_order[k]),
+            joint=self.joint,
+            uv_px=keep.get("uv_px", _UNCHANGED),
+            xyz_mm=keep.get("xyz_mm", _UNCHANGED),
+            visible=keep.get("visible"),
+            order=keep.get("order"),
         )
 
 
+#: SetJointState's marker for "leave this position as it is" (``None`` clears it).
+_UNCHANGED = "unchanged"
+
+
 class SetJointState(_JointEdit):
-    """Set everything about one joint at once (the inverse of every single-joint edit)."""
+    """Set several fields of one joint at once (the inverse of every single-joint edit).
+
+    ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``:
+    a value or ``None`` (unchanged). Entries written before issue 16 set all four.
+    """
 
     kind: Literal["set_joint"] = "set_joint"
-    uv_px: tuple[float, float] | None
-    xyz_mm: tuple[float, float, float] | None
-    visible: bool
-    order: Literal[-1, 0, 1]
+    uv_px: tuple[float, float] | None | Literal["unchanged"] = _UNCHANGED
+    xyz_mm: tuple[float, float, float] | None | Literal["unchanged"] = _UNCHANGED
+    visible: bool | None = None
+    order: Literal[-1, 0, 1] | None = None
+
+    def changed_fields(self) -> tuple[str, ...]:
+        out = [f for f in ("uv_px", "xyz_mm") if getattr(self, f) != _UNCHANGED]
+        return (*out, *(f for f in ("visible", "order") if getattr(self, f) is not None))
+
+    def check(self, session: Session) -> None:
+        super().check(session)
+        for name in ("uv_px", "xyz_mm"):
+            value = getattr(self, name)
+            if isinstance(value, tuple) and not np.all(np.isfinite(value)):
+                raise ValueError(f"{name} must be finite")
 
     def apply(self, session: Session) -> None:
         ann = self._annotation(session)
         k = self.joint
-        ann.uv_px[k] = np.nan if self.uv_px is None else self.uv_px
-        ann.xyz_mm[k] = np.nan if self.xyz_mm is None else self.xyz_mm
-        ann.visible[k] = self.visible
-        ann.depth_order[k] = self.order
+        if self.uv_px != _UNCHANGED:
+            ann.uv_px[k] = np.nan if self.uv_px is None else self.uv_px
+        if self.xyz_mm != _UNCHANGED:
+            ann.xyz_mm[k] = np.nan if self.xyz_mm is None else self.xyz_mm
+        if self.visible is not None:
+            ann.visible[k] = self.visible
+        if self.order is not None:
+            ann.depth_order[k] = self.order
         self._store(session, ann)
 
 
@@ -196,6 +265,7 @@ class SetJoint2D(_JointEdit):
 
     kind: Literal["set_2d"] = "set_2d"
     uv_px: tuple[float, float] | None
+    fields: ClassVar[tuple[str, ...]] = ("uv_px",)
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -213,6 +283,7 @@ class SetJoint3D(_JointEdit):
 
     kind: Literal["set_3d"] = "set_3d"
     xyz_mm: tuple[float, float, float] | None
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm")
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -234,6 +305,7 @@ class SetJoint3D(_JointEdit):
 class SetVisibility(_JointEdit):
     kind: Literal["set_visible"] = "set_visible"
     visible: bool
+    fields: ClassVar[tuple[str, ...]] = ("visible",)
 
     def apply(self, session: Session) -> None:
         ann = self._annotation(session)
@@ -246,6 +318,7 @@ class SetDepthOrder(_JointEdit):
 
     kind: Literal["set_depth_order"] = "set_depth_order"
     order: Literal[-1, 0, 1]
+    fields: ClassVar[tuple[str, ...]] = ("order",)
 
     def apply(self, session: Session) -> None:
         ann = self._annotation(session)
@@ -264,6 +337,14 @@ class SetReference(_Command):
     is_reference: bool
     parent: int = -1
     correction: bool = False
+
+    def check(self, session: Session) -> None:
+        super().check(session)
+        if not -1 <= self.parent < session.model.frames or self.parent == self.frame:
+            raise ValueError(
+                f"parent {self.parent} of frame {self.frame} out of range "
+                f"(session has {session.model.frames} frames)"
+            )
 
     def inverse(self, session: Session) -> Command:
         sel = session.model.selection
@@ -362,30 +443,76 @@ def parse_command(data: dict[str, Any]) -> Command:
 # Atomic file helpers
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+# ---------------------------------------------------------------------------------------------
+# One writer per session: an advisory lock that dies with its process
+
+_held_locks: dict[str, list[Any]] = {}  # realpath of the lock file -> [fd, holders]
+_held_guard = threading.Lock()
 
 
-def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
-    os.close(fd)
+def _lock_owner(fd: int) -> str:
     try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        owner = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(owner["started"])))
+        return f"PID {int(owner['pid'])} ({owner['command']}, since {since})"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "another process (owner unknown)"
+
+
+def acquire_session_lock(folder: Path, command: str) -> str:
+    """Take the writer lock of the session ``folder`` for this process; returns its key.
+
+    Several :class:`Session` objects of one process share the lock (the per-session ``RLock``
+    serializes them); another process gets :class:`SessionLockedError` naming the owner's PID,
+    command and start time. The lock is ``flock`` on ``session.lock``: it dies with its process.
+    """
+    path = Path(folder) / LOCK_FILE
+    key = os.path.realpath(path)
+    with _held_guard:
+        held = _held_locks.get(key)
+        if held is not None:
+            held[1] += 1
+            return key
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, FILE_MODE)
+        except OSError as exc:
+            raise SessionError(f"{path}: cannot create the session lock: {exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            owner = _lock_owner(fd)
+            os.close(fd)
+            if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                raise SessionError(f"{path}: cannot lock the session: {exc}") from exc
+            raise SessionLockedError(
+                f"{Path(folder)}: session is being written by {owner}; "
+                "stop that process first (one writer per session)"
+            ) from None
+        owner = {"pid": os.getpid(), "command": command, "started": time.time()}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(owner).encode(), 0)
+        _held_locks[key] = [fd, 1]
+        return key
+
+
+def release_session_lock(key: str) -> None:
+    with _held_guard:
+        held = _held_locks.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] <= 0:
+            del _held_locks[key]
+            with contextlib.suppress(OSError):
+                os.ftruncate(held[0], 0)
+            os.close(held[0])  # closing the only descriptor releases the flock
+
+
+def default_writer_command() -> str:
+    """How this process names itself in a lock: ``handanno serve demo`` style."""
+    argv = list(sys.argv) or ["python"]
+    argv[0] = "handanno" if argv[0].endswith(("handanno", "cli.py")) else Path(argv[0]).name
+    return " ".join(argv)[:200]
 
 
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -407,6 +534,8 @@ def safe_session_path(name: str, sessions_dir: str | Path) -> Path:
 def resolve_session(session: str | Path, sessions_dir: str | Path = "sessions") -> Path:
     """CLI rule: a path (contains a separator or exists) is used as is; a bare name lives in ``sessions_dir``."""
     s = str(session)
+    if s.strip(".") == "":  # ".", "..": never a session name, and not a session folder either
+        raise SessionError(f"invalid session {s!r}: give a session name or a path to its folder")
     if os.sep in s or "/" in s or Path(s).exists():
         return Path(s)
     return safe_session_path(s, sessions_dir)
@@ -427,6 +556,29 @@ class JournalEntry(BaseModel):
     inverse: dict[str, Any]
 
 
+def _canonical(data: dict[str, Any]) -> bytes:
+    return json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
+
+
+def entry_checksum(session_id: str, body: dict[str, Any]) -> int:
+    """CRC-32 of the session id and the canonical JSON (sorted keys, no spaces) of an entry."""
+    return zlib.crc32(session_id.encode() + b"\n" + _canonical(body))
+
+
+def encode_entry(entry: JournalEntry, session_id: str) -> bytes:
+    """One journal line: the entry's canonical JSON plus its ``crc``, newline-terminated."""
+    body = entry.model_dump(mode="json")
+    return _canonical({**body, "crc": entry_checksum(session_id, body)}) + b"\n"
+
+
+def _one_line(exc: Exception) -> str:
+    if isinstance(exc, ValidationError):
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err.get("loc", ()))
+        return f"{loc}: {err['msg']}" if loc else str(err["msg"])
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
 Listener = Callable[[JournalEntry], None]
 
 
@@ -444,6 +596,13 @@ class Session:
         self._sequence: Any = None
         self._edits_since_snapshot = 0
         self._next_seq = model.journal_seq + 1
+        self._lock_key: str | None = None
+        #: bytes of the journal that hold acknowledged entries (a torn tail lies beyond)
+        self._journal_size = 0
+        #: size of the journal file as last seen (with any torn tail); None after a failed rollback
+        self._journal_seen: int | None = 0
+        #: results written inside :meth:`staged_results` on this thread (not on disk yet)
+        self._stage = threading.local()
 
     # ------------------------------------------------------------------ create / open
     @classmethod
@@ -471,15 +630,24 @@ class Session:
             skeleton=skeleton,
             sequence_breaks=sequence_breaks or [],
             settings=settings or Settings(),
+            session_id=uuid.uuid4().hex,
         )
+        session = cls(folder, model)
+        session.acquire_writer()
         for stale in (JOURNAL_FILE, RESULTS_FILE, CROPS_FILE, CROPS_META_FILE):
             (folder / stale).unlink(missing_ok=True)
-        session = cls(folder, model)
+        session._journal_size = session._journal_seen = 0
         session.save()
         return session
 
     @classmethod
-    def open(cls, folder: str | Path) -> Session:
+    def open(cls, folder: str | Path, *, writer: str | None = None) -> Session:
+        """Open a session folder and replay its journal.
+
+        ``writer`` (a command line, e.g. ``"handanno serve demo"``) takes the session's writer lock
+        now, failing with :class:`SessionLockedError` while another process holds it; otherwise the
+        lock is taken at the first write.
+        """
         folder = Path(folder)
         path = folder / SESSION_FILE
         if not folder.is_dir():
@@ -495,34 +663,89 @@ class Session:
             raise SessionError(f"{path}: corrupt session file: {' '.join(first)}") from exc
         session = cls(folder, model)
         session._replay_journal()
+        if writer is not None:
+            session.acquire_writer(writer)
         return session
 
     def _replay_journal(self) -> None:
+        """Apply the journal's entries after ``journal_seq``; see the module docstring for checks."""
         path = self.folder / JOURNAL_FILE
         if not path.exists():
             return
-        lines = path.read_bytes().split(b"\n")
-        entries: list[JournalEntry] = []
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise SessionError(f"{path}: cannot read the journal: {exc}") from exc
+        complete = data.rfind(b"\n") + 1
+        lines = data[:complete].split(b"\n")[:-1]
+        good_end = complete  # end of the acknowledged entries
+        entries: list[tuple[int, JournalEntry]] = []
+        offset = 0
         for number, raw in enumerate(lines, start=1):
+            start, offset = offset, offset + len(raw) + 1
             if not raw.strip():
                 continue
+            where = f"{path}:{number}"
+            last = complete == len(data) and all(not rest.strip() for rest in lines[number:])
             try:
-                entries.append(JournalEntry.model_validate_json(raw))
+                doc = json.loads(raw)
+                if not isinstance(doc, dict):
+                    raise ValueError("not a JSON object")
+                crc = doc.pop("crc", None)  # absent in journals written before issue 16
+                if crc is not None and crc != entry_checksum(self.model.session_id, doc):
+                    raise ValueError(
+                        "checksum mismatch (a damaged line, or an entry copied from another "
+                        "session's journal)"
+                    )
+                entry = JournalEntry.model_validate(doc)
             except (ValidationError, ValueError) as exc:
-                is_last = all(not rest.strip() for rest in lines[number:])
-                if is_last:
-                    # A torn final line is a write that never completed, so it was never acknowledged.
+                if last:
+                    # A last line that never completed was never acknowledged: cut at next append.
+                    good_end = start
                     break
+                raise SessionError(f"{where}: corrupt entry: {_one_line(exc)}") from exc
+            previous = entries[-1][1].seq if entries else None
+            if previous is None and entry.seq > self.model.journal_seq + 1:
                 raise SessionError(
-                    f"{path}: line {number} is corrupt ({str(exc).splitlines()[0]})"
+                    f"{where}: journal starts at sequence {entry.seq} but {SESSION_FILE} holds "
+                    f"edits up to {self.model.journal_seq} only (entries are missing)"
+                )
+            if previous is not None and entry.seq != previous + 1:
+                raise SessionError(
+                    f"{where}: sequence {entry.seq} follows {previous} (expected {previous + 1}: "
+                    "an entry is missing or repeated, e.g. by a second writer)"
+                )
+            entries.append((number, entry))
+        if entries and entries[-1][1].seq < self.model.journal_seq:
+            raise SessionError(
+                f"{path}: ends at sequence {entries[-1][1].seq} but {SESSION_FILE} has folded in "
+                f"edits up to {self.model.journal_seq} (the journal was cut)"
+            )
+        for number, entry in entries:
+            try:
+                command = parse_command(entry.command)
+                command.check(self)
+                parse_command(entry.inverse).check(self)
+                if entry.seq > self.model.journal_seq:
+                    command.apply(self)
+            except (ValidationError, ValueError, TypeError, IndexError, KeyError) as exc:
+                kind = entry.command.get("kind", "?")
+                raise SessionError(
+                    f"{path}:{number}: {kind} entry #{entry.seq} does not fit this session: "
+                    f"{_one_line(exc)}"
                 ) from exc
-        for entry in entries:
-            if entry.seq > self.model.journal_seq:
-                parse_command(entry.command).apply(self)
             self._track_undo(entry)
+        if good_end < len(data):
+            log.warning(
+                "%s: ignoring a torn last entry (%d bytes, never acknowledged); it is cut "
+                "before the next edit and kept beside the journal",
+                path,
+                len(data) - good_end,
+            )
         if entries:
-            self.model.journal_seq = max(self.model.journal_seq, entries[-1].seq)
+            self.model.journal_seq = max(self.model.journal_seq, entries[-1][1].seq)
         self._next_seq = self.model.journal_seq + 1
+        self._journal_size, self._journal_seen = good_end, len(data)
 
     # ------------------------------------------------------------------ derived views
     @property
@@ -668,7 +891,10 @@ class Session:
         self._track_undo(entry)
         self._edits_since_snapshot += 1
         if self._edits_since_snapshot >= 200:
-            self.save()
+            try:
+                self.save()
+            except (OSError, SessionError) as exc:  # the edit is in the journal: still saved
+                log.warning("%s: snapshot deferred: %s", self.folder / SESSION_FILE, exc)
         for listener in list(self._listeners):
             try:
                 listener(entry)
@@ -689,18 +915,97 @@ class Session:
             if redo:
                 undo.append(redo.pop())
 
-    def _append_journal(self, entry: JournalEntry) -> None:
+    def _journal_fd(self) -> int:
+        """The journal opened for appending, its torn tail (if any) cut first. Under ``self.lock``."""
+        path = self.folder / JOURNAL_FILE
         if self._journal_file is None:
-            self._journal_file = open(self.folder / JOURNAL_FILE, "ab")  # noqa: SIM115 - kept open
-        line = entry.model_dump_json().encode() + b"\n"
+            self.acquire_writer()
+            if not self.model.session_id:  # a session from before issue 16: give it an id first
+                self.model.session_id = uuid.uuid4().hex
+                self.save()
+            try:
+                created = not path.exists()
+                self._journal_file = os.open(
+                    path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, FILE_MODE
+                )
+                if created:
+                    fsync_dir(self.folder)  # the new journal's name survives a power loss too
+            except OSError as exc:
+                raise SessionError(f"{path}: cannot open the edit journal: {exc}") from exc
+        fd = self._journal_file
+        size = os.fstat(fd).st_size
+        if size != self._journal_size:
+            if size < self._journal_size or (
+                self._journal_seen is not None and size != self._journal_seen
+            ):
+                raise SessionError(
+                    f"{path}: changed by another writer since this session was opened "
+                    f"({size} bytes, expected {self._journal_size}); reopen the session"
+                )
+            self._cut_torn_tail(fd, size)
+        return fd
+
+    def _cut_torn_tail(self, fd: int, size: int) -> None:
+        """Move the bytes after the last acknowledged entry to ``journal.jsonl.torn-<time>``."""
+        path = self.folder / JOURNAL_FILE
+        with open(path, "rb") as f:
+            f.seek(self._journal_size)
+            torn = f.read(size - self._journal_size)
+        stamp = time.strftime("%Y%m%dT%H%M%S") + f"-{time.time_ns() % 1_000_000_000:09d}"
+        keep = path.with_name(f"{JOURNAL_FILE}.torn-{stamp}")
         try:
-            self._journal_file.write(line)
-            self._journal_file.flush()
-            os.fsync(self._journal_file.fileno())
+            atomic_write_bytes(keep, torn)
+            os.ftruncate(fd, self._journal_size)
+            os.fsync(fd)
         except OSError as exc:
-            raise SessionError(
-                f"{self.folder / JOURNAL_FILE}: cannot write the edit journal: {exc}"
-            ) from exc
+            raise SessionError(f"{path}: cannot cut the torn last entry: {exc}") from exc
+        self._journal_seen = self._journal_size
+        log.warning("%s: cut a torn last entry (%d bytes), kept in %s", path, len(torn), keep.name)
+
+    def _append_journal(self, entry: JournalEntry) -> None:
+        """Append one entry durably: one ``write`` of the whole line, then fsync.
+
+        If either fails, the file is truncated back to its previous size, so the refused edit can
+        never be glued to the next one or resurface on replay.
+        """
+        path = self.folder / JOURNAL_FILE
+        fd = self._journal_fd()
+        line = encode_entry(entry, self.model.session_id)
+        before = self._journal_size
+        try:
+            written = os.write(fd, line)
+            if written != len(line):
+                raise OSError(errno.ENOSPC, f"short write ({written} of {len(line)} bytes)")
+            os.fsync(fd)
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, before)
+                os.fsync(fd)
+                self._journal_seen = before
+            except OSError:
+                self._journal_seen = None  # cut whatever lies beyond before the next append
+            raise SessionError(f"{path}: edit NOT saved, cannot write the journal: {exc}") from exc
+        self._journal_size = self._journal_seen = before + len(line)
+
+    # ------------------------------------------------------------------ the writer lock
+    def acquire_writer(self, command: str | None = None) -> Session:
+        """Take this session's writer lock (see :func:`acquire_session_lock`) and cut a torn tail.
+
+        Called by ``serve`` and every CLI command that writes, and implicitly by the first write.
+        Raises :class:`SessionLockedError` naming the other writer's PID and command.
+        """
+        with self.lock:
+            if self._lock_key is None:
+                self._lock_key = acquire_session_lock(
+                    self.folder, command or default_writer_command()
+                )
+                if self._journal_seen != self._journal_size and self._journal_file is None:
+                    self._journal_fd()  # cut the torn tail now, before anything is appended
+        return self
+
+    @property
+    def is_writer(self) -> bool:
+        return self._lock_key is not None
 
     # ------------------------------------------------------------------ bulk state (not journaled edits)
     def set_selection(self, selection: dict[str, Any]) -> None:
@@ -717,6 +1022,7 @@ class Session:
                 parent=parent,
                 threshold=selection.get("threshold"),
                 ref_fraction=selection.get("ref_fraction"),
+                skipped_frames=sorted(map(int, selection.get("skipped_frames", []))),
             )
             self.model.corrections = []
             self.save()
@@ -735,46 +1041,87 @@ class Session:
     def save(self) -> None:
         """Write the snapshot atomically (the journal stays the source of truth for later edits)."""
         with self.lock:
-            atomic_write_bytes(
-                self.folder / SESSION_FILE, self.model.model_dump_json(indent=1).encode()
-            )
+            self.acquire_writer()
+            try:
+                atomic_write_bytes(
+                    self.folder / SESSION_FILE, self.model.model_dump_json(indent=1).encode()
+                )
+            except OSError as exc:
+                raise SessionError(f"{self.folder / SESSION_FILE}: cannot write: {exc}") from exc
             self._edits_since_snapshot = 0
 
     def close(self) -> None:
+        """Snapshot (if this object wrote), close the journal and release the writer lock."""
         with self.lock:
-            self.save()
-            if self._journal_file is not None:
-                self._journal_file.close()
-                self._journal_file = None
+            try:
+                if self._lock_key is not None:
+                    self.save()
+            finally:
+                if self._journal_file is not None:
+                    os.close(self._journal_file)
+                    self._journal_file = None
+                if self._lock_key is not None:
+                    release_session_lock(self._lock_key)
+                    self._lock_key = None
 
     # ------------------------------------------------------------------ results
+    def _expected_result_shape(self, key: str) -> tuple[int, ...]:
+        return result_shape(key, self.num_frames, self.skeleton.num_joints)
+
     def load_results(self) -> dict[str, np.ndarray]:
-        """Results arrays; missing ones are NaN-filled: ``*_mm`` (N,J,3), ``confidence`` (N,J)."""
-        n, j = self.num_frames, self.skeleton.num_joints
-        out: dict[str, np.ndarray] = {
-            "lifted_mm": np.full((n, j, 3), np.nan),
-            "init_mm": np.full((n, j, 3), np.nan),
-            "final_mm": np.full((n, j, 3), np.nan),
-            "confidence": np.full((n, j), np.nan),
-        }
-        path = self.folder / RESULTS_FILE
-        if path.exists():
-            try:
-                with np.load(path) as data:
-                    for key in data.files:
-                        out[key] = data[key]
-            except (OSError, ValueError) as exc:
-                raise SessionError(
-                    f"{path}: corrupt results file ({exc}); rerun `handanno propagate`"
-                ) from exc
+        """Results arrays (:func:`~handanno_core.results.read_results`); inside
+        :meth:`staged_results` this thread sees its staged arrays. A corrupt or foreign
+        ``results.npz`` raises :class:`SessionError` naming the file."""
+        try:
+            out = read_results(
+                self.folder / RESULTS_FILE, self.num_frames, self.skeleton.num_joints
+            )
+        except ResultsError as exc:
+            raise SessionError(str(exc)) from exc
+        staged = getattr(self._stage, "arrays", None)
+        if staged:
+            out.update({k: v.copy() for k, v in staged.items()})
         return out
 
     def save_results(self, **arrays: np.ndarray) -> None:
-        """Update some result arrays (others kept) atomically."""
+        """Update some result arrays (others kept) in one atomic replace of ``results.npz``."""
+        for key, value in arrays.items():
+            if key not in RESULT_KEYS or np.shape(value) != self._expected_result_shape(key):
+                raise ValueError(
+                    f"results: {key} of shape {np.shape(value)} does not fit this session "
+                    f"(keys {RESULT_KEYS})"
+                )
+        staged = getattr(self._stage, "arrays", None)
+        if staged is not None:
+            staged.update({k: np.array(v, dtype=np.float64) for k, v in arrays.items()})
+            return
         with self.lock:
+            self.acquire_writer()
             current = self.load_results()
-            current.update({k: np.asarray(v) for k, v in arrays.items()})
-            atomic_save_npz(self.folder / RESULTS_FILE, current)
+            current.update({k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()})
+            try:
+                atomic_save_npz(self.folder / RESULTS_FILE, current)
+            except OSError as exc:
+                raise SessionError(f"{self.folder / RESULTS_FILE}: cannot write: {exc}") from exc
+
+    @contextlib.contextmanager
+    def staged_results(self) -> Iterator[dict[str, np.ndarray]]:
+        """Stage this thread's :meth:`save_results` in memory; write them in one replace at the end.
+
+        A job that saves several stages (the app's propagate, then refine) runs inside this block,
+        so ``results.npz`` holds either everything from before the job or everything after it:
+        an exception (cancel) or a kill leaves the file exactly as it was.
+        """
+        if getattr(self._stage, "arrays", None) is not None:
+            raise RuntimeError("staged_results blocks do not nest")
+        self._stage.arrays = {}
+        try:
+            yield self._stage.arrays
+            staged = self._stage.arrays
+        finally:
+            self._stage.arrays = None
+        if staged:
+            self.save_results(**staged)
 
     def summary(self) -> str:
         done, total = self.progress()

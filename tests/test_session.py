@@ -66,7 +66,7 @@ def test_torn_last_journal_line_is_ignored_but_corrupt_middle_line_is_an_error(s
         )  # crash in the middle of a write: never acknowledged
     assert Session.open(session.folder).annotation(0).uv_px[1].tolist() == [1, 2]
     path.write_bytes(b"garbage\n" + path.read_bytes())
-    with pytest.raises(SessionError, match="journal.jsonl: line 1"):
+    with pytest.raises(SessionError, match="journal.jsonl:1: corrupt entry"):
         Session.open(session.folder)
 
 

@@ -81,6 +81,42 @@ def validate_depth(
     return depth
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_frame_header(path: str | Path, frame: int, shape: tuple[int, int]) -> None:
+    """Refuse a PNG or ``.npy`` frame whose header size is not ``shape`` = (H, W), *before* decoding.
+
+    A 0.5 MB PNG can declare 16000 x 16000 pixels (1.5 GB decoded); the header says so in 24 bytes.
+    Other files pass (their readers check the decoded shape). Raises :class:`FrameError`.
+    """
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            size = np.load(path, mmap_mode="r", allow_pickle=False).shape  # header only
+        else:
+            with open(path, "rb") as f:
+                head = f.read(24)
+            if head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+                return
+            size = (int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big"))
+    except FileNotFoundError:
+        raise FrameError(path, frame, "file missing") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise FrameError(
+            path,
+            frame,
+            f"cannot read the header: {str(exc).splitlines()[0] if str(exc) else exc!r}",
+        ) from exc
+    if tuple(size[:2]) != tuple(shape) or len(size) not in (2, 3):
+        raise FrameError(
+            path,
+            frame,
+            f"depth has shape {tuple(size)}, expected {tuple(shape)} "
+            "(from the file header; refused before decoding)",
+        )
+
+
 class DepthSequence(abc.ABC):
     """A lazily read depth video with a camera, a skeleton layout and optional ground truth."""
 

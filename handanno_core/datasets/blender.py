@@ -20,7 +20,15 @@ import numpy as np
 
 from ..camera import CameraIntrinsics
 from ..skeleton import BLENDER24
-from .base import DatasetError, DepthSequence, FrameError, GroundTruth, natural_key, validate_depth
+from .base import (
+    DatasetError,
+    DepthSequence,
+    FrameError,
+    GroundTruth,
+    check_frame_header,
+    natural_key,
+    validate_depth,
+)
 
 BLENDER_CAMERA = CameraIntrinsics(
     fx=460.017965, fy=459.990440, cx=320.0, cy=240.0, width=640, height=480
@@ -90,6 +98,7 @@ class BlenderSequence(DepthSequence):
         index = self._check_index(index)
         path = self.path / self._depth_files[index]
         shape = (self.camera.height, self.camera.width)
+        check_frame_header(path, index, shape)  # before loading: the header states the size
         try:
             raw = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:

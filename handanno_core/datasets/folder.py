@@ -20,7 +20,15 @@ import numpy as np
 
 from ..camera import CameraIntrinsics
 from ..skeleton import MSRA21, SKELETONS
-from .base import DatasetError, DepthSequence, FrameError, GroundTruth, natural_key, validate_depth
+from .base import (
+    DatasetError,
+    DepthSequence,
+    FrameError,
+    GroundTruth,
+    check_frame_header,
+    natural_key,
+    validate_depth,
+)
 from .icvl import read_png16
 
 INTRINSICS_FILE = "intrinsics.json"
@@ -136,6 +144,7 @@ class FolderSequence(DepthSequence):
         shape = (self.camera.height, self.camera.width)
         if self._kind == "png":
             return read_png16(path, index, shape, self.depth_scale_mm)
+        check_frame_header(path, index, shape)  # before loading
         try:
             raw = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:

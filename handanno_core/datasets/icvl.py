@@ -19,7 +19,15 @@ import numpy as np
 
 from ..camera import CameraIntrinsics
 from ..skeleton import ICVL16
-from .base import DatasetError, DepthSequence, FrameError, GroundTruth, natural_key, validate_depth
+from .base import (
+    DatasetError,
+    DepthSequence,
+    FrameError,
+    GroundTruth,
+    check_frame_header,
+    natural_key,
+    validate_depth,
+)
 
 ICVL_CAMERA = CameraIntrinsics(fx=241.42, fy=241.42, cx=160.0, cy=120.0, width=320, height=240)
 _VALUES = 16 * 3
@@ -110,6 +118,7 @@ def read_png16(path: Path, index: int, shape: tuple[int, int], scale: float) -> 
     """Read a single-channel 16-bit PNG as ``(H, W)`` float32 mm (value x ``scale``)."""
     if not path.is_file():
         raise FrameError(path, index, "file missing")
+    check_frame_header(path, index, shape)  # before decoding: a tiny PNG can declare gigapixels
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FrameError(path, index, "unreadable image (not a valid PNG?)")

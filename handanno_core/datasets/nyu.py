@@ -19,7 +19,14 @@ import numpy as np
 
 from ..camera import NYU_CAMERA, CameraIntrinsics
 from ..skeleton import NYU14
-from .base import DatasetError, DepthSequence, FrameError, GroundTruth, validate_depth
+from .base import (
+    DatasetError,
+    DepthSequence,
+    FrameError,
+    GroundTruth,
+    check_frame_header,
+    validate_depth,
+)
 
 #: the 14 of NYU's 36 joints used by the standard evaluation (and skeleton ``nyu14``).
 NYU_JOINTS = (0, 3, 6, 9, 12, 15, 18, 21, 24, 25, 27, 30, 31, 32)
@@ -111,6 +118,7 @@ class NYUSequence(DepthSequence):
         shape = (self.camera.height, self.camera.width)
         if not path.is_file():
             raise FrameError(path, index, "file missing")
+        check_frame_header(path, index, shape)  # before decoding
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise FrameError(path, index, "unreadable PNG")

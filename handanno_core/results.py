@@ -1,0 +1,55 @@
+"""``results.npz``: the session's derived joints, one format, read and checked in one place.
+
+Arrays (float64): ``lifted_mm``, ``init_mm``, ``final_mm`` ``(N, J, 3)`` in mm (camera frame) and
+``confidence`` ``(N, J)`` in [0, 1]; NaN where a stage has no value for a frame. The file is always
+written whole (:func:`handanno_core.fileio.atomic_save_npz`) by
+:meth:`handanno_core.session.Session.save_results`; partial progress lives elsewhere.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+RESULTS_FILE = "results.npz"
+RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence")
+
+
+class ResultsError(ValueError):
+    """A results file is unreadable or does not fit its session; the message names the file."""
+
+
+def result_shape(key: str, frames: int, joints: int) -> tuple[int, ...]:
+    """Shape of result array ``key`` for a session of ``frames`` frames and ``joints`` joints."""
+    return (frames, joints) if key == "confidence" else (frames, joints, 3)
+
+
+def read_results(path: str | Path, frames: int, joints: int) -> dict[str, np.ndarray]:
+    """Every result array; missing arrays (or a missing file) NaN-filled.
+
+    Raises :class:`ResultsError` naming ``path`` for a truncated, empty or non-zip file, or arrays
+    of the wrong shape (another session's results); unknown arrays are ignored.
+    """
+    path = Path(path)
+    out = {k: np.full(result_shape(k, frames, joints), np.nan) for k in RESULT_KEYS}
+    if not path.exists():
+        return out
+    hint = f"move it away and rerun `handanno lift` and `handanno propagate` ({path})"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for key in data.files:
+                if key in out:
+                    out[key] = np.asarray(data[key], dtype=np.float64)
+    except Exception as exc:  # BadZipFile, EOFError, ValueError, OSError, zlib.error
+        reason = str(exc).splitlines()[0] if str(exc) else ""
+        raise ResultsError(
+            f"{path}: corrupt results file ({type(exc).__name__}: {reason}); {hint}"
+        ) from exc
+    for key, value in out.items():
+        expected = result_shape(key, frames, joints)
+        if value.shape != expected:
+            raise ResultsError(
+                f"{path}: {key} has shape {value.shape}, expected {expected} for this session; {hint}"
+            )
+    return out

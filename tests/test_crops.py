@@ -173,9 +173,16 @@ def test_msra_style_frame_centre_on_palm_not_forearm():
     assert (depth > 0).mean() > 0.05
     c = locate_hand(depth, MSRA_CAMERA)
     assert np.linalg.norm(c - palm) < 35.0, c
-    # without the refinement the centre of mass of hand + forearm would be pulled down the arm
+    # the centre of mass of hand + forearm is pulled down the arm (+y); the centre is not: it is
+    # on the fingers' side of the palm centre, and the whole hand (palm + fingers) is in the crop
     pts, _ = MSRA_CAMERA.depth_to_points(depth)
-    assert np.linalg.norm(pts.mean(0) - palm) > np.linalg.norm(c - palm) + 10
+    assert pts.mean(0)[1] > palm[1] + 20
+    assert c[1] < palm[1] + 5
+    centres, radii = hand_model(palm)
+    hand = centres[:-14]  # the last 14 spheres are the forearm
+    box = crop_boxes(c, MSRA_CAMERA)
+    xy = image_to_crop(MSRA_CAMERA.project(hand), box)
+    assert np.all((xy > -0.5) & (xy < 127.5))
 
 
 def test_speckle_and_flying_pixels_in_front_are_ignored():

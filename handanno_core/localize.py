@@ -443,7 +443,8 @@ def _stump_of_free_arm(
 def _free_blob(
     z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
 ) -> HandLocation:
-    """No attachment: mean shift from the seed's nearest points (see module docstring)."""
+    """No attachment: mean shift from the seed's nearest points (see module docstring); the
+    extent is that of the seed's points within the mean shift's radius (``0.4 * cube_mm``)."""
     rows, cols = np.nonzero(mask)
     zc = z[rows, cols].astype(np.float64)
     pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
@@ -458,7 +459,7 @@ def _free_blob(
         centre = new
         if done:
             break
-    near = pts[np.sum((pts - centre) ** 2, axis=1) <= (0.5 * cube_mm) ** 2]
+    near = pts[np.sum((pts - centre) ** 2, axis=1) <= r2]  # the mean shift's support
     return _box_of(near, "free-blob", cube_mm, centre)
 
 

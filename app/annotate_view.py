@@ -422,7 +422,8 @@ class AnnotateView:
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
-            self.cloud.visible = show_hand_cloud(self.cloud, geo)
+            wrist = self._lifted.joints_mm if self._lifted is not None else None
+            self.cloud.visible = show_hand_cloud(self.cloud, geo, wrist, self.skeleton)
             rw, rh = geo.image_render_size
             self.image.image = geo.image_rgb
             self.image.render_width = rw

@@ -112,6 +112,10 @@ ARM_EXTRA_MM = 100.0
 #: ... and its ends (this long, mm) differ in solidity by at least SOLIDITY_GAP.
 END_PART_MM = 80.0
 SOLIDITY_GAP = 0.08
+#: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
+WRIST_SHIFT = 0.5
+#: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
+WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
 HAND_LENGTH_MM = 200.0
 #: a crop keeps every hand point at least this far inside its edge (mm).
@@ -444,7 +448,8 @@ def _free_blob(
     z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
 ) -> HandLocation:
     """No attachment: mean shift from the seed's nearest points (see module docstring); the
-    extent is that of the seed's points within the mean shift's radius (``0.4 * cube_mm``)."""
+    extent is that of the seed's points within ``cube_mm / 2`` of the centre (hand and whatever
+    of the forearm is that close: without an arm end the two are not told apart)."""
     rows, cols = np.nonzero(mask)
     zc = z[rows, cols].astype(np.float64)
     pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
@@ -459,7 +464,7 @@ def _free_blob(
         centre = new
         if done:
             break
-    near = pts[np.sum((pts - centre) ** 2, axis=1) <= r2]  # the mean shift's support
+    near = pts[np.sum((pts - centre) ** 2, axis=1) <= (0.5 * cube_mm) ** 2]
     return _box_of(near, "free-blob", cube_mm, centre)
 
 
@@ -562,18 +567,28 @@ def locate_hand_region(
     )
     if behind is not None:
         hand = behind
-    return _box_of(pts[hand], "arm-end", cube_mm)
+    wrist = None
+    if behind is None:  # the hand's nodes nearest the attachment: its wrist side
+        wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist)
 
 
 def _box_of(
-    points: np.ndarray, method: str, cube_mm: float, centre_mm: np.ndarray | None = None
+    points: np.ndarray,
+    method: str,
+    cube_mm: float,
+    centre_mm: np.ndarray | None = None,
+    wrist_mm: np.ndarray | None = None,
 ) -> HandLocation:
     """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
 
     Centre (``centre_mm`` if given, only moved back along its ray): the middle of their extent in ray angle (x/z, y/z);
     in depth the middle of their 0.2-99.8th percentiles, moved back if needed so the farthest is
     ``BACK_MARGIN_MM`` inside the cube (a crop keeps surface in front of the cube as foreground,
-    -1, but drops what is behind it). Half extent: x, y in mm at the centre's depth (a point
+    -1, but drops what is behind it). With ``wrist_mm`` (the hand's wrist side) the centre moves
+    ``WRIST_SHIFT`` of the slack (``cube_mm / 2 - CROP_MARGIN_MM - half extent``) towards it.
+    Half extent (with ``wrist_mm``, plus ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand
+    region ends ``HAND_LENGTH_MM`` from the fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
     nearer the camera projects further out), z in mm, each the larger side around the centre.
     """
     z = points[:, 2]
@@ -588,7 +603,19 @@ def _box_of(
         zc = max(centre[2], z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
         centre = centre * (zc / centre[2])  # same ray, moved back if needed
     ac = centre[:2] / zc
-    half_xy = np.maximum(a_hi - ac, ac - a_lo) * zc
+    allowance = np.zeros(2)
+    if wrist_mm is not None:
+        # use part of the slack the crop leaves around the hand on the wrist's side: the far end
+        # (fingertips) stays well inside, and the wrist and some forearm are in the crop too
+        half = 0.5 * (a_hi - a_lo) * zc
+        slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - half)
+        towards = np.asarray(wrist_mm, dtype=np.float64)[:2] / wrist_mm[2] - ac
+        norm = np.linalg.norm(towards)
+        if norm > 1e-9:
+            ac = ac + WRIST_SHIFT * slack / zc * towards / norm
+            centre = np.array([*(ac * zc), zc])
+            allowance = WRIST_ALLOWANCE_MM * np.abs(towards) / norm
+    half_xy = np.maximum(a_hi - ac, ac - a_lo) * zc + allowance
     half_z = max(z_hi - zc, zc - z_lo)
     return HandLocation(centre, np.array([*half_xy, half_z]), method)
 

@@ -46,3 +46,31 @@ def frame_names() -> list[str]:
         return []
     sr = sorted(str(p.relative_to(DATA)) for p in (DATA / "real-sr305").glob("*/*.png"))
     return sr + ["real-frames/hands2017_image_D00000030.png", "real-frames/msra15_frame.txt"]
+
+
+# Hand (palm + fingers, not forearm) bounding boxes (u0, v0, u1, v1) px, read off the frames by
+# eye with a 50 px grid drawn on them (benchmarks/bench_crops.py writes an annotated montage).
+# Each excludes the head, the torso and the forearm below the wrist.
+HAND_BOXES = {
+    "real-sr305/20210326-230536/110.png": (195, 155, 385, 315),
+    "real-sr305/20210326-230536/130.png": (190, 140, 370, 310),
+    "real-sr305/20210326-230536/150.png": (210, 130, 385, 340),
+    "real-sr305/20210326-230536/170.png": (185, 180, 330, 330),
+    "real-sr305/20210326-230536/30.png": (200, 255, 350, 390),
+    "real-sr305/20210326-230536/50.png": (190, 205, 350, 350),
+    "real-sr305/20210326-230536/70.png": (210, 175, 350, 345),
+    "real-sr305/20210326-230536/90.png": (260, 130, 385, 330),
+    "real-sr305/20210326-231615/0.png": (205, 195, 335, 360),
+    "real-sr305/20210326-231615/100.png": (260, 195, 390, 360),
+    "real-sr305/20210326-231615/140.png": (255, 190, 375, 370),
+    "real-sr305/20210326-231615/160.png": (270, 190, 410, 375),
+    "real-sr305/20210326-231615/180.png": (265, 190, 415, 360),
+    "real-sr305/20210326-231615/20.png": (270, 205, 400, 365),
+    "real-sr305/20210326-231615/200.png": (280, 175, 415, 365),
+    "real-sr305/20210326-231615/220.png": (295, 185, 415, 375),
+    "real-sr305/20210326-231615/40.png": (245, 215, 385, 365),
+    "real-sr305/20210326-231615/60.png": (255, 195, 395, 355),
+    "real-sr305/20210326-231615/80.png": (250, 195, 390, 355),
+    "real-frames/hands2017_image_D00000030.png": (265, 100, 350, 260),
+    "real-frames/msra15_frame.txt": (130, 55, 205, 195),
+}

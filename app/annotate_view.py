@@ -422,7 +422,8 @@ class AnnotateView:
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
-            self.cloud.visible = show_hand_cloud(self.cloud, geo)
+            wrist = self._lifted.joints_mm if self._lifted is not None else None
+            self.cloud.visible = show_hand_cloud(self.cloud, geo, wrist, self.skeleton)
             rw, rh = geo.image_render_size
             self.image.image = geo.image_rgb
             self.image.render_width = rw
@@ -440,7 +441,8 @@ class AnnotateView:
         self._render()
 
     def reset_camera(self) -> None:
-        """Put the browser camera at the depth sensor, looking at the hand (pixels line up)."""
+        """Put the browser camera at the depth sensor, looking at the hand (pixels line up); on
+        large images (>= 512 px wide) the view frames the hand's crop, not the whole image."""
         data = self._frame_data
         if data is None:
             return
@@ -448,7 +450,11 @@ class AnnotateView:
         cam = self.session.camera
         with self.client.atomic():
             self.client.camera.up_direction = (0.0, -1.0, 0.0)
-            self.client.camera.fov = float(2.0 * np.arctan(cam.height / 2.0 / cam.fy))
+            half = cam.height / 2.0 / cam.fy
+            if cam.width >= 512 and geo.centre_mm[2] > 0:  # large image: frame the hand's crop
+                cube = self.session.model.settings.cube_mm
+                half = min(half, 0.65 * cube / float(geo.centre_mm[2]))
+            self.client.camera.fov = float(2.0 * np.arctan(half))
             self.client.camera.position = geo.sensor_position
             self.client.camera.look_at = (0.0, 0.0, 0.0)
 

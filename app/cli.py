@@ -92,6 +92,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,W,H]")
     p.add_argument("--depth-scale", type=float, help="mm per PNG unit for --format folder")
+    p.add_argument(
+        "--breaks",
+        metavar="F1,F2|FILE",
+        help="frames where a new recording starts (indices, or a file: one index or frame file "
+        "name per line); replaces the reader's breaks; '' for none",
+    )
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
     p = sub.add_parser("info", help="print a session's summary")
@@ -245,6 +251,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             intrinsics=_intrinsics(args.intrinsics),
             depth_scale_mm=args.depth_scale,
             overwrite=args.force,
+            breaks=args.breaks,
         )
         _OPENED.append(session)
         print(session.summary())

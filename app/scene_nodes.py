@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from handanno_core.cloud import clean_hand_cloud
+
 from .geometry import FrameGeometry
 
 #: unit sphere of the joint handles (scaled per instance to the joint radius)
@@ -26,14 +28,18 @@ def add_hand_cloud(scene: Any, name: str, *, visible: bool = True) -> Any:
     )
 
 
-def show_hand_cloud(cloud: Any, geo: FrameGeometry) -> bool:
-    """Assign ``geo``'s cloud (scene metres, depth colours) to ``cloud``; points about 1.6 px wide
-    at the hand's depth. Returns whether the frame has any point (the caller sets visibility)."""
-    has_cloud = len(geo.cloud_mm) > 0
-    cloud.points = geo.to_scene(geo.cloud_mm if has_cloud else geo.centre_mm[None]).astype(
-        np.float32
-    )
-    cloud.colors = geo.cloud_rgb if has_cloud else np.zeros((1, 3), np.uint8)
+def show_hand_cloud(
+    cloud: Any, geo: FrameGeometry, joints_mm: np.ndarray | None = None, skeleton: Any = None
+) -> bool:
+    """Assign ``geo``'s cloud (scene metres, depth colours) to ``cloud``, cleaned by
+    :func:`handanno_core.cloud.clean_hand_cloud` (no flying pixels; with ``joints_mm`` ``(J, 3)``
+    and ``skeleton``, nothing past the wrist plane); points about 1.6 px wide at the hand's
+    depth. Returns whether the frame has any point (the caller sets visibility)."""
+    keep, _ = clean_hand_cloud(geo.cloud_mm, geo.camera, joints_mm=joints_mm, skeleton=skeleton)
+    pts, rgb = geo.cloud_mm[keep], geo.cloud_rgb[keep]
+    has_cloud = len(pts) > 0
+    cloud.points = geo.to_scene(pts if has_cloud else geo.centre_mm[None]).astype(np.float32)
+    cloud.colors = rgb if has_cloud else np.zeros((1, 3), np.uint8)
     cloud.point_size = float(1.6 * geo.centre_mm[2] / geo.camera.fx / 1000.0)
     return has_cloud
 

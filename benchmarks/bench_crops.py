@@ -1,24 +1,31 @@
-"""Benchmark hand localization + cropping (handanno_core.crops).
+"""Benchmark hand localization + cropping (handanno_core.localize, handanno_core.crops).
 
 Figures (printed and written to benchmarks/results/crops.json):
 
-- SR305 real frames: per-frame ``locate_hand`` time (640x480) and an annotated montage of all 19
-  frames (centre cross + crop box) and of their 128x128 crops in benchmarks/results/sr305_crops/
-  (frames: LadaOndris/hand-recognition, MIT licence, (c) 2021 Ladislav Ondris).
-- synthetic sequence (handanno_core.synth if it works, else the SR305 frames repeated):
-  ``locate_hands`` and ``compute_crops`` ms per frame, and the localization error against the
-  synthetic ground truth (palm centre = mean of wrist and the four MCPs; scoring only).
-- memory: peak RSS of ``locate_hands`` + ``compute_crops(out_path=...)`` on a cheap fake sequence
-  (one blob moving around) at 2,000 vs 20,000 frames, each run in a fresh subprocess.
+- real frames (../shared/data: 19 SR305, the HANDS 2017 SR300 and the MSRA 2015 frame): per-frame
+  ``locate_hand_region`` time, the method used, and a montage a person can check,
+  benchmarks/results/crops_real_frames.png (depth, by-eye hand box in cyan, crop box in magenta
+  at the frame's cube, centre cross) plus the 128x128 crops, crops_real_frames_crops.png
+  (SR305 frames: LadaOndris/hand-recognition, MIT licence, (c) 2021 Ladislav Ondris).
+- forearm fixture (tests/forearm_scenes.py: synthetic hand + long arm at any angle, sleeve or
+  not): per sequence, the share of frames with every ground-truth joint inside the crop (x, y
+  within the half cube less 8 mm, projected, at the session cube; and also in depth: not behind
+  the cube, not more than a cube in front), median/p90 distance crop centre to the joints'
+  centroid, localization ms/frame, for the TUNE and REPORT cases; with ``--baseline DIR`` (a
+  checkout of another commit, e.g. main) also its ``crops.locate_hands`` at a 220 mm cube.
+- synthetic sequence and memory (``--sequence``): as before, ``locate_hands`` + ``compute_crops``
+  ms/frame and peak RSS at 2,000 vs 20,000 frames.
 
-Run: ``.venv/bin/python benchmarks/bench_crops.py [--quick]``. Timings are wall clock on whatever
-machine runs it (on the shared 2-core dev box they are under load from other jobs).
+Run: ``.venv/bin/python benchmarks/bench_crops.py [--baseline DIR] [--sequence] [--quick]``.
+Timings are wall clock on whatever machine runs it (on the shared 2-core dev box they are under
+load from other jobs: the load average is recorded).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -37,11 +44,18 @@ from handanno_core.crops import (  # noqa: E402
     compute_crops,
     crop_boxes,
     crop_depth,
-    locate_hand,
+    image_to_crop,
     locate_hands,
 )
 from handanno_core.datasets.base import BadFrameReport, DepthSequence  # noqa: E402
+from handanno_core.localize import (  # noqa: E402
+    locate_hand_region,
+    locate_hands_with_extent,
+    session_cube_mm,
+)
 from handanno_core.skeleton import MSRA21  # noqa: E402
+from tests.forearm_scenes import REPORT_CASES, TUNE_CASES, case_sequence  # noqa: E402
+from tests.real_frames import DATA, HAND_BOXES, frame_names, load_frame  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 SR305_DIR = Path("/work/shared/data/real-sr305")
@@ -62,51 +76,148 @@ def montage(images: list[np.ndarray], cols: int) -> np.ndarray:
     return np.vstack([np.hstack(images[i : i + cols]) for i in range(0, len(images), cols)])
 
 
-# ---------------------------------------------------------------------------- SR305
-def bench_sr305() -> dict:
-    out_dir = RESULTS / "sr305_crops"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    frames, crops, times, rows = [], [], [], []
-    for path in sorted(SR305_DIR.glob("*/*.png")):
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32) * 0.125
+# ---------------------------------------------------------------------------- real frames
+def bench_real() -> dict:
+    frames, crops, rows = [], [], []
+    for name in frame_names():
+        depth, cam = load_frame(name)
         t0 = time.perf_counter()
-        c = locate_hand(depth, SR305_CAMERA)
-        times.append(time.perf_counter() - t0)
-        name = f"{path.parent.name}/{path.name}"
-        img = colourize(depth)
-        u, v = SR305_CAMERA.project(c)
-        b = crop_boxes(c, SR305_CAMERA)
+        loc = locate_hand_region(depth, cam)
+        dt = time.perf_counter() - t0
+        cube = session_cube_mm(loc.half_extent_mm[None], 220.0)
+        valid = depth[depth > 0]
+        near, far = np.percentile(valid, [1, 99])
+        img = colourize(depth, near, far)
+        u0, v0, u1, v1 = HAND_BOXES[name]
+        cv2.rectangle(img, (u0, v0), (u1, v1), (255, 255, 0), 1)
+        b = crop_boxes(loc.centre_mm, cam, cube_mm=cube)
         p0 = (int(round(b[0])), int(round(b[1])))
         p1 = (int(round(b[0] + 128 * b[2])), int(round(b[1] + 128 * b[3])))
-        cv2.rectangle(img, p0, p1, (255, 255, 255), 2)
-        cv2.drawMarker(
-            img, (int(round(u)), int(round(v))), (255, 255, 255), cv2.MARKER_CROSS, 24, 3
+        cv2.rectangle(img, p0, p1, (255, 0, 255), 2)
+        u, v = cam.project(loc.centre_mm)
+        cv2.drawMarker(img, (int(round(u)), int(round(v))), (255, 0, 255), cv2.MARKER_CROSS, 24, 3)
+        img = cv2.resize(img, (320, 240), interpolation=cv2.INTER_AREA)
+        label = name.split("/", 1)[1][-26:]
+        cv2.putText(img, label, (3, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1)
+        cv2.putText(
+            img,
+            f"{loc.method} cube {cube:.0f}",
+            (3, 232),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.42,
+            (255, 255, 255),
+            1,
         )
-        cv2.putText(img, name, (5, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.9, (255, 255, 255), 2)
-        frames.append(cv2.resize(img, (320, 240), interpolation=cv2.INTER_AREA))
-        crop = crop_depth(depth, SR305_CAMERA, c)
-        crops.append(((1.0 - crop) * 127.5).astype(np.uint8))  # near = white, background = black
-        d_px = float(depth[int(round(v)), int(round(u))])
+        frames.append(img)
+        crop = crop_depth(depth, cam, loc.centre_mm, cube_mm=cube)
+        crops.append(((1.0 - crop) * 127.5).astype(np.uint8))
         rows.append(
             {
                 "frame": name,
-                "centre_mm": np.round(c, 1).tolist(),
-                "uv_px": [round(u, 1), round(v, 1)],
-                "depth_at_centre_px_mm": d_px,
+                "method": loc.method,
+                "cube_mm": cube,
+                "centre_mm": np.round(loc.centre_mm, 1).tolist(),
+                "half_extent_mm": np.round(loc.half_extent_mm, 1).tolist(),
+                "ms": round(1e3 * dt, 1),
             }
         )
-    cv2.imwrite(str(out_dir / "montage.png"), montage(frames, 5))
-    cv2.imwrite(str(out_dir / "crops.png"), montage(crops, 5))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(RESULTS / "crops_real_frames.png"), montage(frames, 6))
+    cv2.imwrite(str(RESULTS / "crops_real_frames_crops.png"), montage(crops, 7))
+    ms = [r["ms"] for r in rows]
     return {
         "frames": len(rows),
-        "locate_hand_ms_mean": 1e3 * float(np.mean(times)),
-        "locate_hand_ms_max": 1e3 * float(np.max(times)),
-        "centres": rows,
+        "locate_ms_mean": float(np.mean(ms)),
+        "locate_ms_max": float(np.max(ms)),
+        "rows": rows,
         "images": [
-            str((out_dir / "montage.png").relative_to(ROOT)),
-            str((out_dir / "crops.png").relative_to(ROOT)),
+            "benchmarks/results/crops_real_frames.png",
+            "benchmarks/results/crops_real_frames_crops.png",
         ],
     }
+
+
+# ---------------------------------------------------------------------------- forearm fixture
+def _load_baseline(path: Path):
+    """``crops`` module of another checkout's handanno_core, loaded as package ``baseline_core``."""
+    import importlib.util
+
+    init = path / "handanno_core" / "__init__.py"
+    spec = importlib.util.spec_from_file_location(
+        "baseline_core", init, submodule_search_locations=[str(init.parent)]
+    )
+    pkg = importlib.util.module_from_spec(spec)
+    sys.modules["baseline_core"] = pkg
+    spec.loader.exec_module(pkg)
+    import importlib
+
+    return importlib.import_module("baseline_core.crops")
+
+
+def crop_scores(seq, centres: np.ndarray, cube: float, size: int = 128) -> dict:
+    """Per-sequence scores of crop centres ``(N, 3)`` against the fixture's ground truth."""
+    gt = seq.ground_truth.joints_mm
+    boxes = crop_boxes(centres, seq.camera, cube, size)
+    xy = image_to_crop(seq.camera.project(gt), boxes[:, None, :])
+    mm = (xy - (size - 1) / 2) * cube / size
+    ok_xy = np.all(np.abs(mm) <= cube / 2 - 8.0, axis=(1, 2))
+    dz = gt[..., 2] - centres[:, None, 2]
+    ok_z = np.all((dz <= cube / 2) & (dz >= -cube), axis=1)
+    d = np.linalg.norm(centres - gt.mean(axis=1), axis=1)
+    return {
+        "inside_xy_pct": 100.0 * float(ok_xy.mean()),
+        "inside_xyz_pct": 100.0 * float((ok_xy & ok_z).mean()),
+        "centre_to_centroid_median_mm": float(np.median(d)),
+        "centre_to_centroid_p90_mm": float(np.percentile(d, 90)),
+    }
+
+
+def bench_forearm(cases, baseline=None) -> dict:
+    rows = []
+    for case in cases:
+        seq = case_sequence(case)
+        t0 = time.perf_counter()
+        centres, half = locate_hands_with_extent(seq)
+        ms = 1e3 * (time.perf_counter() - t0) / len(seq)
+        cube = session_cube_mm(half, 220.0)
+        row = {"case": case.name, "theta_deg": case.theta_deg, "sleeve": case.sleeve}
+        row["after"] = {**crop_scores(seq, centres, cube), "cube_mm": cube, "ms_per_frame": ms}
+        if baseline is not None:
+            t0 = time.perf_counter()
+            old = baseline.locate_hands(seq)
+            ms = 1e3 * (time.perf_counter() - t0) / len(seq)
+            row["before"] = {**crop_scores(seq, old, 220.0), "cube_mm": 220.0, "ms_per_frame": ms}
+        rows.append(row)
+        a = row["after"]
+        b = row.get("before")
+        print(
+            f"  {case.name:26s} inside {a['inside_xy_pct']:5.1f}% (depth too {a['inside_xyz_pct']:5.1f}%) "
+            f"centre-centroid {a['centre_to_centroid_median_mm']:5.1f}/{a['centre_to_centroid_p90_mm']:5.1f} mm "
+            f"cube {a['cube_mm']:.0f} {a['ms_per_frame']:5.1f} ms/f"
+            + (
+                f" | before {b['inside_xy_pct']:5.1f}% {b['centre_to_centroid_median_mm']:5.1f}/"
+                f"{b['centre_to_centroid_p90_mm']:5.1f} mm"
+                if b
+                else ""
+            ),
+            flush=True,
+        )
+
+    def total(key):
+        sel = [r[key] for r in rows if key in r]
+        if not sel:
+            return None
+        return {
+            k: float(np.mean([x[k] for x in sel]))
+            for k in (
+                "inside_xy_pct",
+                "inside_xyz_pct",
+                "centre_to_centroid_median_mm",
+                "ms_per_frame",
+            )
+        } | {"sequences_at_100pct": sum(x["inside_xy_pct"] == 100.0 for x in sel)}
+
+    return {"rows": rows, "after": total("after"), "before": total("before")}
 
 
 # ---------------------------------------------------------------------------- synthetic timing
@@ -259,6 +370,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     ap.add_argument("--frames", type=int, default=None, help="synthetic sequence length")
+    ap.add_argument("--baseline", type=Path, help="checkout whose crops.locate_hands to compare")
+    ap.add_argument("--sequence", action="store_true", help="also the sequence and memory runs")
     ap.add_argument("--memory-child", nargs=2, metavar=("N", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_child:
@@ -267,36 +380,44 @@ def main() -> None:
     frames = args.frames or (100 if args.quick else 600)
     sizes = [200, 2000] if args.quick else [2000, 20000]
     res = {
-        "machine_note": "wall clock; shared 2-core dev box under load from other jobs unless stated"
+        "machine_note": "wall clock; shared 2-core dev box under load from other jobs unless stated",
+        "load_average_start": list(os.getloadavg()),
     }
-    if SR305_DIR.exists():
-        res["sr305"] = bench_sr305()
-        s = res["sr305"]
+    if DATA is not None:
+        res["real_frames"] = bench_real()
+        s = res["real_frames"]
         print(
-            f"SR305: {s['frames']} frames, locate_hand {s['locate_hand_ms_mean']:.1f} ms/frame "
-            f"(max {s['locate_hand_ms_max']:.1f}); images: {', '.join(s['images'])}"
+            f"real frames: {s['frames']}, locate_hand_region {s['locate_ms_mean']:.1f} ms/frame "
+            f"(max {s['locate_ms_max']:.1f}); images: {', '.join(s['images'])}"
         )
-    res["sequence"] = bench_sequence(frames)
-    q = res["sequence"]
-    print(
-        f"sequence ({q['source']}): read {q['read_ms_per_frame']:.2f} ms, locate_hands "
-        f"{q['locate_hands_ms_per_frame']:.2f} ms, compute_crops {q['compute_crops_ms_per_frame']:.2f} ms per frame"
-    )
-    if "centre_vs_gt_palm_mm" in q:
-        e = q["centre_vs_gt_palm_mm"]
+    baseline = _load_baseline(args.baseline) if args.baseline else None
+    for part, cases in (("forearm_tune", TUNE_CASES), ("forearm_report", REPORT_CASES)):
+        print(f"{part}:")
+        res[part] = bench_forearm(cases[:4] if args.quick else cases, baseline)
+        for key in ("after", "before"):
+            t = res[part][key]
+            if t:
+                print(
+                    f"  {key}: mean inside {t['inside_xy_pct']:.1f}% (depth too {t['inside_xyz_pct']:.1f}%), "
+                    f"{t['sequences_at_100pct']} of {len(res[part]['rows'])} sequences at 100%, "
+                    f"centre-centroid median {t['centre_to_centroid_median_mm']:.1f} mm, "
+                    f"{t['ms_per_frame']:.1f} ms/frame"
+                )
+    if args.sequence:
+        res["sequence"] = bench_sequence(frames)
+        q = res["sequence"]
         print(
-            f"  centre vs GT palm: mean {e['mean']:.1f} mm, median {e['median']:.1f}, p95 {e['p95']:.1f}, "
-            f"max {e['max']:.1f}, NaN {e['nan_frames']}"
+            f"sequence ({q['source']}): read {q['read_ms_per_frame']:.2f} ms, locate_hands "
+            f"{q['locate_hands_ms_per_frame']:.2f} ms, compute_crops "
+            f"{q['compute_crops_ms_per_frame']:.2f} ms per frame"
         )
-    if "synth_error" in q:
-        print(f"  (synth unavailable: {q['synth_error']})")
-    res["memory"] = bench_memory(sizes)
-    for m in res["memory"]:
-        print(
-            f"memory: {m['frames']} frames -> peak RSS {m['peak_rss_mb']:.0f} MB (before {m['rss_before_mb']:.0f} MB), "
-            f"crops file {m['crops_file_mb']:.0f} MB, locate {m['locate_hands_ms_per_frame']:.2f} ms/f, "
-            f"crops {m['compute_crops_ms_per_frame']:.2f} ms/f"
-        )
+        res["memory"] = bench_memory(sizes)
+        for m in res["memory"]:
+            print(
+                f"memory: {m['frames']} frames -> peak RSS {m['peak_rss_mb']:.0f} MB, "
+                f"locate {m['locate_hands_ms_per_frame']:.2f} ms/f"
+            )
+    res["load_average_end"] = list(os.getloadavg())
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "crops.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {RESULTS / 'crops.json'}")

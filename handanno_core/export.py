@@ -1,6 +1,7 @@
 """Export a session's result as JSON, NPZ or the MSRA ``joint.txt`` layout, and import the JSON back.
 
-Per frame: 3D joints in mm (camera frame), 2D joints in px, visibility, confidence in [0, 1] and
+Per frame: 3D joints in mm (camera frame), 2D joints in px, visibility, confidence in [0, 1] (0 for
+a joint never annotated nor estimated: no 3D position) and
 whether the frame is a reference. The joints exported are the best available stage per frame:
 refined, else propagated, else lifted. Visibility of a reference is its annotation; for other frames
 it is a depth test of the exported joints against the frame's own depth map.
@@ -80,6 +81,8 @@ def collect(session: Session) -> dict[str, Any]:
     confidence[is_reference] = np.where(
         np.isfinite(results["confidence"][is_reference]), confidence[is_reference], 1.0
     )
+    # a joint that was never annotated or estimated (no 3D position) has confidence 0
+    confidence = np.where(np.all(np.isfinite(joints), axis=-1), confidence, 0.0)
     return {
         "joints_mm": joints,
         "uv_px": session.camera.project(joints),

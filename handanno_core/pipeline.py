@@ -47,8 +47,14 @@ def new_session(
     intrinsics: CameraIntrinsics | None = None,
     depth_scale_mm: float | None = None,
     overwrite: bool = False,
+    breaks: str | None = None,
 ) -> Session:
-    """Create a session for a dataset (format auto-detected unless given)."""
+    """Create a session for a dataset (format auto-detected unless given).
+
+    ``breaks`` (any format) replaces the reader's sequence breaks: comma-separated frame indices
+    (``"120,300"``) or the path of a breaks file (one frame index or frame file name per line,
+    see :func:`handanno_core.datasets.base.read_breaks_file`); ``""`` means none.
+    """
     from .datasets import open_sequence
 
     dataset_path = Path(dataset_path).resolve()
@@ -67,9 +73,32 @@ def new_session(
         frames=len(sequence),
         camera=sequence.camera,
         skeleton=sequence.skeleton.name,
-        sequence_breaks=list(sequence.sequence_breaks),
+        sequence_breaks=_breaks_arg(breaks, sequence)
+        if breaks is not None
+        else list(sequence.sequence_breaks),
         overwrite=overwrite,
     )
+
+
+def _breaks_arg(breaks: str, sequence) -> list[int]:
+    """Frame indices from ``--breaks`` (see :func:`new_session`); DatasetError if not frames."""
+    from .datasets.base import DatasetError, read_breaks_file
+
+    n = len(sequence)
+    text = breaks.strip()
+    if not text:
+        return []
+    if all(t.strip().isdigit() for t in text.split(",")):
+        out = sorted({int(t) for t in text.split(",")})
+        bad = [b for b in out if b >= n]
+        if bad:
+            raise DatasetError(f"--breaks {breaks}: frame {bad[0]} out of range (0..{n - 1})")
+        return [b for b in out if b > 0]
+    if not Path(text).is_file():
+        raise DatasetError(
+            f"--breaks {breaks}: neither comma-separated frame indices nor a breaks file"
+        )
+    return read_breaks_file(text, sequence.frame_names, n)
 
 
 def root_reference(parent: np.ndarray) -> np.ndarray:
@@ -142,7 +171,8 @@ def ensure_crops(
     session: Session, *, quiet: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session."""
-    from .crops import compute_crops, crop_boxes, locate_hands
+    from .crops import compute_crops, crop_boxes
+    from .localize import locate_hands_with_extent, session_cube_mm
 
     s = session.model.settings
     crops_path = session.folder / CROPS_FILE
@@ -155,7 +185,15 @@ def ensure_crops(
     sequence = session.open_sequence()
     report = BadFrameReport()
     t0 = time.perf_counter()
-    centres = locate_hands(sequence, report=report, cube_mm=s.cube_mm, progress=not quiet)
+    centres, half_extent = locate_hands_with_extent(
+        sequence, report=report, cube_mm=s.cube_mm, progress=not quiet
+    )
+    cube = session_cube_mm(half_extent, s.cube_mm)
+    if cube != s.cube_mm:  # the hand does not fit: grow the session's cube (all stages use it)
+        with session.lock:
+            s.cube_mm = cube
+            session.save()
+        _log(f"crops: hand larger than the cube, cube grown to {cube:g} mm", quiet)
     boxes = crop_boxes(centres, sequence.camera, cube_mm=s.cube_mm, size=s.crop_size)
     # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
     compute_crops(

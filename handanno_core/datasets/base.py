@@ -192,6 +192,66 @@ class DepthSequence(abc.ABC):
 
 
 _DIGITS = re.compile(r"(\d+)")
+_LAST_NUMBER = re.compile(r"^(.*?)(\d+)(\D*)$")
+
+#: a jump in the frame numbers of file names this many times the usual step is a break.
+GAP_FACTOR = 5.0
+
+
+def breaks_from_names(names: list[str], gap_factor: float = GAP_FACTOR) -> list[int]:
+    """Sequence breaks read off ordered frame file names: a new recording starts at frame ``i``
+    when the text around the last number of its stem differs from frame ``i - 1``'s
+    (``take1_0007`` -> ``take2_0000``), or when that number does not increase, or increases by
+    more than ``gap_factor`` times the median step (frame numbers ``0, 20, 40, 900, 920`` or
+    millisecond timestamps with a pause). Names without a number give no breaks."""
+    parts = []
+    for name in names:
+        stem = name.rsplit(".", 1)[0]
+        m = _LAST_NUMBER.match(stem)
+        if m is None:
+            return []
+        parts.append((m.group(1), int(m.group(2)), m.group(3)))
+    if len(parts) < 2:
+        return []
+    num = np.array([p[1] for p in parts], dtype=np.float64)
+    step = np.diff(num)
+    same = np.array(
+        [a[0] == b[0] and a[2] == b[2] for a, b in zip(parts[:-1], parts[1:], strict=True)]
+    )
+    pos = step[same & (step > 0)]
+    usual = float(np.median(pos)) if pos.size else 1.0
+    cut = ~same | (step <= 0) | (step > gap_factor * usual)
+    return [int(i) + 1 for i in np.flatnonzero(cut)]
+
+
+def read_breaks_file(path: str | Path, names: list[str] | None, frames: int) -> list[int]:
+    """Frame indices where a new recording starts, from a text file: one entry per line, a frame
+    index (0-based) or a frame file name; blank lines and ``#`` comments ignored. Raises
+    :class:`DatasetError` naming the file and line on an entry that is not a frame."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read the breaks file: {exc}") from exc
+    index = {n: i for i, n in enumerate(names or [])}
+    out: set[int] = set()
+    for k, line in enumerate(lines, 1):
+        entry = line.split("#", 1)[0].strip()
+        if not entry:
+            continue
+        if entry in index:
+            i = index[entry]
+        elif entry.lstrip("-").isdigit():
+            i = int(entry)
+        else:
+            raise DatasetError(
+                f"{path} line {k}: {entry!r} is neither a frame index nor a frame file"
+            )
+        if not 0 <= i < frames:
+            raise DatasetError(f"{path} line {k}: frame {i} out of range (0..{frames - 1})")
+        if i > 0:
+            out.add(i)
+    return sorted(out)
 
 
 def natural_key(name: str) -> tuple:

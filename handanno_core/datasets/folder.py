@@ -6,6 +6,12 @@
 - Camera: the ``intrinsics=`` argument, else ``intrinsics.json`` in the folder
   (``fx, fy, cx, cy, width, height`` and optionally ``depth_scale_mm``). Neither: :class:`DatasetError`.
 - ``depth_scale_mm``: the argument, else the JSON key, else 1.0.
+- Sequence breaks (frames where an unrelated recording starts; smoothing, selection and
+  refinement never cross them): ``breaks.txt`` in the folder if present (one frame index or
+  frame file name per line, ``#`` comments), else read off the file names: a change of the text
+  around the last number (``take1_0007.png`` -> ``take2_0000.png``), a number that does not
+  increase, or a jump of more than 5x the usual step (frame numbers or timestamps with a pause).
+  ``handanno new --breaks`` overrides both, for any format.
 - Ground truth only if ``joints.npy`` ``(N, J, 3)`` mm (OpenCV frame) is present; the skeleton is
   chosen by J (21 -> msra21, 24 -> blender24, 16 -> icvl16, 14 -> nyu14); default msra21.
 """
@@ -25,14 +31,17 @@ from .base import (
     DepthSequence,
     FrameError,
     GroundTruth,
+    breaks_from_names,
     check_frame_header,
     natural_key,
+    read_breaks_file,
     validate_depth,
 )
 from .icvl import read_png16
 
 INTRINSICS_FILE = "intrinsics.json"
 JOINTS_FILE = "joints.npy"
+BREAKS_FILE = "breaks.txt"
 _SKELETON_BY_J = {s.num_joints: s for s in SKELETONS.values()}
 
 
@@ -111,6 +120,11 @@ class FolderSequence(DepthSequence):
         if self._joints_path.is_file():
             skeleton = self._joints_skeleton(len(names))
         super().__init__(root, intrinsics, skeleton)
+        breaks_path = root / BREAKS_FILE
+        if breaks_path.is_file():
+            self._breaks = read_breaks_file(breaks_path, names, len(names))
+        else:
+            self._breaks = breaks_from_names(names)
 
     def _joints_skeleton(self, n: int):
         """Read only the header of joints.npy (memory-mapped) to pick the skeleton and check N."""
@@ -137,6 +151,11 @@ class FolderSequence(DepthSequence):
     @property
     def frame_names(self) -> list[str]:
         return list(self._names)
+
+    @property
+    def sequence_breaks(self) -> list[int]:
+        """From ``breaks.txt`` or the file names (module docstring)."""
+        return list(self._breaks)
 
     def depth(self, index: int) -> np.ndarray:
         index = self._check_index(index)

@@ -1,0 +1,766 @@
+"""Hand localization without ground truth (DESIGN.md step 2): where the hand is, how big it is.
+
+:func:`locate_hand_region` finds the hand in one depth map and returns its centre and half
+extent; :func:`locate_hands` does it for every frame of a sequence and smooths over time without
+crossing sequence breaks or moving a centre further than the frame's own hand allows.
+
+One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
+
+1. **Seed.** 5x5 median filter; connected components of the pixels within ``band_mm`` of the
+   nearest valid depth; the nearest sizeable component wins (metric area >= ``min_area_mm2``; a
+   component bounded by smooth continuation, a body part curving towards the camera, is
+   penalized). This is the hand when the hand is nearest, or the part of the arm nearest to the
+   camera when the forearm is (top-down and egocentric views).
+2. **Grow along the surface.** On a grid of at most ``GRID_MAX_PX`` pixels across, 8-neighbours
+   are linked where their depths differ by less than ``EDGE_STEP_MM`` (one smooth surface); the
+   region is everything linked to the seed within a geodesic distance of ``GROW_MM`` and a depth
+   window of ``WINDOW_MM`` behind the seed. The arm and the hand are one surface, so the region
+   holds both whichever is nearer the camera.
+3. **Where the arm comes from.** Contacts: the region's nodes on the image border, next to a
+   surface that continues out of the depth window, or on the edge of the geodesic growth (the
+   arm continuing towards the body). Contacts whose 8-connected group spans ``ARM_CONTACT_MM``
+   (an arm's width) are the attachment; narrow ones (a fingertip touching the border, an arm
+   grazing a corner) only if there is no wide one, else their ends are kept out of the hand.
+   Without contacts: (a) an arm pointing at the camera and cut by the sensor's near range ends
+   in a wide rim on the silhouette at the region's nearest depth (within ``STUMP_NEAR_MM`` of
+   ``min_depth_mm``): that rim; (b) an elongated region (longer than a hand by
+   ``ARM_EXTRA_MM``) whose two ends differ in solidity (``END_PART_MM`` of each end, points /
+   convex hull): the more solid end is the cut forearm, the other has fingers; (c) otherwise no
+   attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
+   smooth surface) has no attachment either.
+4. **The hand is the far end.** Geodesic distance ``g`` from the attachment over the region; the
+   hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile). If
+   a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
+   the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
+   the end are the hand. Without an attachment (a hand alone, or with a short forearm floating
+   free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
+   seed's nearest points refined by mean shift within ``0.4 * cube_mm`` (the densest surface,
+   palm and fingers), as before.
+
+The centre is the middle of the hand's extent in ray angle (so the crop, a projection, holds its
+outermost pixels) and in depth, moved back if needed so the farthest hand surface is
+``BACK_MARGIN_MM`` inside the cube (surface in front of the cube stays foreground in a crop,
+surface behind it does not). The half extent (mm at the centre's depth) sizes the crop: see
+:func:`session_cube_mm` and the smoothing bound in :func:`locate_hands_with_extent`.
+
+Constants were chosen on ``tests/forearm_scenes.TUNE_CASES`` (synthetic hand + long arm, seeds
+1-2, arm angles 15-165 deg in 30 deg steps) and by looking at the real frames in
+``../shared/data`` (the solidity rule was written for the HANDS 2017 frame, whose arm ends inside
+the image); benchmarks/bench_crops.py reports on ``REPORT_CASES`` (seeds 11-13, arm angles 0-180
+deg in 30 deg steps, other azimuths).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence as _Seq
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from .camera import CameraIntrinsics
+from .datasets.base import BadFrameReport, DepthSequence
+
+__all__ = [
+    "HandLocation",
+    "locate_hand",
+    "locate_hand_region",
+    "locate_hands",
+    "locate_hands_with_extent",
+    "session_cube_mm",
+    "smooth_centres",
+]
+
+#: default metric area (mm^2) below which a blob is speckle/noise rather than a hand (a fist seen
+#: edge-on is about 40 x 70 mm).
+MIN_HAND_AREA_MM2 = 2500.0
+#: a component's "near depth" is where its nearest NEAR_AREA_MM2 of surface are reached.
+NEAR_AREA_MM2 = 1000.0
+#: score penalty (mm of depth) for a component whose boundary is all smooth continuation.
+ISOLATION_PENALTY_MM = 300.0
+#: the surface graph is built on a grid at most this many pixels across.
+GRID_MAX_PX = 160
+#: neighbouring grid nodes whose depths differ by less than this are one surface (mm).
+EDGE_STEP_MM = 25.0
+#: the region grows at most this far (geodesic, mm) from the seed ...
+GROW_MM = 550.0
+#: ... and at most this far behind the seed's nearest depth (mm).
+WINDOW_MM = 450.0
+#: an arm cut by the sensor's near range has its rim at most this far (mm) beyond min_depth_mm.
+STUMP_NEAR_MM = 150.0
+#: depth band (mm) of a region's nearest nodes that is tested for an arm cut by the near range.
+STUMP_BAND_MM = 10.0
+#: an attachment (where the region meets the border / leaves the window) this wide is an arm (mm).
+ARM_CONTACT_MM = 30.0
+#: nodes this close (geodesic, mm) to a narrow contact are not the hand's far end.
+NARROW_END_MM = 40.0
+#: a hand seen past the arm's far end covers at least this metric area (mm^2) ...
+MIN_BEHIND_AREA_MM2 = 500.0
+#: ... and at most this metric area (mm^2).
+MAX_HAND_AREA_MM2 = 30000.0
+#: the arm's far end: nodes within this geodesic distance (mm) of its farthest.
+END_MM = 40.0
+#: the crop's depth range keeps the hand's farthest surface this far (mm) inside its back.
+BACK_MARGIN_MM = 25.0
+#: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
+MAX_ARM_AREA_MM2 = 100000.0
+#: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
+ARM_EXTRA_MM = 100.0
+#: ... and its ends (this long, mm) differ in solidity by at least SOLIDITY_GAP.
+END_PART_MM = 80.0
+SOLIDITY_GAP = 0.08
+#: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
+WRIST_SHIFT = 0.5
+#: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
+WRIST_ALLOWANCE_MM = 15.0
+#: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
+HAND_LENGTH_MM = 200.0
+#: a crop keeps every hand point at least this far inside its edge (mm).
+CROP_MARGIN_MM = 8.0
+
+
+@dataclass(frozen=True)
+class HandLocation:
+    """Result of :func:`locate_hand_region` (all NaN when no hand was found).
+
+    ``centre_mm`` (3,): the middle of the hand's extent, camera frame. ``half_extent_mm`` (3,):
+    half the hand's size along x, y, z (mm). ``method``: ``"arm-end"`` (far end of an attached
+    arm), ``"free-blob"`` (no attachment: mean shift) or ``"none"``.
+    """
+
+    centre_mm: np.ndarray
+    half_extent_mm: np.ndarray
+    method: str
+
+    @classmethod
+    def none(cls) -> HandLocation:
+        return cls(np.full(3, np.nan), np.full(3, np.nan), "none")
+
+
+# ---------------------------------------------------------------------------------------------
+# step 1: seed component
+# ---------------------------------------------------------------------------------------------
+def _continuation_fraction(
+    z: np.ndarray, valid: np.ndarray, labels: np.ndarray, k: int, box: np.ndarray, step_mm: float
+) -> float:
+    """Fraction of the ring around component ``k`` (image border excluded) where the surface
+    continues smoothly (valid depth at most ``step_mm`` behind the adjacent component pixels).
+
+    A hand in front of its surroundings is bounded by depth jumps (to no depth or to a farther
+    body): small fraction. A body part that only entered the band because it curves towards the
+    camera is bounded mostly by the band's far cut, where the surface continues: large fraction.
+    """
+    h, w = z.shape
+    x0, y0, bw, bh = (int(t) for t in box[:4])
+    pad = 3
+    xa, ya, xb, yb = (
+        max(0, x0 - pad),
+        max(0, y0 - pad),
+        min(w, x0 + bw + pad),
+        min(h, y0 + bh + pad),
+    )
+    mk = (labels[ya:yb, xa:xb] == k).astype(np.uint8)
+    zr = z[ya:yb, xa:xb]
+    ker = np.ones((5, 5), np.uint8)
+    ring = (cv2.dilate(mk, ker) > 0) & (mk == 0)
+    ring[: max(0, 2 - ya)] = False
+    ring[:, : max(0, 2 - xa)] = False
+    ring[ring.shape[0] - max(0, yb - (h - 2)) :] = False
+    ring[:, ring.shape[1] - max(0, xb - (w - 2)) :] = False
+    n_ring = int(ring.sum())
+    if n_ring == 0:
+        return 0.0
+    czmax = cv2.dilate(np.where(mk > 0, zr, 0).astype(np.float32), ker)
+    cont = ring & valid[ya:yb, xa:xb] & (zr - czmax < step_mm) & (zr > czmax - 5.0)
+    return float(cont.sum()) / n_ring
+
+
+def _choose_component(
+    z: np.ndarray,
+    valid: np.ndarray,
+    d_near: float,
+    band_mm: float,
+    min_area_mm2: float,
+    pix_area_scale: float,
+    prev_uvz: np.ndarray | None,
+    prev_radius_px: float,
+) -> tuple[np.ndarray | None, float]:
+    """Components of ``valid & d_near <= z <= d_near + band``; return (mask, nearest depth) of
+    the chosen one, or (None, NaN).
+
+    Each sizeable component (metric area >= ``min_area_mm2``) is scored by its near depth (the
+    depth at which its nearest 1000 mm^2 of surface are reached, robust to a few flying pixels)
+    plus ``ISOLATION_PENALTY_MM`` times its :func:`_continuation_fraction`; the lowest score wins.
+    With a previous centre, the sizeable component with the most pixels near its projection wins.
+    """
+    inband = valid & (z >= d_near) & (z <= d_near + band_mm)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(inband.astype(np.uint8), connectivity=4)
+    if n <= 1:
+        return None, np.nan
+    lab = labels[inband]
+    zz = z[inband].astype(np.float64)
+    pix_area = zz * zz * pix_area_scale
+    area = np.bincount(lab, weights=pix_area, minlength=n)  # mm^2
+    ok = area >= min_area_mm2
+    ok[0] = False
+    if not ok.any():
+        return None, np.nan
+    cand = np.nonzero(ok)[0]
+    # near depth per component: depth where the cumulative area (nearest first) reaches 1000 mm^2
+    order = np.lexsort((zz, lab))
+    lab_s, z_s, a_s = lab[order], zz[order], np.cumsum(pix_area[order])
+    starts = np.searchsorted(lab_s, np.arange(n))
+    base = np.where(starts > 0, a_s[np.maximum(starts - 1, 0)], 0.0)
+    target = base + np.minimum(NEAR_AREA_MM2, 0.5 * area)
+    idx = np.searchsorted(a_s, target)
+    near = z_s[np.clip(idx, 0, len(z_s) - 1)]
+    zmin = z_s[np.clip(starts, 0, len(z_s) - 1)]  # nearest depth of each component
+    if prev_uvz is not None:
+        u0, v0, _ = prev_uvz
+        rr, cc = np.nonzero(inband)
+        close = (cc - u0) ** 2 + (rr - v0) ** 2 <= prev_radius_px**2
+        hits = np.bincount(lab[close], minlength=n).astype(np.float64)
+        hits[~ok] = 0
+        if hits.max() > 0:
+            k = int(np.argmax(hits))
+            return labels == k, float(zmin[k])
+    if len(cand) == 1:
+        k = int(cand[0])
+        return labels == k, float(zmin[k])
+    score = np.array(
+        [
+            near[k]
+            + ISOLATION_PENALTY_MM * _continuation_fraction(z, valid, labels, k, stats[k], 40.0)
+            for k in cand
+        ]
+    )
+    k = int(cand[np.argmin(score)])
+    return labels == k, float(zmin[k])
+
+
+def _seed(
+    z: np.ndarray,
+    valid: np.ndarray,
+    camera: CameraIntrinsics,
+    band_mm: float,
+    min_area_mm2: float,
+    prev_centre_mm: np.ndarray | None,
+    cube_mm: float,
+) -> tuple[np.ndarray | None, float]:
+    """The seed component (mask ``(H, W)``, nearest depth mm) or ``(None, NaN)``: the band is
+    anchored at the 0.5th-percentile depth, moved past bands with nothing sizeable and
+    re-anchored when its component starts well behind it (noise in front)."""
+    pix_area_scale = 1.0 / (camera.fx * camera.fy)
+    prev_uvz = None
+    prev_radius_px = 0.0
+    if prev_centre_mm is not None:
+        p = np.asarray(prev_centre_mm, dtype=np.float64)
+        if np.all(np.isfinite(p)) and p[2] > 0:
+            uv = camera.project(p)
+            prev_uvz = np.array([uv[0], uv[1], p[2]])
+            prev_radius_px = camera.fx * 0.5 * cube_mm / p[2]
+    zv = z[valid]
+    k = max(0, int(0.005 * zv.size) - 1)
+    d_near = float(np.partition(zv, k)[k]) - 20.0  # include the few pixels in front of it
+    for _ in range(10):
+        mask, d_comp = _choose_component(
+            z, valid, d_near, band_mm, min_area_mm2, pix_area_scale, prev_uvz, prev_radius_px
+        )
+        if mask is None:
+            farther = zv[zv > d_near + band_mm]
+            if farther.size == 0:
+                break
+            k = max(0, int(0.005 * farther.size) - 1)
+            d_near = float(np.partition(farther, k)[k]) - 20.0
+            continue
+        if d_comp - d_near > 0.2 * band_mm:
+            d_near = d_comp - 10.0
+            continue
+        return mask, d_comp
+    # no band holds a sizeable blob (an arm reaching towards the camera, cut into small pieces
+    # by every band, with the hand hidden behind it): all valid depths as one band
+    lo = float(zv.min()) - 1.0
+    return _choose_component(
+        z,
+        valid,
+        lo,
+        float(zv.max()) - lo + 1.0,
+        min_area_mm2,
+        pix_area_scale,
+        prev_uvz,
+        prev_radius_px,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# steps 2-4: surface graph, attachment, far end
+# ---------------------------------------------------------------------------------------------
+_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1))
+
+
+def _surface_graph(pts: np.ndarray, ids: np.ndarray, zs: np.ndarray, step_mm: float):
+    """Sparse symmetric graph over the nodes ``ids >= 0`` of a grid ``(h, w)``: 8-neighbours with
+    depth difference < ``step_mm``, weighted by their 3D distance (mm). Returns (csr, edges (E, 2))."""
+    h, w = ids.shape
+    src, dst = [], []
+    for dr, dc in _OFFSETS:
+        r0, r1 = 0, h - dr
+        c0, c1 = max(0, -dc), w - max(0, dc)
+        a = ids[r0:r1, c0:c1]
+        b = ids[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        za = zs[r0:r1, c0:c1]
+        zb = zs[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        ok = (a >= 0) & (b >= 0) & (np.abs(za - zb) < step_mm)
+        src.append(a[ok])
+        dst.append(b[ok])
+    s = np.concatenate(src)
+    d = np.concatenate(dst)
+    wgt = np.linalg.norm(pts[s] - pts[d], axis=1) + 1e-3
+    n = len(pts)
+    graph = coo_matrix((wgt, (s, d)), shape=(n, n)).tocsr()
+    return graph, np.stack([s, d], axis=1)
+
+
+def _continues_out(zs: np.ndarray, vs: np.ndarray, win: np.ndarray, step_mm: float) -> np.ndarray:
+    """Grid nodes in ``win`` with an 8-neighbour outside the window on the same surface (valid,
+    depth step < ``step_mm``): where the surface leaves the depth window. ``(h, w)`` bool."""
+    h, w = zs.shape
+    out = np.zeros((h, w), bool)
+    zp = np.pad(zs, 1)
+    vp = np.pad(vs & ~win, 1)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            zn = zp[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
+            vn = vp[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
+            out |= vn & (np.abs(zn - zs) < step_mm)
+    return out & win
+
+
+def _wide_contacts(
+    attach: np.ndarray, rr: np.ndarray, cc: np.ndarray, shape: tuple[int, int], pts: np.ndarray
+) -> np.ndarray:
+    """Keep the attachment nodes ``(M,)`` bool whose 8-connected group on the grid spans at least
+    ``ARM_CONTACT_MM`` in 3D (an arm's cross-section; fingertips that touch the image border or
+    leave the window are narrower)."""
+    if not attach.any():
+        return attach
+    grid = np.zeros(shape, np.uint8)
+    grid[rr[attach], cc[attach]] = 1
+    n, labels = cv2.connectedComponents(grid, connectivity=8)
+    lab = labels[rr[attach], cc[attach]]
+    p = pts[attach]
+    span = np.zeros(n)
+    for k in range(1, n):
+        q = p[lab == k]
+        span[k] = np.linalg.norm(q.max(axis=0) - q.min(axis=0))
+    out = attach.copy()
+    out[attach] = span[lab] >= ARM_CONTACT_MM
+    return out
+
+
+def _next_to_no_depth(valid: np.ndarray) -> np.ndarray:
+    """Grid nodes ``(h, w)`` with an 8-neighbour without valid depth (the silhouette)."""
+    inv = (~valid).astype(np.uint8)
+    return cv2.dilate(inv, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
+
+
+def _hand_behind_end(
+    graph,
+    pts: np.ndarray,
+    ids: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    region: np.ndarray,
+    end: np.ndarray,
+    camera: CameraIntrinsics,
+    stride: int,
+) -> np.ndarray | None:
+    """The hand hidden behind the arm's far end (a sleeve or forearm pointing at the camera,
+    the hand seen past its rim): nodes ``(M,)`` bool, or None.
+
+    Candidates are nodes outside ``region``, within 2 grid nodes of the ``end`` nodes in the
+    image and 15-300 mm behind them; the surface grown from them (geodesic <= hand length) is
+    the hand if its metric area is ``MIN_BEHIND_AREA_MM2`` (fingers peeking past the rim) ..
+    ``MAX_HAND_AREA_MM2`` (so a body or a wall behind the fingertips does not count). Returns
+    those nodes and the end nodes (the rest of the hand is hidden behind the end).
+    """
+    h, w = ids.shape
+    end_grid = np.zeros((h, w), np.uint8)
+    end_grid[rr[end], cc[end]] = 1
+    near_end = cv2.dilate(end_grid, np.ones((5, 5), np.uint8)) > 0
+    z_end = np.zeros((h, w))
+    z_end[rr[end], cc[end]] = pts[end, 2]
+    z_end = cv2.dilate(z_end.astype(np.float32), np.ones((5, 5), np.uint8))
+    cand = near_end[rr, cc] & ~region
+    dz = pts[:, 2] - z_end[rr, cc]
+    cand &= (dz > 15.0) & (dz < 300.0)
+    if cand.sum() < 3:
+        return None
+    d = dijkstra(
+        graph, directed=False, indices=np.flatnonzero(cand), min_only=True, limit=HAND_LENGTH_MM
+    )
+    hand = np.isfinite(d) & ~region
+    z = pts[hand, 2]
+    # grid node area: (stride * z / f)^2
+    area = float(np.sum((stride * z) ** 2) / (camera.fx * camera.fy))
+    if not MIN_BEHIND_AREA_MM2 <= area <= MAX_HAND_AREA_MM2:
+        return None
+    return hand | end
+
+
+def _stump_of_free_arm(
+    pts: np.ndarray, rr: np.ndarray, cc: np.ndarray, region: np.ndarray
+) -> np.ndarray | None:
+    """For a region with no contact: if it is elongated (longer than ``HAND_LENGTH_MM +
+    ARM_EXTRA_MM`` along its principal axis), the end whose last ``END_PART_MM`` fills its image
+    convex hull more (solidity: a cut forearm) is the stump, the other (fingers, gaps between
+    them) the hand; returns the stump's nodes, or None if not elongated or not clear."""
+    idx = np.flatnonzero(region)
+    p = pts[idx]
+    centred = p - p.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    t = centred @ axis
+    if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM:
+        return None
+    solidity = []
+    ends = (t <= t.min() + END_PART_MM, t >= t.max() - END_PART_MM)
+    for end in ends:
+        xy = np.stack([cc[idx[end]], rr[idx[end]]], axis=1).astype(np.float32)
+        hull = cv2.convexHull(xy)
+        # grid points inside the hull (Pick): area + half the boundary + 1
+        solidity.append(len(xy) / (cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1))
+    if abs(solidity[0] - solidity[1]) < SOLIDITY_GAP:
+        return None
+    stump = ends[int(np.argmax(solidity))] & (
+        np.abs(t - t[ends[int(np.argmax(solidity))]].mean()) <= END_PART_MM
+    )
+    out = np.zeros(len(pts), bool)
+    out[idx[stump]] = True
+    return out
+
+
+def _free_blob(
+    z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
+) -> HandLocation:
+    """No attachment: mean shift from the seed's nearest points (see module docstring); the
+    extent is that of the seed's points within ``cube_mm / 2`` of the centre (hand and whatever
+    of the forearm is that close: without an arm end the two are not told apart)."""
+    rows, cols = np.nonzero(mask)
+    zc = z[rows, cols].astype(np.float64)
+    pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
+    centre = pts[zc <= zc.min() + front_mm].mean(axis=0)
+    r2 = (0.4 * cube_mm) ** 2
+    for _ in range(8):
+        inside = np.sum((pts - centre) ** 2, axis=1) <= r2
+        if not inside.any():
+            break
+        new = pts[inside].mean(axis=0)
+        done = np.sum((new - centre) ** 2) < 0.25
+        centre = new
+        if done:
+            break
+    near = pts[np.sum((pts - centre) ** 2, axis=1) <= (0.5 * cube_mm) ** 2]
+    return _box_of(near, "free-blob", cube_mm, centre)
+
+
+def locate_hand_region(
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    min_depth_mm: float = 150.0,
+    max_depth_mm: float = 1500.0,
+    band_mm: float = 150.0,
+    min_area_mm2: float = MIN_HAND_AREA_MM2,
+    cube_mm: float = 220.0,
+    prev_centre_mm: np.ndarray | None = None,
+    front_mm: float = 40.0,
+    hand_length_mm: float = HAND_LENGTH_MM,
+) -> HandLocation:
+    """Centre and half extent of the hand in ``depth`` ``(H, W)`` mm (module docstring, steps 1-4).
+
+    ``prev_centre_mm`` (3,): the previous frame's centre; if given (and finite) the seed is the
+    sizeable component with the most pixels within ``cube_mm / 2`` of its projection.
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {depth.shape}")
+    z = cv2.medianBlur(depth, 5)
+    valid = (z >= min_depth_mm) & (z <= max_depth_mm) & (depth > 0)
+    if not valid.any():
+        return HandLocation.none()
+    mask, d_seed = _seed(z, valid, camera, band_mm, min_area_mm2, prev_centre_mm, cube_mm)
+    if mask is None:
+        return HandLocation.none()
+
+    # step 2: the surface graph on a coarse grid, grown from the seed
+    stride = max(1, int(np.ceil(max(z.shape) / GRID_MAX_PX)))
+    zs = z[::stride, ::stride].astype(np.float64)
+    vs = valid[::stride, ::stride]
+    seed_s = mask[::stride, ::stride]
+    win = vs & (zs <= d_seed + WINDOW_MM)
+    if not (seed_s & win).any():
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
+    ids = np.full(zs.shape, -1, np.int64)
+    ids[win] = np.arange(int(win.sum()))
+    rr, cc = np.nonzero(win)
+    pts = camera.backproject(
+        np.stack([cc * stride, rr * stride], axis=-1).astype(np.float64), zs[rr, cc]
+    )
+    graph, edges = _surface_graph(pts, ids, zs, EDGE_STEP_MM)
+    seeds = ids[seed_s & win]
+    d_from_seed = dijkstra(graph, directed=False, indices=seeds, min_only=True, limit=GROW_MM)
+    region = np.isfinite(d_from_seed)
+    node_area = (stride * pts[:, 2]) ** 2 / (camera.fx * camera.fy)
+    if float(node_area[region].sum()) > MAX_ARM_AREA_MM2:
+        # the arm runs into a body on one smooth surface: its ends are not where the hand is
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
+
+    # step 3: attachment (where the arm comes from)
+    h, w = zs.shape
+    border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
+    out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
+    frontier = np.zeros(len(pts), bool)
+    cut = region[edges[:, 0]] != region[edges[:, 1]]
+    frontier[edges[cut].ravel()] = True
+    contact = region & (border | out | frontier)
+    attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
+    narrow = contact & ~attach
+    if not attach.any():
+        attach, narrow = contact, narrow & False  # only narrow contacts: still the arm's way out
+    if not attach.any():
+        # no contact: an arm pointing at the camera and cut by the sensor's near range ends in
+        # a wide iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of
+        # min_depth_mm), on its silhouette (no depth next to it); fingertips there are narrow, a
+        # palm facing the camera is not on the silhouette
+        z_lo = np.percentile(pts[region, 2], 1)
+        rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
+        attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
+        if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
+            attach = _stump_of_free_arm(pts, rr, cc, region)
+        if attach is None or not attach.any():
+            return _free_blob(z, mask, camera, cube_mm, front_mm)
+
+    # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
+    # image border) are not taken for the hand's far end
+    g = dijkstra(graph, directed=False, indices=np.flatnonzero(attach), min_only=True)
+    ok = region & np.isfinite(g)
+    if narrow.any():
+        g_narrow = dijkstra(
+            graph,
+            directed=False,
+            indices=np.flatnonzero(narrow),
+            min_only=True,
+            limit=NARROW_END_MM,
+        )
+        ok &= ~np.isfinite(g_narrow)
+    if not ok.any():
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
+    g_end = np.percentile(g[ok], 99.5)
+    hand = ok & (g >= g_end - hand_length_mm)
+    behind = _hand_behind_end(
+        graph, pts, ids, rr, cc, region, ok & (g >= g_end - END_MM), camera, stride
+    )
+    if behind is not None:
+        hand = behind
+    wrist = None
+    if behind is None:  # the hand's nodes nearest the attachment: its wrist side
+        wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist)
+
+
+def _box_of(
+    points: np.ndarray,
+    method: str,
+    cube_mm: float,
+    centre_mm: np.ndarray | None = None,
+    wrist_mm: np.ndarray | None = None,
+) -> HandLocation:
+    """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
+
+    Centre (``centre_mm`` if given, only moved back along its ray): the middle of their extent in ray angle (x/z, y/z);
+    in depth the middle of their 0.2-99.8th percentiles, moved back if needed so the farthest is
+    ``BACK_MARGIN_MM`` inside the cube (a crop keeps surface in front of the cube as foreground,
+    -1, but drops what is behind it). With ``wrist_mm`` (the hand's wrist side) the centre moves
+    ``WRIST_SHIFT`` of the slack (``cube_mm / 2 - CROP_MARGIN_MM - half extent``) towards it.
+    Half extent (with ``wrist_mm``, plus ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand
+    region ends ``HAND_LENGTH_MM`` from the fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
+    nearer the camera projects further out), z in mm, each the larger side around the centre.
+    """
+    z = points[:, 2]
+    ang = points[:, :2] / z[:, None]
+    a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
+    z_lo, z_hi = np.percentile(z, [0.2, 99.8])
+    if centre_mm is None:
+        zc = max(0.5 * (z_lo + z_hi), z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])
+    else:
+        centre = np.asarray(centre_mm, dtype=np.float64)
+        zc = max(centre[2], z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        centre = centre * (zc / centre[2])  # same ray, moved back if needed
+    ac = centre[:2] / zc
+    allowance = np.zeros(2)
+    if wrist_mm is not None:
+        # use part of the slack the crop leaves around the hand on the wrist's side: the far end
+        # (fingertips) stays well inside, and the wrist and some forearm are in the crop too
+        half = 0.5 * (a_hi - a_lo) * zc
+        slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - half)
+        towards = np.asarray(wrist_mm, dtype=np.float64)[:2] / wrist_mm[2] - ac
+        norm = np.linalg.norm(towards)
+        if norm > 1e-9:
+            ac = ac + WRIST_SHIFT * slack / zc * towards / norm
+            centre = np.array([*(ac * zc), zc])
+            allowance = WRIST_ALLOWANCE_MM * np.abs(towards) / norm
+    half_xy = np.maximum(a_hi - ac, ac - a_lo) * zc + allowance
+    half_z = max(z_hi - zc, zc - z_lo)
+    return HandLocation(centre, np.array([*half_xy, half_z]), method)
+
+
+def locate_hand(depth: np.ndarray, camera: CameraIntrinsics, **kwargs) -> np.ndarray:
+    """Centre ``(3,)`` mm of the hand in ``depth`` ``(H, W)`` mm (all NaN if none); keyword
+    arguments as :func:`locate_hand_region`."""
+    return locate_hand_region(depth, camera, **kwargs).centre_mm
+
+
+# ---------------------------------------------------------------------------------------------
+# sequences: smoothing within segments, bounded by each frame's own evidence
+# ---------------------------------------------------------------------------------------------
+def _segments(n: int, breaks: _Seq[int] | None) -> list[tuple[int, int]]:
+    cuts = sorted({int(b) for b in (breaks or []) if 0 < int(b) < n})
+    edges = [0, *cuts, n]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+def smooth_centres(
+    centres_mm: np.ndarray,
+    sequence_breaks: _Seq[int] | None = None,
+    *,
+    median_frames: int = 5,
+    sigma_frames: float = 1.0,
+    smooth: bool = True,
+    max_shift_mm: np.ndarray | None = None,
+) -> np.ndarray:
+    """Fill NaN gaps by linear interpolation (constant at segment ends) and smooth over time.
+
+    ``centres_mm``: ``(N, 3)``; rows with any NaN are missing. Each segment between
+    ``sequence_breaks`` is processed on its own: a running median of ``median_frames`` (removes
+    single-frame outliers), then a Gaussian of ``sigma_frames``. ``max_shift_mm`` ``(N, 3)``
+    (optional, NaN = unbounded): how far smoothing may move each located centre per axis (the
+    slack its own hand leaves inside the crop); smoothed centres are clipped to it. A segment
+    with no valid row stays NaN. Returns a new ``(N, 3)`` float64 array.
+    """
+    c = np.array(centres_mm, dtype=np.float64, copy=True)
+    if c.ndim != 2 or c.shape[1] != 3:
+        raise ValueError(f"centres must be (N, 3), got {c.shape}")
+    out = np.full_like(c, np.nan)
+    for a, b in _segments(len(c), sequence_breaks):
+        seg = c[a:b]
+        ok = np.all(np.isfinite(seg), axis=1)
+        if not ok.any():
+            continue
+        t = np.arange(b - a)
+        filled = np.stack([np.interp(t, t[ok], seg[ok, j]) for j in range(3)], axis=1)
+        if smooth and len(filled) > 2:
+            m = min(median_frames, len(filled) if len(filled) % 2 else len(filled) - 1)
+            if m >= 3:
+                filled = ndimage.median_filter(filled, size=(m, 1), mode="nearest")
+            if sigma_frames > 0:
+                filled = ndimage.gaussian_filter1d(filled, sigma_frames, axis=0, mode="nearest")
+        out[a:b] = filled
+    if max_shift_mm is not None:
+        lim = np.asarray(max_shift_mm, dtype=np.float64)
+        if lim.shape != c.shape:
+            raise ValueError(f"max_shift_mm must be {c.shape}, got {lim.shape}")
+        bound = np.all(np.isfinite(c), axis=1, keepdims=True) & np.isfinite(lim)
+        lim = np.where(bound, np.maximum(lim, 0.0), np.inf)
+        out = np.where(bound, np.clip(out, c - lim, c + lim), out)
+    return out
+
+
+def locate_hands_with_extent(
+    sequence: DepthSequence,
+    report: BadFrameReport | None = None,
+    smooth: bool = True,
+    cube_mm: float = 220.0,
+    progress: bool = False,
+    **locate_kwargs,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hand centres ``(N, 3)`` mm and half extents ``(N, 3)`` mm for every frame of ``sequence``.
+
+    Each frame is located with :func:`locate_hand_region` using the previous frame's centre
+    (within the same segment) as a hint; frames without a hand and bad frames (``FrameError``,
+    recorded in ``report``; raised if ``report`` is None) are NaN before gap filling. Then
+    :func:`smooth_centres` interpolates gaps and (if ``smooth``) smooths, cut at
+    ``sequence.sequence_breaks``; a located centre moves at most the slack its hand leaves in
+    the crop (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half
+    extent`` in z). Centre rows stay NaN only in segments where no frame had a hand; extents stay
+    NaN where the frame had none.
+    """
+    n = len(sequence)
+    raw = np.full((n, 3), np.nan)
+    half = np.full((n, 3), np.nan)
+    breaks = set(int(b) for b in sequence.sequence_breaks)
+    prev = None
+    it = sequence.iter_depth(range(n), report=report)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, total=n, desc="locating hand", unit="frame")
+    last = -2
+    for i, depth in it:
+        if i in breaks or i != last + 1:
+            prev = None  # new segment, or the previous frame was bad
+        loc = locate_hand_region(
+            depth, sequence.camera, cube_mm=cube_mm, prev_centre_mm=prev, **locate_kwargs
+        )
+        c = loc.centre_mm
+        if np.all(np.isfinite(c)) and prev is not None and np.linalg.norm(c - prev) > cube_mm:
+            # the hint led astray or the hand jumped: retry without it
+            loc = locate_hand_region(depth, sequence.camera, cube_mm=cube_mm, **locate_kwargs)
+            c = loc.centre_mm
+        raw[i] = c
+        half[i] = loc.half_extent_mm
+        prev = c if np.all(np.isfinite(c)) else None
+        last = i
+    slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
+    return smooth_centres(raw, sorted(breaks), smooth=smooth, max_shift_mm=slack), half
+
+
+def locate_hands(
+    sequence: DepthSequence,
+    report: BadFrameReport | None = None,
+    smooth: bool = True,
+    cube_mm: float = 220.0,
+    progress: bool = False,
+    **locate_kwargs,
+) -> np.ndarray:
+    """Hand centres ``(N, 3)`` mm for every frame (see :func:`locate_hands_with_extent`)."""
+    return locate_hands_with_extent(
+        sequence, report, smooth=smooth, cube_mm=cube_mm, progress=progress, **locate_kwargs
+    )[0]
+
+
+def session_cube_mm(
+    half_extent_mm: np.ndarray,
+    cube_mm: float = 220.0,
+    *,
+    quantile: float = 99.0,
+    step_mm: float = 10.0,
+    max_cube_mm: float = 400.0,
+) -> float:
+    """Cube edge (mm) for a whole session: ``cube_mm``, grown (in ``step_mm`` steps, at most
+    ``max_cube_mm``) until the ``quantile`` percentile of the frames' hand size in x and y (twice
+    ``half_extent_mm`` ``(N, 3)``) fits with ``CROP_MARGIN_MM`` to spare on each side."""
+    h = np.asarray(half_extent_mm, dtype=np.float64)[:, :2]
+    h = h[np.all(np.isfinite(h), axis=1)]
+    if len(h) == 0:
+        return float(cube_mm)
+    need = 2.0 * (float(np.percentile(h.max(axis=1), quantile)) + CROP_MARGIN_MM)
+    if need <= cube_mm:
+        return float(cube_mm)
+    grown = cube_mm + step_mm * np.ceil((need - cube_mm) / step_mm)
+    return float(min(grown, max_cube_mm))

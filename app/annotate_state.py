@@ -146,7 +146,14 @@ class AnnotateState:
         )
 
     def undo(self) -> JournalEntry | None:
-        return self.session.undo(self.client)
+        """Undo this annotator's last edit; an undone edit of one joint on this frame selects
+        that joint again (so the next click re-places it)."""
+        entry = self.session.undo(self.client)
+        if entry is not None and entry_frame(entry) == self.frame:
+            joint = entry.command.get("joint")
+            if joint is not None:
+                self.joint = int(joint)
+        return entry
 
     def redo(self) -> JournalEntry | None:
         return self.session.redo(self.client)
@@ -169,6 +176,21 @@ class AnnotateState:
         if self.session.skeleton.parent_array[self.joint] < 0:
             return vis, "n/a (root)"
         return vis, DEPTH_ORDER_TEXT[int(ann.depth_order[self.joint])]
+
+
+def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
+    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
+    cmds = [entry.command]
+    if entry.command.get("kind") == "batch":
+        cmds = list(entry.command.get("commands", []))
+    out: set[int] = set()
+    for c in cmds:
+        kind = c.get("kind")
+        if kind in ("set_2d", "set_3d"):
+            out.add(int(c["joint"]))
+        elif kind == "set_frame":
+            out.update(range(num_joints))
+    return sorted(out)
 
 
 def entry_frame(entry: JournalEntry) -> int:

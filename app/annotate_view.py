@@ -8,9 +8,19 @@ Scene (client-scoped, under ``/annotate``, metres centred on the hand, see geome
   the cloud; a click on it sets the selected joint's 2D position;
 * ``/annotate/handles2d`` - the 2D annotations as flat rings on the image plane, wider than the
   joint spheres in front of them (draggable within the plane, grabbed by the visible band);
-* ``/annotate/joints`` - the 21 joints as ONE batched mesh (draggable in 3D), positions from the
-  live lift (or the annotation until the first lift arrives); the selected joint highlighted;
+* ``/annotate/joints`` - the *placed* joints as ONE batched mesh (draggable in 3D), positions
+  from the live lift (or the annotation until the first lift arrives); the selected joint
+  highlighted;
+* ``/annotate/guesses`` - the joints not placed yet where the live lift guesses them: small and
+  faded, and with no click or drag binding, so a click "through" a guess reaches the image (or the
+  cloud) behind it and places the selected joint;
 * ``/annotate/bones`` - skeleton line segments; ``/annotate/labels/<k>`` - joint labels.
+
+Clicks: in mode *2D on image* a click on the image, a 2D ring or a placed joint always sets the
+selected joint's 2D position (the ray's pixel on the image plane); joints are selected with the
+*Joint* list, the hotkeys, or by dragging. In mode *3D on cloud* a click on a placed joint's sphere
+selects that joint and never moves it; any other click snaps the selected joint to the cloud, and
+only the selected joint's sphere can be dragged.
 
 Frame changes assign new arrays to these handles; nothing is recreated. Every edit goes through
 :class:`~app.annotate_state.AnnotateState` (session commands); the view re-renders from the
@@ -36,7 +46,7 @@ import viser
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.session import JournalEntry, SessionError
 
-from .annotate_state import AnnotateState
+from .annotate_state import AnnotateState, edited_joints, entry_frame
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
 from .hotkeys import bind_all
@@ -56,6 +66,11 @@ JOINT_RADIUS_M = 0.0045
 HANDLE2D_MIN_RADIUS_M = 0.004
 HANDLE2D_CLEARANCE = 1.6
 RING_INNER = 0.7
+#: the selected joint's sphere is drawn this much larger
+SELECTED_SCALE = 1.6
+#: guessed (not placed) joints: radius relative to a placed joint's, and opacity
+GUESS_SCALE = 0.5
+GUESS_OPACITY = 0.45
 
 
 def load_colours() -> dict[str, Any]:
@@ -89,21 +104,6 @@ def joint_colours(parents: np.ndarray, colours: dict[str, Any]) -> np.ndarray:
             k = int(parents[k])
         out[j] = colours["root"] if parents[j] < 0 else chains[root_children.index(k) % len(chains)]
     return out
-
-
-def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
-    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
-    cmds = [entry.command]
-    if entry.command.get("kind") == "batch":
-        cmds = list(entry.command.get("commands", []))
-    out: set[int] = set()
-    for c in cmds:
-        kind = c.get("kind")
-        if kind in ("set_2d", "set_3d"):
-            out.add(int(c["joint"]))
-        elif kind == "set_frame":
-            out.update(range(num_joints))
-    return sorted(out)
 
 
 def short_name(name: str) -> str:
@@ -195,6 +195,14 @@ class AnnotateView:
             self.base_colours,
             batched_opacities=np.ones(j, np.float32),
         )
+        # no click/drag binding: viser raycasts only bound nodes, so guesses never catch a click
+        self.guesses = add_joint_meshes(
+            scene,
+            f"{ROOT}/guesses",
+            UNIT_SPHERE,
+            self.base_colours,
+            batched_opacities=np.full(j, GUESS_OPACITY, np.float32),
+        )
         self.bones = add_bones(scene, f"{ROOT}/bones", self.skeleton.bones, self.base_colours)
         self.labels = [
             scene.add_label(
@@ -216,21 +224,26 @@ class AnnotateView:
         @scene.on_click()
         def _(event: viser.SceneClickEvent) -> None:
             if self.state.click_mode == "3d":
-                self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+                self.click_scene_3d(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @scene.on_click(modifier="shift")
         def _(event: viser.SceneClickEvent) -> None:
-            self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+            self.click_scene_3d(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @self.joints.on_click
         def _(event: viser.SceneNodePointerEvent) -> None:
-            k = event.instance_index
-            if k is None:
-                k = self._joint_near_ray(
-                    np.asarray(event.ray_origin), np.asarray(event.ray_direction)
-                )
-            if k is not None:
-                self.select_joint(int(k))
+            self.click_joint(
+                event.instance_index,
+                np.asarray(event.ray_origin),
+                np.asarray(event.ray_direction),
+                event.modifier,
+            )
+
+        @self.handles2d.on_click
+        def _(event: viser.SceneNodePointerEvent) -> None:
+            # a press on a ring that does not become a drag is a click on the image under it
+            if event.modifier is None and self.state.click_mode == "2d":
+                self.click_image(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @self.joints.on_drag("left")
         async def _(event: viser.SceneNodeDragEvent) -> None:
@@ -473,20 +486,63 @@ class AnnotateView:
             return None
         return self._edit(lambda: self.state.place_3d(xyz))
 
-    def _joint_near_ray(self, origin: np.ndarray, direction: np.ndarray) -> int | None:
+    def click_joint(
+        self, k: int | None, origin: np.ndarray, direction: np.ndarray, modifier: str | None
+    ) -> JournalEntry | None:
+        """A click on a placed joint's sphere. Mode 2D (no modifier): the click places the
+        selected joint's 2D position under the pointer, like a click on the image behind the
+        sphere (so neighbouring joints never swallow clicks). Mode 3D or Shift: selects joint
+        ``k`` and never moves it."""
+        if modifier is None and self.state.click_mode == "2d":
+            return self.click_image(origin, direction)
+        if k is None:
+            k = self._placed_joint_hit(origin, direction)
+        if k is not None:
+            self.select_joint(int(k))
+        return None
+
+    def click_scene_3d(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
+        """A click in mode 3D (or a Shift+click): on a placed joint's sphere it selects that joint
+        (the sphere's own click event may arrive before or after this one); anywhere else, guesses
+        included, it snaps the selected joint to the cloud."""
+        k = self._placed_joint_hit(origin, direction)
+        if k is not None:
+            self.select_joint(k)
+            return None
+        return self.click_cloud(origin, direction)
+
+    def _placed_joint_hit(self, origin: np.ndarray, direction: np.ndarray) -> int | None:
+        """The placed joint whose drawn sphere the ray hits first, or None."""
         pos = self._joint_positions_scene()
-        ok = np.all(np.isfinite(pos), axis=1)
+        radius = self._placed_radii()
+        ok = np.all(np.isfinite(pos), axis=1) & (radius > 0)
         if not ok.any():
             return None
-        d = direction / np.linalg.norm(direction)
-        rel = pos - origin
-        perp = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
-        perp[~ok] = np.inf
-        return int(np.argmin(perp))
+        d = np.asarray(direction, dtype=np.float64)
+        d = d / np.linalg.norm(d)
+        rel = np.where(ok[:, None], pos, 0.0) - np.asarray(origin, dtype=np.float64)
+        along = rel @ d
+        perp = np.linalg.norm(rel - along[:, None] * d, axis=1)
+        hit = ok & (along > 0) & (perp <= 1.05 * radius)
+        if not hit.any():
+            return None
+        return int(np.flatnonzero(hit)[np.argmin(along[hit])])
+
+    def _placed_radii(self) -> np.ndarray:
+        """(J,) drawn sphere radius (scene m) of each placed joint, 0 for joints not placed."""
+        radius = np.where(self._annotation.annotated, JOINT_RADIUS_M, 0.0)
+        radius[self.state.joint] *= SELECTED_SCALE
+        return radius
 
     def _on_joint_drag(self, event: viser.SceneNodeDragEvent) -> None:
         k = event.instance_index
         if k is None or self._frame_data is None:
+            return
+        if event.phase == "start" and self.state.click_mode == "3d" and k != self.state.joint:
+            # 3D mode: only the selected joint moves; grabbing another one selects it
+            self._dragging = None
+            self._drag_offset = None
+            self.select_joint(int(k))
             return
         if event.phase == "start":
             geo = self._frame_data.geometry
@@ -573,8 +629,6 @@ class AnnotateView:
 
     def _follow(self, entry: JournalEntry) -> None:
         """Undo/redo of an edit on another frame: go there so the change is visible."""
-        from .annotate_state import entry_frame
-
         frame = entry_frame(entry)
         if frame != self.frame and frame in self.state.frames:
             self.go_to_index(self.state.frames.index(frame))
@@ -634,6 +688,11 @@ class AnnotateView:
             return
         if outcome.joints_mm is None:
             self.lift_md.content = f"*skeleton: {outcome.error}*"
+            if not self._annotation.annotated.any():
+                # everything undone or cleared: no skeleton is left to draw (or to click)
+                self._lifted = None
+                self._stale = {}
+                self._render()
             return
         self._lifted = outcome
         self._stale = {j: seq for j, seq in self._stale.items() if seq > outcome.journal_seq}
@@ -695,9 +754,13 @@ class AnnotateView:
         sel = self.state.joint
         pos = self._joint_positions_scene()
         shown = np.all(np.isfinite(pos), axis=1)
+        placed = shown & ann.annotated
+        guessed = shown & ~ann.annotated
         pos_f = np.where(shown[:, None], pos, 0.0).astype(np.float32)
-        scales = np.where(shown, JOINT_RADIUS_M, 0.0)
-        scales[sel] *= 1.6
+        scales = np.where(placed, JOINT_RADIUS_M, 0.0)
+        scales[sel] *= SELECTED_SCALE
+        guess_scales = np.where(guessed, GUESS_SCALE * JOINT_RADIUS_M, 0.0)
+        guess_scales[sel] *= SELECTED_SCALE
         colours = self.base_colours.copy()
         colours[sel] = self.colours["selected"]
         opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(
@@ -721,6 +784,9 @@ class AnnotateView:
             self.joints.batched_scales = scales.astype(np.float32)
             self.joints.batched_colors = colours
             self.joints.batched_opacities = opac
+            self.guesses.batched_positions = pos_f
+            self.guesses.batched_scales = guess_scales.astype(np.float32)
+            self.guesses.batched_colors = colours
             self.bones.points = seg.astype(np.float32)
             self.handles2d.batched_positions = h2d.astype(np.float32)
             self.handles2d.batched_scales = h2d_scales.astype(np.float32)

@@ -1,7 +1,9 @@
 """The "Review" view: one object per connected browser (a tab next to "Annotate").
 
 Panel: "Propagate & refine" (runs in the background :class:`~app.review_state.ReviewRunner`, with
-a progress bar; propagated skeletons appear while it runs), a timeline slider with play/pause
+a progress bar; propagated skeletons appear while it runs; on a session annotated only in the
+browser it first lifts the references and estimates the bone lengths), "Lift all references"
+(that lift alone), a timeline slider with play/pause
 (reference frames marked), the per-frame review score as a uPlot chart, "Next worst frame",
 Accept / Flag (``SetReview``), export (JSON / NPZ / MSRA download) and JSON import.
 
@@ -90,7 +92,9 @@ class ReviewHub:
         return None
 
     def _on_runner(self, event: str, runner: ReviewRunner, frame: int) -> None:
-        if event == "frame":
+        if event == "lifted":  # "lift all" replaced the references' lifted joints on disk
+            self.app.worker.forget(self.session.reference_frames)
+        elif event == "frame":
             for view in list(self.views):
                 if view.frame == frame:
                     view.render_skeleton()
@@ -168,6 +172,10 @@ class ReviewView:
         self.run_button = gui.add_button(
             "Propagate & refine", hint="Propagate every frame, then refine (background)"
         )
+        self.lift_button = gui.add_button(
+            "Lift all references",
+            hint="Lift every annotated reference to 3D and estimate the bone lengths (background)",
+        )
         self.cancel_button = gui.add_button("Cancel run", color="red", disabled=True)
         self.run_bar = gui.add_progress_bar(0.0, animated=False)
         self.run_md = gui.add_markdown("*no run yet*")
@@ -209,6 +217,10 @@ class ReviewView:
         def _(_: Any) -> None:
             self.activate_scene()
             self.start_run()
+
+        @self.lift_button.on_click
+        def _(_: Any) -> None:
+            self.start_lift()
 
         @self.cancel_button.on_click
         def _(_: Any) -> None:
@@ -263,7 +275,8 @@ class ReviewView:
         if view is None:
             return []
         return [
-            getattr(view, n, None) for n in ("cloud", "image", "handles2d", "joints", "bones")
+            getattr(view, n, None)
+            for n in ("cloud", "image", "handles2d", "joints", "guesses", "bones")
         ] + list(getattr(view, "labels", []))
 
     def activate_scene(self) -> None:
@@ -289,7 +302,7 @@ class ReviewView:
             self.cloud.visible = False
             self.joints.visible = False
             self.bones.visible = False
-            for h in self._annotate_handles()[:5]:
+            for h in self._annotate_handles()[:6]:
                 if h is not None:
                     h.visible = True
         self.scene_button.label = "Show review scene"
@@ -533,6 +546,7 @@ class ReviewView:
         with self._lock:
             self.run_bar.value = float(st.percent) if st.phase != "idle" else 0.0
             self.run_button.disabled = st.running
+            self.lift_button.disabled = st.running
             self.cancel_button.disabled = not st.running
             self.run_md.content = f"{st.text()} · {filled} of {n} frames have a skeleton"
             self.status_md.content = (
@@ -567,6 +581,15 @@ class ReviewView:
         if not self.runner.start_full():
             self.client.add_notification(
                 "Already running", "a propagation run is in progress", auto_close_seconds=3.0
+            )
+            return False
+        self.refresh(force=True)
+        return True
+
+    def start_lift(self) -> bool:
+        if not self.runner.start_lift():
+            self.client.add_notification(
+                "Already running", "a run is in progress", auto_close_seconds=3.0
             )
             return False
         self.refresh(force=True)

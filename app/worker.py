@@ -115,6 +115,14 @@ class LiftWorker:
             self._pending[frame] = time.perf_counter()
             self._cond.notify()
 
+    def forget(self, frames: list[int] | np.ndarray) -> None:
+        """Drop the live lifts of ``frames`` (their lifted joints on disk were replaced, e.g. by
+        "lift all"): the next save does not write these previews back, and the next edit or view
+        of such a frame lifts it afresh. Called under the session lock by the caller's choice."""
+        with self.session.lock:
+            for f in frames:
+                self.latest.pop(int(f), None)
+
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Block until no job is pending or running (tests and benchmarks only)."""
         deadline = time.monotonic() + timeout
@@ -218,13 +226,14 @@ class LiftWorker:
         if not self._dirty:
             return
         self._dirty = False
-        lifted = {f: o for f, o in list(self.latest.items()) if o.joints_mm is not None}
-        if not lifted:
-            return
         try:
-            # issue 8 (review helper): read-modify-write under the session lock, so a concurrent
-            # propagation save (review runner) is never overwritten with stale arrays.
+            # Read-modify-write under the session lock, so a concurrent propagation save (review
+            # runner) is never overwritten with stale arrays, and frames dropped by forget() are
+            # not written back.
             with self.session.lock:
+                lifted = {f: o for f, o in list(self.latest.items()) if o.joints_mm is not None}
+                if not lifted:
+                    return
                 current = self.session.load_results()
                 lifted_mm, conf = current["lifted_mm"], current["confidence"]
                 for f, o in lifted.items():

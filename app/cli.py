@@ -179,22 +179,32 @@ def _progress_bar(desc: str):
     return bar, update
 
 
+def _serve(args) -> int | None:
+    """``demo`` / ``serve``; a busy port is an error naming it (never a silent move)."""
+    from app.server import PortInUseError, demo, serve
+
+    try:
+        if args.command == "demo":
+            demo(Path(args.sessions_dir), host=args.host, port=args.port, frames=args.frames)
+        else:
+            from handanno_core.session import Session, resolve_session
+
+            folder = resolve_session(args.session, args.sessions_dir)
+            Session.open(folder).close()  # fail fast, in the terminal, on a bad session
+            serve(folder, host=args.host, port=args.port)
+    except PortInUseError as exc:
+        print(f"handanno {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return None
+
+
 def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     from handanno_core import pipeline
 
     cmd = args.command
-    if cmd == "demo":
-        from app.server import demo
-
-        demo(Path(args.sessions_dir), host=args.host, port=args.port, frames=args.frames)
-    elif cmd == "serve":
-        from app.server import serve
-        from handanno_core.session import Session, resolve_session
-
-        folder = resolve_session(args.session, args.sessions_dir)
-        Session.open(folder).close()  # fail fast, in the terminal, on a missing or corrupt session
-        serve(folder, host=args.host, port=args.port)
-    elif cmd == "synth":
+    if cmd in ("demo", "serve"):
+        return _serve(args)
+    if cmd == "synth":
         from handanno_core.datasets import open_sequence
         from handanno_core.synth import generate_sequence
 

@@ -36,6 +36,14 @@ class Hotkey:
         return mod.get(self.modifier, f"{self.modifier} + ") + key
 
 
+#: viser's keyboard camera keys, which the app turns off (app/server.py KEYBOARD_SHIM): the
+#: hotkeys D and the arrows would otherwise also move the camera and break the image alignment.
+CAMERA_KEYS_TEXT = "W A S D Q E, ← → ↑ ↓"
+CAMERA_KEYS_NOTE = (
+    "viser's keyboard camera is off: keys never move the camera (orbit, pan and zoom with the "
+    "mouse; *Sensor view* resets it)"
+)
+
 HOTKEYS: tuple[Hotkey, ...] = (
     Hotkey("next_frame", "Next reference frame", "N", description="go to the next reference frame"),
     Hotkey(
@@ -104,4 +112,5 @@ def hotkey_table_markdown() -> str:
     """The hotkey table of static/help.md (a test keeps the two in sync)."""
     rows = ["| Keys | Action | What it does |", "|---|---|---|"]
     rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in HOTKEYS]
+    rows.append(f"| {CAMERA_KEYS_TEXT} | (none) | {CAMERA_KEYS_NOTE} |")
     return "\n".join(rows)

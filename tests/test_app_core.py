@@ -361,3 +361,117 @@ def test_hotkeys_are_unique_and_bind_through_our_layer():
     handles["undo"].fn(SimpleNamespace(client="client-7"))
     assert fired == [("undo", "client-7")]
     assert bind(object(), undo, lambda c: None) is None  # no add_command: degrade, don't crash
+
+
+# ------------------------------------------------------------------ issue 15 (usability)
+def test_undo_selects_the_undone_joint_again(session):
+    st = AnnotateState(session, "browser-1")
+    st.place_2d(np.array([150.0, 130.0]))
+    st.place_2d(np.array([152.0, 120.0]))
+    assert st.joint == 2
+    st.undo()
+    assert st.joint == 1 and not session.annotation(0).has_2d[1]
+    st.undo()
+    assert st.joint == 0 and not session.annotation(0).annotated.any()
+    st.go_to_index(1)  # an undo of an edit on another frame leaves this frame's selection
+    st.select_joint(7)
+    st.redo()
+    st.undo()
+    assert st.joint == 7
+
+
+def test_worker_forget_keeps_replaced_lifts_on_disk(session):
+    """After "lift all" replaced the references' lifted joints, the worker's older live lifts
+    are not written back over them."""
+    worker = LiftWorker(session, FrameStore(session), lift_fn=fake_lift, save_after_s=60.0)
+    worker.start()
+    try:
+        AnnotateState(session, "c").place_2d(np.array([150.0, 130.0]))
+        worker.submit(0)
+        assert worker.wait_idle(5) and 0 in worker.latest
+        better = np.full((21, 3), 7.0)
+        lifted = session.load_results()["lifted_mm"]
+        lifted[0] = better
+        session.save_results(lifted_mm=lifted)
+        worker.forget([0])
+    finally:
+        worker.stop()  # saves what it still holds
+    np.testing.assert_allclose(session.load_results()["lifted_mm"][0], better)
+
+
+def test_runner_lifts_first_when_the_session_has_no_bone_lengths(session):
+    """A full run on a browser-annotated session (no bone lengths) lifts all references first,
+    with progress; "lift all" alone does only that; a lift error fails the job with its text."""
+    from app.review_state import ReviewRunner
+    from handanno_core.session import SessionError
+
+    calls, phases = [], []
+
+    def lift_all(s, *, workers, quiet, progress):
+        calls.append(workers)
+        for i in range(3):
+            progress(i + 1, 3)
+        lifted = s.load_results()["lifted_mm"]
+        lifted[0] = 1.0  # the one annotated reference
+        s.save_results(lifted_mm=lifted)
+        s.set_bone_lengths(s.skeleton.template_bone_lengths_mm)
+
+    def propagate(s, **kw):
+        phases.append("propagate")
+
+    def refine(s, progress=None):
+        phases.append("refine")
+        return np.full((s.num_frames, 21, 3), 1.0)
+
+    AnnotateState(session, "c").place_2d(np.array([150.0, 130.0]))
+    runner = ReviewRunner(session, propagate_fn=propagate, refine_fn=refine, lift_all_fn=lift_all)
+    seen = []
+    runner.listeners.append(lambda event, r, f: seen.append((event, r.status.phase)))
+    try:
+        assert runner.needs_lift()
+        assert runner.start_full() and runner.wait_idle(10)
+        assert runner.status.phase == "done", runner.status.message
+        assert calls == [1] and phases == ["propagate", "refine"]
+        assert ("lifted", "lift-all") in seen and ("progress", "lift-all") in seen
+        assert not runner.needs_lift()  # bone lengths now, and the lifted pose of frame 0 ...
+        assert runner.start_full() and runner.wait_idle(10)
+        assert calls == [1]  # ... so the next full run does not lift again
+        assert runner.start_lift() and runner.wait_idle(10)  # "Lift all" always lifts
+        assert calls == [1, 1] and phases.count("propagate") == 2
+        assert runner.status.text().startswith("done: references lifted")
+
+        def failing(s, **kw):
+            raise SessionError("sess: no annotated reference frames to lift")
+
+        runner.lift_all_fn = failing
+        assert runner.start_lift() and runner.wait_idle(10)
+        assert runner.status.phase == "failed" and "no annotated reference" in runner.status.text()
+    finally:
+        runner.stop()
+
+
+def test_busy_port_is_an_error_naming_the_port(tmp_path):
+    import socket
+
+    from app.server import PortInUseError, serve
+
+    s = make_session(tmp_path)
+    s.close()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(PortInUseError, match=f"port {port} on 127.0.0.1 is already in use"):
+            serve(s.folder, port=port, block=False, lift_fn=fake_lift)
+    # the session was closed again: a second open works and sees no edits
+    reopened = Session.open(s.folder)
+    assert reopened.model.journal_seq == s.model.journal_seq
+    reopened.close()
+
+
+def test_keyboard_shim_blocks_every_viser_camera_key():
+    from app.server import CAMERA_KEYS, KEYBOARD_SHIM
+
+    assert KEYBOARD_SHIM.startswith("<img") and 'onerror="' in KEYBOARD_SHIM
+    assert all(f"&quot;{code}&quot;" in KEYBOARD_SHIM for code in CAMERA_KEYS)
+    assert len(CAMERA_KEYS) == 10 and '"' not in KEYBOARD_SHIM.split('onerror="')[1][:-2]

@@ -14,6 +14,7 @@ import numpy as np
 
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.session import (
+    Batch,
     JournalEntry,
     Session,
     SetDepthOrder,
@@ -122,6 +123,31 @@ class AnnotateState:
         self.joint = j
         if advance:
             self.advance_joint()
+        return entry
+
+    def accept_guesses(self, guesses_mm: np.ndarray) -> JournalEntry | None:
+        """Place every joint not placed yet at the 2D projection of its guess ``guesses_mm``
+        ``(J, 3)`` mm (NaN rows = no guess; guesses outside the image are skipped): ONE journal
+        entry (a Batch), undone in one step. None if there is nothing to place."""
+        cam = self.session.camera
+        ann = self.annotation()
+        guesses = np.asarray(guesses_mm, dtype=np.float64)
+        ok = ~ann.annotated & np.all(np.isfinite(guesses), axis=1) & (guesses[:, 2] > 0)
+        uv = cam.project(np.where(ok[:, None], guesses, [[0.0, 0.0, 1.0]]))
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1)
+        ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+        if not ok.any():
+            return None
+        commands = [
+            SetJoint2D(
+                frame=self.frame,
+                joint=int(j),
+                uv_px=(round(float(uv[j, 0]), 2), round(float(uv[j, 1]), 2)),
+            ).model_dump()
+            for j in np.flatnonzero(ok)
+        ]
+        entry = self._execute(Batch(commands=commands))
+        self.joint = self.first_unplaced_joint()
         return entry
 
     def clear_joint(self) -> JournalEntry | None:

@@ -136,6 +136,8 @@ class AnnotateView:
         self._frame_data: FrameData | None = None
         self._annotation: FrameAnnotation = FrameAnnotation.empty(self.skeleton.num_joints)
         self._lifted: LiftOutcome | None = None
+        #: (J, 3) mm pre-filled joints of the shown frame (AnnoServer.prefill), None if none
+        self._prefill: np.ndarray | None = None
         #: joint -> journal seq of an edit the current lift result does not include yet.
         self._stale: dict[int, int] = {}
         self._drag_offset: np.ndarray | None = None
@@ -287,6 +289,10 @@ class AnnotateView:
             hint="Shift+click always snaps to the cloud",
         )
         self.edit_buttons = gui.add_button_group("Edit", ("Undo", "Redo", "Clear joint"))
+        self.accept_button = gui.add_button(
+            "Accept guesses (G)",
+            hint="Place every joint not placed yet where its guess is drawn (one undo step)",
+        )
         self.camera_button = gui.add_button(
             "Sensor view", hint="Look from the depth camera (image and cloud line up)"
         )
@@ -340,6 +346,11 @@ class AnnotateView:
                 event.target.value
             ]()
 
+        @self.accept_button.on_click
+        def _(_: Any) -> None:
+            self._claim_scene()
+            self.accept_guesses()
+
         @self.camera_button.on_click
         def _(_: Any) -> None:
             self._claim_scene()
@@ -353,6 +364,7 @@ class AnnotateView:
             "toggle_visibility": self.toggle_visibility,
             "cycle_depth_order": self.cycle_depth_order,
             "clear_joint": self.clear_joint,
+            "accept_guesses": self.accept_guesses,
             "toggle_click_mode": self._toggle_click_mode,
             "undo": self.undo,
             "redo": self.redo,
@@ -435,6 +447,7 @@ class AnnotateView:
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
+            self._prefill = None
             self.cloud.visible = show_hand_cloud(self.cloud, geo)
             rw, rh = geo.image_render_size
             self.image.image = geo.image_rgb
@@ -450,7 +463,22 @@ class AnnotateView:
             )
         if self._lifted is None and annotation.annotated.any():
             self.app.worker.submit(frame)
+        if self._lifted is None and not annotation.annotated.all():
+            threading.Thread(
+                target=self._load_prefill, args=(frame,), name="handanno-prefill", daemon=True
+            ).start()
         self._render()
+
+    def _load_prefill(self, frame: int) -> None:
+        """Pre-fill ``frame`` off the UI thread (it may run one propagation step), then draw it."""
+        joints = self.app.prefill(frame)
+        if joints is not None:
+            self._post(self._apply_prefill, frame, joints)
+
+    def _apply_prefill(self, frame: int, joints: np.ndarray) -> None:
+        if frame == self._shown_frame:
+            self._prefill = joints
+            self._render()
 
     def reset_camera(self) -> None:
         """Put the browser camera at the depth sensor, looking at the hand (pixels line up)."""
@@ -611,6 +639,15 @@ class AnnotateView:
     def clear_joint(self) -> JournalEntry | None:
         return self._edit(self.state.clear_joint)
 
+    def accept_guesses(self) -> JournalEntry | None:
+        """Every joint not placed yet goes where its guess is drawn (one journaled Batch)."""
+        if self._frame_data is None:
+            return None
+        entry = self._edit(lambda: self.state.accept_guesses(self._joint_positions_mm()))
+        if entry is None:
+            self.client.add_notification("No guesses to accept", "", auto_close_seconds=2.0)
+        return entry
+
     def undo(self) -> JournalEntry | None:
         entry = self._edit(self.state.undo)
         if entry is None:
@@ -700,7 +737,8 @@ class AnnotateView:
 
     # ================================================================== drawing
     def _joint_positions_mm(self) -> np.ndarray:
-        """(J, 3) mm: lifted joints, else placed 3D, else 2D on the depth surface; NaN = unknown."""
+        """(J, 3) mm: lifted joints (else the pre-fill for joints not placed), else placed 3D,
+        else 2D on the depth surface; NaN = unknown."""
         ann = self._annotation
         data = self._frame_data
         out = np.full((self.skeleton.num_joints, 3), np.nan)
@@ -710,6 +748,9 @@ class AnnotateView:
             # the next lift result moves the whole skeleton.
             stale = [j for j in self._stale if ann.annotated[j]]
             out[stale] = np.nan
+        elif self._prefill is not None:  # before the first lift: the pre-filled pose
+            out[:] = self._prefill
+            out[ann.annotated] = np.nan  # placed joints are drawn where they were placed
         if data is None:
             return out
         missing = ~np.all(np.isfinite(out), axis=1)

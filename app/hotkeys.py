@@ -68,6 +68,12 @@ HOTKEYS: tuple[Hotkey, ...] = (
     ),
     Hotkey("clear_joint", "Clear joint", "X", description="remove the selected joint's placement"),
     Hotkey(
+        "accept_guesses",
+        "Accept guesses",
+        "G",
+        description="place every joint not placed yet where its guess is drawn (one undo step)",
+    ),
+    Hotkey(
         "toggle_click_mode",
         "Toggle click mode",
         "M",

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import viser
 
 from handanno_core.session import JournalEntry, Session, SessionError
@@ -133,7 +134,13 @@ class AnnoServer:
         self.session = session
         self.frames = FrameStore(session)
         self.help_markdown = load_help_markdown()
-        self.worker = LiftWorker(session, self.frames, lift_fn=lift_fn, on_result=self._on_lift)
+        self.worker = LiftWorker(
+            session,
+            self.frames,
+            lift_fn=lift_fn,
+            on_result=self._on_lift,
+            initial_guess=self.prefill,
+        )
         self.views: dict[int, dict[str, Any]] = {}
         self.client_names: dict[int, str] = {}  # viser client id -> journal name (see above)
         self._views_lock = threading.Lock()
@@ -173,6 +180,21 @@ class AnnoServer:
     def url(self) -> str:
         host = self.host
         return f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{self.port}"
+
+    def prefill(self, frame: int) -> np.ndarray | None:
+        """``(J, 3)`` mm pre-filled joints of ``frame`` (:func:`handanno_core.prefill.prefill_reference`:
+        the frame's own results, else one propagation step from the nearest frame with joints),
+        or None. Never raises: a failed pre-fill only means no first guess."""
+        from handanno_core.prefill import prefill_reference
+
+        try:
+            joints = prefill_reference(self.session, frame, None)
+        except Exception:
+            traceback.print_exc()
+            return None
+        if joints is None or not np.all(np.isfinite(joints)):
+            return None
+        return np.asarray(joints, dtype=np.float64)
 
     def annotate_views(self) -> list[AnnotateView]:
         with self._views_lock:

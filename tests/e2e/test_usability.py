@@ -27,7 +27,6 @@ from conftest import make_session
 from viser_helpers import (
     browser,
     camera_state,
-    drag,
     free_port,
     journal,
     open_app,
@@ -102,6 +101,18 @@ class Ctx:
             })""",
             n,
         )
+
+    def drag(self, start: tuple[float, float], end: tuple[float, float], steps: int = 8) -> None:
+        """A mouse drag that lets the page draw between its moves (a loaded machine otherwise
+        coalesces the moves before viser's drag threshold is seen)."""
+        page = self.page
+        page.mouse.move(*start)
+        page.mouse.down()
+        self.frames_rendered(2)
+        for t in np.linspace(0.0, 1.0, steps + 1)[1:]:
+            page.mouse.move(start[0] + t * (end[0] - start[0]), start[1] + t * (end[1] - start[1]))
+            self.frames_rendered(1)
+        page.mouse.up()
 
     def go_to(self, frame: int) -> None:
         """Next reference frame with the N hotkey until ``frame`` is shown, in sensor view."""
@@ -271,7 +282,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
     view.flush()
     start = len(journal(ctx.folder))
     p0 = ctx.drawn_point("/annotate/joints", 0)
-    drag(page, p0, (p0[0] + 60, p0[1]))
+    ctx.drag(p0, (p0[0] + 60, p0[1]))
     wait_until(lambda: view.state.joint == 0, what="the wrist selected by the drag")
     page.keyboard.press("v")
     wait_until(lambda: ctx.edits(since=start), what="the visibility edit")
@@ -280,7 +291,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
     view.flush()
     start = len(journal(ctx.folder))
     p0 = ctx.drawn_point("/annotate/joints", 0)
-    drag(page, p0, (p0[0] + 60, p0[1]))
+    ctx.drag(p0, (p0[0] + 60, p0[1]))
     entries = wait_until(lambda: ctx.edits("set_3d", since=start), what="the wrist drag")
     assert entries[0]["command"]["joint"] == 0
     page.keyboard.press("m")
@@ -363,14 +374,20 @@ def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
         )
     wait_until(
         lambda: (
-            not np.any(view.joints.batched_scales)
-            and not np.any(view.guesses.batched_scales)
+            view._lifted is None
+            and not np.any(view.joints.batched_scales)
             and not np.any(view.handles2d.batched_scales)
         ),
         what="the skeleton cleared",
     )
     assert view.state.joint == 0  # undo selected the undone joint
-    assert not any(label.visible for label in view.labels)
+    view.flush()
+    if view._prefill is None:
+        assert not np.any(view.guesses.batched_scales)
+        assert not any(label.visible for label in view.labels)
+    else:  # what is left is the frame's pre-fill, as when it was opened: guesses only
+        drawn = view._frame_data.geometry.to_scene(view._display_mm(view._prefill))
+        assert np.allclose(view.guesses.batched_positions, drawn, atol=1e-4)
     start = len(journal(ctx.folder))
     page.mouse.click(*ctx.image_point(uv[5]))
     entries = wait_until(lambda: ctx.edits("set_2d", since=start), what="a 2D edit")
@@ -402,3 +419,38 @@ def test_busy_port_is_an_error_naming_it(ctx: Ctx, synthetic_data, tmp_path):
     ctx.blur()
     ctx.page.keyboard.press("v")
     wait_until(lambda: ctx.edits(since=start), what="an edit on the first server")
+
+
+def test_accept_guesses_places_the_prefill_in_one_undoable_edit(ctx: Ctx):
+    """Issue 15 minor / issue 14: a reference opens with its pre-filled pose as guesses (from the
+    nearest frame with joints); G accepts them as ONE journaled edit; Ctrl+Z undoes all of it."""
+    app, page, view = ctx.app, ctx.page, ctx.view
+    frame = 30
+    if app.prefill(frame) is None:  # run alone: give the session one frame with joints
+        lifted = app.session.load_results()["lifted_mm"]
+        lifted[20] = ctx.gt_mm[20]
+        app.session.save_results(lifted_mm=lifted)
+    ctx.go_to(frame)
+    wait_until(
+        lambda: view._prefill is not None and np.all(view.guesses.batched_scales > 0),
+        timeout_s=60,
+        what="the pre-filled guesses",
+    )
+    expected_uv = app.session.camera.project(view._prefill)
+    err = np.linalg.norm(expected_uv - ctx.gt_uv(frame), axis=1)
+    assert np.median(err) < 40.0, f"pre-fill far from the hand: {err}"  # hand-shaped, nearby
+    start = len(journal(ctx.folder))
+    ctx.blur()
+    page.keyboard.press("g")
+    entries = wait_until(lambda: ctx.edits(since=start), what="the accept edit")
+    assert len(entries) == 1 and entries[0]["command"]["kind"] == "batch"
+    cmds = entries[0]["command"]["commands"]
+    assert [c["joint"] for c in cmds] == list(range(21))
+    assert all(c["kind"] == "set_2d" and c["frame"] == frame for c in cmds)
+    assert np.allclose([c["uv_px"] for c in cmds], expected_uv, atol=0.01)
+    wait_until(lambda: app.session.is_annotated(frame), what="the frame annotated")
+    page.keyboard.press("Control+z")
+    wait_until(lambda: len(ctx.edits(since=start)) == 2, what="the undo")
+    undo = ctx.edits(since=start)[1]
+    assert undo["action"] == "undo" and undo["target"] == entries[0]["seq"]
+    assert not app.session.annotation(frame).annotated.any()

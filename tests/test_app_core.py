@@ -475,3 +475,57 @@ def test_keyboard_shim_blocks_every_viser_camera_key():
     assert KEYBOARD_SHIM.startswith("<img") and 'onerror="' in KEYBOARD_SHIM
     assert all(f"&quot;{code}&quot;" in KEYBOARD_SHIM for code in CAMERA_KEYS)
     assert len(CAMERA_KEYS) == 10 and '"' not in KEYBOARD_SHIM.split('onerror="')[1][:-2]
+
+
+def test_accept_guesses_is_one_undoable_batch(session):
+    st = AnnotateState(session, "browser-1")
+    st.place_2d(np.array([150.0, 130.0]))  # joint 0 placed: its guess is ignored
+    guesses = CAM.backproject(np.tile([[160.0, 120.0]], (21, 1)), np.full(21, 400.0))
+    guesses[0] = CAM.backproject(np.array([10.0, 10.0]), np.float64(400.0))
+    guesses[3] = np.nan  # no guess
+    guesses[4] = CAM.backproject(np.array([-50.0, 10.0]), np.float64(400.0))  # off the image
+    entry = st.accept_guesses(guesses)
+    assert entry.command["kind"] == "batch"
+    placed = [c["joint"] for c in entry.command["commands"]]
+    assert placed == [j for j in range(21) if j not in (0, 3, 4)]
+    ann = session.annotation(0)
+    np.testing.assert_allclose(ann.uv_px[0], [150.0, 130.0])
+    np.testing.assert_allclose(ann.uv_px[5], [160.0, 120.0], atol=0.01)
+    assert st.joint == 3  # the first joint still to place
+    st.undo()  # one step removes every accepted guess, keeps the click
+    ann = session.annotation(0)
+    assert ann.annotated.tolist() == [True] + [False] * 20
+    assert st.accept_guesses(np.full((21, 3), np.nan)) is None
+
+
+# ------------------------------------------------------------------ CLI help and defaults
+def test_cli_every_option_has_help_and_select_defaults_to_5_percent(monkeypatch, tmp_path):
+    import argparse
+
+    from app import cli
+    from handanno_core import pipeline
+
+    parser = cli.build_parser()
+    assert "workflow" in parser.format_help() and "handanno select" in parser.format_help()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            if action.help is argparse.SUPPRESS or isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"handanno {name} {action.option_strings or action.dest}: no help"
+    assert "(default: 8080)" in sub.choices["serve"].format_help()
+
+    s = make_session(tmp_path)
+    s.close()
+    seen = {}
+
+    def fake_select(session, strategy, ref_fraction, rho):
+        seen.update(strategy=strategy, ref_fraction=ref_fraction, rho=rho)
+        return SimpleNamespace(reference_frames=[0])
+
+    monkeypatch.setattr(pipeline, "select", fake_select)
+    # --sessions-dir is accepted after the command as well
+    assert cli.main(["select", "sess", "--sessions-dir", str(tmp_path)]) == 0
+    assert seen == {"strategy": "forest", "ref_fraction": 0.05, "rho": None}
+    assert cli.main(["--sessions-dir", str(tmp_path), "select", "sess", "--rho", "0.3"]) == 0
+    assert seen["ref_fraction"] is None and seen["rho"] == 0.3

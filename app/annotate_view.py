@@ -389,11 +389,18 @@ class AnnotateView:
 
     def _hotkey_action(self, action: Any) -> Any:
         """Hotkeys are page-wide in viser: while the Review scene is shown they would move or edit
-        an annotate frame the user cannot see, so they do nothing then (and say so once)."""
+        an annotate frame the user cannot see, so they do nothing then (and say so once); the
+        frame keys N / P move the Review scene's frame instead."""
+        review_actions = {
+            self.next_frame: lambda: self._review_view().step_frame(+1),
+            self.prev_frame: lambda: self._review_view().step_frame(-1),
+        }
 
         def run(_client: Any) -> None:
             if self._scene_shown():
                 action()
+            elif action in review_actions:
+                review_actions[action]()
             elif not self._told_hotkeys_paused:
                 self._told_hotkeys_paused = True
                 self.client.add_notification(

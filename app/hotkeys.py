@@ -40,17 +40,22 @@ class Hotkey:
 #: hotkeys D and the arrows would otherwise also move the camera and break the image alignment.
 CAMERA_KEYS_TEXT = "W A S D Q E, ← → ↑ ↓"
 CAMERA_KEYS_NOTE = (
-    "viser's keyboard camera is off: keys never move the camera (orbit, pan and zoom with the "
-    "mouse; *Sensor view* resets it)"
+    "viser's keyboard camera is off: these keys never move the camera (orbit, pan and zoom "
+    "with the mouse; *Sensor view* resets it)"
 )
 
 HOTKEYS: tuple[Hotkey, ...] = (
-    Hotkey("next_frame", "Next reference frame", "N", description="go to the next reference frame"),
+    Hotkey(
+        "next_frame",
+        "Next reference frame",
+        "N",
+        description="go to the next reference frame (Review scene: the next frame)",
+    ),
     Hotkey(
         "prev_frame",
         "Previous reference frame",
         "P",
-        description="go to the previous reference frame",
+        description="go to the previous reference frame (Review scene: the previous frame)",
     ),
     Hotkey("next_joint", "Next joint", "arrowright", description="select the next joint"),
     Hotkey("prev_joint", "Previous joint", "arrowleft", description="select the previous joint"),
@@ -84,6 +89,24 @@ HOTKEYS: tuple[Hotkey, ...] = (
 )
 
 
+#: hotkeys of the Review tab; they act while the Review scene is shown (N / P above move its frame)
+REVIEW_HOTKEYS: tuple[Hotkey, ...] = (
+    Hotkey(
+        "review_accept",
+        "Review: accept frame",
+        "A",
+        description="mark the shown frame accepted and go to the next worst frame",
+    ),
+    Hotkey("review_flag", "Review: flag frame", "F", description="mark the shown frame flagged"),
+    Hotkey(
+        "review_next_worst",
+        "Review: next worst frame",
+        "W",
+        description="go to the frame with the next lowest review score",
+    ),
+)
+
+
 def bind(gui: Any, hotkey: Hotkey, callback: Callable[[Any], None]) -> Any | None:
     """Register ``hotkey`` on ``gui`` (a viser GuiApi, e.g. ``client.gui``); ``callback(client)``
     runs on trigger. Returns the command handle, or None where the API is unavailable."""
@@ -109,14 +132,17 @@ def bind(gui: Any, hotkey: Hotkey, callback: Callable[[Any], None]) -> Any | Non
     return handle
 
 
-def bind_all(gui: Any, actions: dict[str, Callable[[Any], None]]) -> dict[str, Any]:
-    """Bind every :data:`HOTKEYS` entry whose action is in ``actions``."""
-    return {hk.action: bind(gui, hk, actions[hk.action]) for hk in HOTKEYS if hk.action in actions}
+def bind_all(
+    gui: Any, actions: dict[str, Callable[[Any], None]], hotkeys: tuple[Hotkey, ...] = HOTKEYS
+) -> dict[str, Any]:
+    """Bind every entry of ``hotkeys`` (default :data:`HOTKEYS`) whose action is in ``actions``."""
+    return {hk.action: bind(gui, hk, actions[hk.action]) for hk in hotkeys if hk.action in actions}
 
 
 def hotkey_table_markdown() -> str:
     """The hotkey table of static/help.md (a test keeps the two in sync)."""
     rows = ["| Keys | Action | What it does |", "|---|---|---|"]
     rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in HOTKEYS]
-    rows.append(f"| {CAMERA_KEYS_TEXT} | (none) | {CAMERA_KEYS_NOTE} |")
+    rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in REVIEW_HOTKEYS]
+    rows.append(f"| {CAMERA_KEYS_TEXT} | Camera | {CAMERA_KEYS_NOTE} |")
     return "\n".join(rows)

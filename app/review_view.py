@@ -39,6 +39,7 @@ from handanno_core.session import JournalEntry, SessionError, SetReview
 from .annotate_view import joint_colours, load_colours
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
+from .hotkeys import REVIEW_HOTKEYS, bind_all
 from .review_state import LiveResults, ReviewRunner, correction_command, next_worst
 from .scene_nodes import UNIT_SPHERE, add_bones, add_hand_cloud, add_joint_meshes, show_hand_cloud
 
@@ -250,8 +251,20 @@ class ReviewView:
 
         @self.review_buttons.on_click
         def _(event: Any) -> None:
-            status = {"Accept": "accepted", "Flag": "flagged", "Clear": None}[event.target.value]
-            self.set_review(status)
+            {"Accept": self.accept, "Flag": self.flag, "Clear": lambda: self.set_review(None)}[
+                event.target.value
+            ]()
+
+        self._told_hotkeys = False
+        bind_all(
+            gui,
+            {
+                "review_accept": self._hotkey(self.accept),
+                "review_flag": self._hotkey(self.flag),
+                "review_next_worst": self._hotkey(self.go_worst),
+            },
+            REVIEW_HOTKEYS,
+        )
 
         @self.scene_button.on_click
         def _(_: Any) -> None:
@@ -353,6 +366,36 @@ class ReviewView:
                 self._playing = False
                 return
             time.sleep(max(0.0, 1.0 / fps - (time.monotonic() - t0)))
+
+    def _hotkey(self, action: Any) -> Any:
+        """Review hotkeys act on the Review scene only (say so once otherwise)."""
+
+        def run(_client: Any) -> None:
+            if self.scene_active:
+                action()
+            elif not self._told_hotkeys:
+                self._told_hotkeys = True
+                self.client.add_notification(
+                    "Review hotkeys",
+                    "A / F / W act while the Review scene is shown (use the Review panel first).",
+                    auto_close_seconds=6.0,
+                )
+
+        return run
+
+    def step_frame(self, step: int) -> None:
+        """Previous / next frame of the review timeline (hotkeys P / N on the Review scene)."""
+        self.show_frame(self.frame + step)
+
+    def accept(self) -> JournalEntry | None:
+        """Accept the shown frame, then go on to the next worst frame."""
+        entry = self.set_review("accepted")
+        if entry is not None:
+            self.go_worst()
+        return entry
+
+    def flag(self) -> JournalEntry | None:
+        return self.set_review("flagged")
 
     def go_worst(self) -> int | None:
         """Go to the next frame by increasing review score (accepted frames and references skipped)."""

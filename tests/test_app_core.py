@@ -14,7 +14,7 @@ import pytest
 from app.annotate_state import AnnotateState, entry_frame
 from app.frames import FrameStore
 from app.geometry import MAX_CLOUD_POINTS, build_frame_geometry, colormap
-from app.hotkeys import HOTKEYS, bind, bind_all, hotkey_table_markdown
+from app.hotkeys import HOTKEYS, REVIEW_HOTKEYS, bind, bind_all, hotkey_table_markdown
 from app.worker import LiftWorker
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.datasets import write_msra_frame
@@ -328,7 +328,7 @@ def test_help_md_has_the_hotkey_table():
 
 
 def test_hotkeys_are_unique_and_bind_through_our_layer():
-    combos = [(h.key, h.modifier) for h in HOTKEYS]
+    combos = [(h.key, h.modifier) for h in HOTKEYS + REVIEW_HOTKEYS]  # one key, one command
     assert len(set(combos)) == len(combos)
     undo = next(h for h in HOTKEYS if h.action == "undo")
     redo = next(h for h in HOTKEYS if h.action == "redo")

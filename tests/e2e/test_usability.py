@@ -231,6 +231,21 @@ def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     assert np.median(err) < 20.0, f"median error {np.median(err):.1f} mm"
     page.get_by_text("done: ").first.wait_for(timeout=10_000)
     screenshot(ctx, "review.png")
+    # review hotkeys on the Review scene: W next worst, A accept (and advance), N next frame
+    review = next(iter(app.review_hub.views))
+    wait_until(lambda: review.scene_active, what="the review scene")
+    ctx.blur()
+    shown = review.frame
+    page.keyboard.press("w")
+    wait_until(lambda: review.frame != shown, what="the next worst frame")
+    worst, start = review.frame, len(journal(folder))
+    page.keyboard.press("a")
+    entries = wait_until(lambda: ctx.edits("set_review", since=start), what="the accept")
+    assert entries[0]["command"] == {"frame": worst, "kind": "set_review", "status": "accepted"}
+    wait_until(lambda: review.frame != worst, what="accept moving on")
+    shown = review.frame
+    page.keyboard.press("n")
+    wait_until(lambda: review.frame == shown + 1, what="the next frame")
     # back to the annotate scene and tab for the next tests
     page.get_by_role("button", name="Show annotate scene").click()
     page.get_by_role("tab", name="Annotate").click()

@@ -273,8 +273,8 @@ class AnnotateView:
         self.nav = gui.add_button_group("Frame", ("◀ Prev (P)", "Next (N) ▶"))
         self.joint_dropdown = gui.add_dropdown(
             "Joint",
-            tuple(f"{k} {self.skeleton.joint_names[k]}" for k in range(j)),
-            initial_value=f"0 {self.skeleton.joint_names[0]}",
+            tuple(self._joint_option(k) for k in range(j)),
+            initial_value=self._joint_option(0),
         )
         self.visibility_button = gui.add_button(
             "Visibility: visible (V)", hint="Toggle visible / occluded"
@@ -373,6 +373,12 @@ class AnnotateView:
             gui,
             {name: self._hotkey_action(action) for name, action in actions.items()},
         )
+
+    def _joint_option(self, k: int) -> str:
+        """'4 I-tip (index_tip)': the *Joint* list shows the 3D label's name next to the full one."""
+        name = self.skeleton.joint_names[k]
+        short = short_name(name)
+        return f"{k} {short} ({name})" if short != name else f"{k} {name}"
 
     def _review_view(self) -> Any:
         return self.app.views.get(self.client.client_id, {}).get("Review")
@@ -855,7 +861,6 @@ class AnnotateView:
     def _update_panel(self) -> None:
         st = self.state
         vis, order = st.joint_text()
-        name = self.skeleton.joint_names[st.joint]
         done, total = self.session.progress()
         data = self._frame_data
         complete = self.session.is_annotated(st.frame)
@@ -872,7 +877,7 @@ class AnnotateView:
             self.progress_bar.value = 100.0 * done / total if total else 0.0
             if int(self.frame_slider.value) != st.index:
                 self.frame_slider.value = st.index
-            label = f"{st.joint} {name}"
+            label = self._joint_option(st.joint)
             if self.joint_dropdown.value != label:
                 self.joint_dropdown.value = label
             self.visibility_button.label = f"Visibility: {vis} (V)"

@@ -201,6 +201,7 @@ def test_clicks_on_guessed_joints_place_the_selected_joint(ctx: Ctx):
     screenshot(ctx, "annotate.png")
 
 
+@pytest.mark.slow  # the real lift, propagation and refinement (about 20 s)
 def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     """Issue 15 item 1: no `handanno lift`: *Propagate & refine* lifts the references and estimates
     the bone lengths itself, then propagates and refines; results.npz has the final joints."""

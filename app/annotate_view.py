@@ -71,6 +71,8 @@ SELECTED_SCALE = 1.6
 #: guessed (not placed) joints: radius relative to a placed joint's, and opacity
 GUESS_SCALE = 0.5
 GUESS_OPACITY = 0.45
+#: occluded joints are drawn in their colour mixed with this grey (``occluded_mix`` of colour)
+OCCLUDED_GREY = 110.0
 
 
 def load_colours() -> dict[str, Any]:
@@ -88,7 +90,7 @@ def load_colours() -> dict[str, Any]:
             ],
             "selected": [255, 255, 0],
             "handle_2d": [255, 255, 255],
-            "occluded_opacity": 0.35,
+            "occluded_mix": 0.35,
         }
 
 
@@ -190,13 +192,7 @@ class AnnotateView:
         )
         ring = trimesh.creation.annulus(r_min=RING_INNER, r_max=1.0, height=0.05, sections=32)
         self.handles2d = add_joint_meshes(scene, f"{ROOT}/handles2d", ring, self.base_colours)
-        self.joints = add_joint_meshes(
-            scene,
-            f"{ROOT}/joints",
-            UNIT_SPHERE,
-            self.base_colours,
-            batched_opacities=np.ones(j, np.float32),
-        )
+        self.joints = add_joint_meshes(scene, f"{ROOT}/joints", UNIT_SPHERE, self.base_colours)
         # no click/drag binding: viser raycasts only bound nodes, so guesses never catch a click
         self.guesses = add_joint_meshes(
             scene,
@@ -816,10 +812,12 @@ class AnnotateView:
         guess_scales = np.where(guessed, GUESS_SCALE * JOINT_RADIUS_M, 0.0)
         guess_scales[sel] *= SELECTED_SCALE
         colours = self.base_colours.copy()
+        # occluded joints are greyed, not transparent: viser 1.1 reports no instance (and no
+        # position) for clicks and drags on instances drawn with opacity < 1
+        w = float(self.colours["occluded_mix"])
+        occluded = ~ann.visible
+        colours[occluded] = (w * colours[occluded] + (1.0 - w) * OCCLUDED_GREY).astype(np.uint8)
         colours[sel] = self.colours["selected"]
-        opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(
-            np.float32
-        )
         has2d = ann.has_2d
         h2d = geo.pixel_to_scene(np.where(has2d[:, None], ann.uv_px, 0.0), offset_mm=2.0)
         # footprint of each joint's sphere on the image plane (perspective from the sensor)
@@ -837,7 +835,6 @@ class AnnotateView:
                 self.joints.batched_positions = pos_f
             self.joints.batched_scales = scales.astype(np.float32)
             self.joints.batched_colors = colours
-            self.joints.batched_opacities = opac
             self.guesses.batched_positions = pos_f
             self.guesses.batched_scales = guess_scales.astype(np.float32)
             self.guesses.batched_colors = colours

@@ -102,7 +102,7 @@ class Ctx:
             n,
         )
 
-    def drag(self, start: tuple[float, float], end: tuple[float, float], steps: int = 8) -> None:
+    def drag(self, start: tuple[float, float], end: tuple[float, float], steps: int = 4) -> None:
         """A mouse drag that lets the page draw between its moves (a loaded machine otherwise
         coalesces the moves before viser's drag threshold is seen)."""
         page = self.page

@@ -469,4 +469,4 @@ def test_accept_guesses_places_the_prefill_in_one_undoable_edit(ctx: Ctx):
     wait_until(lambda: len(ctx.edits(since=start)) == 2, what="the undo")
     undo = ctx.edits(since=start)[1]
     assert undo["action"] == "undo" and undo["target"] == entries[0]["seq"]
-    assert not app.session.annotation(frame).annotated.any()
+    wait_until(lambda: not app.session.annotation(frame).annotated.any(), what="all undone")

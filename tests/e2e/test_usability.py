@@ -366,6 +366,16 @@ def test_hotkeys_never_move_the_camera(ctx: Ctx):
     assert np.allclose(client_cam.position, before_server[0], atol=1e-6)
     assert np.allclose(client_cam.wxyz, before_server[1], atol=1e-6)
 
+    # typing in a number box, then Enter: the hotkeys work again (Enter leaves the box)
+    box = page.locator("input[inputmode='numeric'], input[inputmode='decimal']").first
+    box.click()
+    box.press("End")
+    box.press("Enter")
+    assert page.evaluate("() => document.activeElement.tagName") != "INPUT"
+    start = len(journal(ctx.folder))
+    page.keyboard.press("v")
+    wait_until(lambda: ctx.edits(since=start), what="a hotkey edit after the number box")
+
 
 def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
     """Issue 15 item 5: after undoing every joint of a frame no skeleton or guess is drawn, the

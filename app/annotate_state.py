@@ -14,6 +14,7 @@ import numpy as np
 
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.session import (
+    Batch,
     JournalEntry,
     Session,
     SetDepthOrder,
@@ -124,6 +125,31 @@ class AnnotateState:
             self.advance_joint()
         return entry
 
+    def accept_guesses(self, guesses_mm: np.ndarray) -> JournalEntry | None:
+        """Place every joint not placed yet at the 2D projection of its guess ``guesses_mm``
+        ``(J, 3)`` mm (NaN rows = no guess; guesses outside the image are skipped): ONE journal
+        entry (a Batch), undone in one step. None if there is nothing to place."""
+        cam = self.session.camera
+        ann = self.annotation()
+        guesses = np.asarray(guesses_mm, dtype=np.float64)
+        ok = ~ann.annotated & np.all(np.isfinite(guesses), axis=1) & (guesses[:, 2] > 0)
+        uv = cam.project(np.where(ok[:, None], guesses, [[0.0, 0.0, 1.0]]))
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1)
+        ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+        if not ok.any():
+            return None
+        commands = [
+            SetJoint2D(
+                frame=self.frame,
+                joint=int(j),
+                uv_px=(round(float(uv[j, 0]), 2), round(float(uv[j, 1]), 2)),
+            ).model_dump()
+            for j in np.flatnonzero(ok)
+        ]
+        entry = self._execute(Batch(commands=commands))
+        self.joint = self.first_unplaced_joint()
+        return entry
+
     def clear_joint(self) -> JournalEntry | None:
         ann = self.annotation()
         j = self.joint
@@ -146,7 +172,14 @@ class AnnotateState:
         )
 
     def undo(self) -> JournalEntry | None:
-        return self.session.undo(self.client)
+        """Undo this annotator's last edit; an undone edit of one joint on this frame selects
+        that joint again (so the next click re-places it)."""
+        entry = self.session.undo(self.client)
+        if entry is not None and entry_frame(entry) == self.frame:
+            joint = entry.command.get("joint")
+            if joint is not None:
+                self.joint = int(joint)
+        return entry
 
     def redo(self) -> JournalEntry | None:
         return self.session.redo(self.client)
@@ -169,6 +202,21 @@ class AnnotateState:
         if self.session.skeleton.parent_array[self.joint] < 0:
             return vis, "n/a (root)"
         return vis, DEPTH_ORDER_TEXT[int(ann.depth_order[self.joint])]
+
+
+def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
+    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
+    cmds = [entry.command]
+    if entry.command.get("kind") == "batch":
+        cmds = list(entry.command.get("commands", []))
+    out: set[int] = set()
+    for c in cmds:
+        kind = c.get("kind")
+        if kind in ("set_2d", "set_3d"):
+            out.add(int(c["joint"]))
+        elif kind == "set_frame":
+            out.update(range(num_joints))
+    return sorted(out)
 
 
 def entry_frame(entry: JournalEntry) -> int:

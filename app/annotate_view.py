@@ -8,9 +8,19 @@ Scene (client-scoped, under ``/annotate``, metres centred on the hand, see geome
   the cloud; a click on it sets the selected joint's 2D position;
 * ``/annotate/handles2d`` - the 2D annotations as flat rings on the image plane, wider than the
   joint spheres in front of them (draggable within the plane, grabbed by the visible band);
-* ``/annotate/joints`` - the 21 joints as ONE batched mesh (draggable in 3D), positions from the
-  live lift (or the annotation until the first lift arrives); the selected joint highlighted;
+* ``/annotate/joints`` - the *placed* joints as ONE batched mesh (draggable in 3D), positions
+  from the live lift (or the annotation until the first lift arrives); the selected joint
+  highlighted;
+* ``/annotate/guesses`` - the joints not placed yet where the live lift guesses them: small and
+  faded, and with no click or drag binding, so a click "through" a guess reaches the image (or the
+  cloud) behind it and places the selected joint;
 * ``/annotate/bones`` - skeleton line segments; ``/annotate/labels/<k>`` - joint labels.
+
+Clicks: in mode *2D on image* a click on the image, a 2D ring or a placed joint always sets the
+selected joint's 2D position (the ray's pixel on the image plane); joints are selected with the
+*Joint* list, the hotkeys, or by dragging. In mode *3D on cloud* a click on a placed joint's sphere
+selects that joint and never moves it; any other click snaps the selected joint to the cloud, and
+only the selected joint's sphere can be dragged.
 
 Frame changes assign new arrays to these handles; nothing is recreated. Every edit goes through
 :class:`~app.annotate_state.AnnotateState` (session commands); the view re-renders from the
@@ -36,7 +46,7 @@ import viser
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.session import JournalEntry, SessionError
 
-from .annotate_state import AnnotateState
+from .annotate_state import AnnotateState, edited_joints, entry_frame
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
 from .hotkeys import bind_all
@@ -56,6 +66,13 @@ JOINT_RADIUS_M = 0.0045
 HANDLE2D_MIN_RADIUS_M = 0.004
 HANDLE2D_CLEARANCE = 1.6
 RING_INNER = 0.7
+#: the selected joint's sphere is drawn this much larger
+SELECTED_SCALE = 1.6
+#: guessed (not placed) joints: radius relative to a placed joint's, and opacity
+GUESS_SCALE = 0.5
+GUESS_OPACITY = 0.45
+#: occluded joints are drawn in their colour mixed with this grey (``occluded_mix`` of colour)
+OCCLUDED_GREY = 110.0
 
 
 def load_colours() -> dict[str, Any]:
@@ -73,7 +90,7 @@ def load_colours() -> dict[str, Any]:
             ],
             "selected": [255, 255, 0],
             "handle_2d": [255, 255, 255],
-            "occluded_opacity": 0.35,
+            "occluded_mix": 0.35,
         }
 
 
@@ -89,21 +106,6 @@ def joint_colours(parents: np.ndarray, colours: dict[str, Any]) -> np.ndarray:
             k = int(parents[k])
         out[j] = colours["root"] if parents[j] < 0 else chains[root_children.index(k) % len(chains)]
     return out
-
-
-def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
-    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
-    cmds = [entry.command]
-    if entry.command.get("kind") == "batch":
-        cmds = list(entry.command.get("commands", []))
-    out: set[int] = set()
-    for c in cmds:
-        kind = c.get("kind")
-        if kind in ("set_2d", "set_3d"):
-            out.add(int(c["joint"]))
-        elif kind == "set_frame":
-            out.update(range(num_joints))
-    return sorted(out)
 
 
 def short_name(name: str) -> str:
@@ -136,6 +138,8 @@ class AnnotateView:
         self._frame_data: FrameData | None = None
         self._annotation: FrameAnnotation = FrameAnnotation.empty(self.skeleton.num_joints)
         self._lifted: LiftOutcome | None = None
+        #: (J, 3) mm pre-filled joints of the shown frame (AnnoServer.prefill), None if none
+        self._prefill: np.ndarray | None = None
         #: joint -> journal seq of an edit the current lift result does not include yet.
         self._stale: dict[int, int] = {}
         self._drag_offset: np.ndarray | None = None
@@ -188,12 +192,14 @@ class AnnotateView:
         )
         ring = trimesh.creation.annulus(r_min=RING_INNER, r_max=1.0, height=0.05, sections=32)
         self.handles2d = add_joint_meshes(scene, f"{ROOT}/handles2d", ring, self.base_colours)
-        self.joints = add_joint_meshes(
+        self.joints = add_joint_meshes(scene, f"{ROOT}/joints", UNIT_SPHERE, self.base_colours)
+        # no click/drag binding: viser raycasts only bound nodes, so guesses never catch a click
+        self.guesses = add_joint_meshes(
             scene,
-            f"{ROOT}/joints",
+            f"{ROOT}/guesses",
             UNIT_SPHERE,
             self.base_colours,
-            batched_opacities=np.ones(j, np.float32),
+            batched_opacities=np.full(j, GUESS_OPACITY, np.float32),
         )
         self.bones = add_bones(scene, f"{ROOT}/bones", self.skeleton.bones, self.base_colours)
         self.labels = [
@@ -216,21 +222,26 @@ class AnnotateView:
         @scene.on_click()
         def _(event: viser.SceneClickEvent) -> None:
             if self.state.click_mode == "3d":
-                self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+                self.click_scene_3d(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @scene.on_click(modifier="shift")
         def _(event: viser.SceneClickEvent) -> None:
-            self.click_cloud(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+            self.click_scene_3d(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @self.joints.on_click
         def _(event: viser.SceneNodePointerEvent) -> None:
-            k = event.instance_index
-            if k is None:
-                k = self._joint_near_ray(
-                    np.asarray(event.ray_origin), np.asarray(event.ray_direction)
-                )
-            if k is not None:
-                self.select_joint(int(k))
+            self.click_joint(
+                event.instance_index,
+                np.asarray(event.ray_origin),
+                np.asarray(event.ray_direction),
+                event.modifier,
+            )
+
+        @self.handles2d.on_click
+        def _(event: viser.SceneNodePointerEvent) -> None:
+            # a press on a ring that does not become a drag is a click on the image under it
+            if event.modifier is None and self.state.click_mode == "2d":
+                self.click_image(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
 
         @self.joints.on_drag("left")
         async def _(event: viser.SceneNodeDragEvent) -> None:
@@ -258,8 +269,8 @@ class AnnotateView:
         self.nav = gui.add_button_group("Frame", ("◀ Prev (P)", "Next (N) ▶"))
         self.joint_dropdown = gui.add_dropdown(
             "Joint",
-            tuple(f"{k} {self.skeleton.joint_names[k]}" for k in range(j)),
-            initial_value=f"0 {self.skeleton.joint_names[0]}",
+            tuple(self._joint_option(k) for k in range(j)),
+            initial_value=self._joint_option(0),
         )
         self.visibility_button = gui.add_button(
             "Visibility: visible (V)", hint="Toggle visible / occluded"
@@ -274,6 +285,10 @@ class AnnotateView:
             hint="Shift+click always snaps to the cloud",
         )
         self.edit_buttons = gui.add_button_group("Edit", ("Undo", "Redo", "Clear joint"))
+        self.accept_button = gui.add_button(
+            "Accept guesses (G)",
+            hint="Place every joint not placed yet where its guess is drawn (one undo step)",
+        )
         self.camera_button = gui.add_button(
             "Sensor view", hint="Look from the depth camera (image and cloud line up)"
         )
@@ -327,6 +342,11 @@ class AnnotateView:
                 event.target.value
             ]()
 
+        @self.accept_button.on_click
+        def _(_: Any) -> None:
+            self._claim_scene()
+            self.accept_guesses()
+
         @self.camera_button.on_click
         def _(_: Any) -> None:
             self._claim_scene()
@@ -340,6 +360,7 @@ class AnnotateView:
             "toggle_visibility": self.toggle_visibility,
             "cycle_depth_order": self.cycle_depth_order,
             "clear_joint": self.clear_joint,
+            "accept_guesses": self.accept_guesses,
             "toggle_click_mode": self._toggle_click_mode,
             "undo": self.undo,
             "redo": self.redo,
@@ -348,6 +369,12 @@ class AnnotateView:
             gui,
             {name: self._hotkey_action(action) for name, action in actions.items()},
         )
+
+    def _joint_option(self, k: int) -> str:
+        """'4 I-tip (index_tip)': the *Joint* list shows the 3D label's name next to the full one."""
+        name = self.skeleton.joint_names[k]
+        short = short_name(name)
+        return f"{k} {short} ({name})" if short != name else f"{k} {name}"
 
     def _review_view(self) -> Any:
         return self.app.views.get(self.client.client_id, {}).get("Review")
@@ -364,11 +391,18 @@ class AnnotateView:
 
     def _hotkey_action(self, action: Any) -> Any:
         """Hotkeys are page-wide in viser: while the Review scene is shown they would move or edit
-        an annotate frame the user cannot see, so they do nothing then (and say so once)."""
+        an annotate frame the user cannot see, so they do nothing then (and say so once); the
+        frame keys N / P move the Review scene's frame instead."""
+        review_actions = {
+            self.next_frame: lambda: self._review_view().step_frame(+1),
+            self.prev_frame: lambda: self._review_view().step_frame(-1),
+        }
 
         def run(_client: Any) -> None:
             if self._scene_shown():
                 action()
+            elif action in review_actions:
+                review_actions[action]()
             elif not self._told_hotkeys_paused:
                 self._told_hotkeys_paused = True
                 self.client.add_notification(
@@ -422,6 +456,7 @@ class AnnotateView:
             self._annotation = annotation
             self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
             self._stale = {}
+            self._prefill = None
             wrist = self._lifted.joints_mm if self._lifted is not None else None
             self.cloud.visible = show_hand_cloud(self.cloud, geo, wrist, self.skeleton)
             rw, rh = geo.image_render_size
@@ -438,7 +473,22 @@ class AnnotateView:
             )
         if self._lifted is None and annotation.annotated.any():
             self.app.worker.submit(frame)
+        if self._lifted is None and not annotation.annotated.all():
+            threading.Thread(
+                target=self._load_prefill, args=(frame,), name="handanno-prefill", daemon=True
+            ).start()
         self._render()
+
+    def _load_prefill(self, frame: int) -> None:
+        """Pre-fill ``frame`` off the UI thread (it may run one propagation step), then draw it."""
+        joints = self.app.prefill(frame)
+        if joints is not None:
+            self._post(self._apply_prefill, frame, joints)
+
+    def _apply_prefill(self, frame: int, joints: np.ndarray) -> None:
+        if frame == self._shown_frame:
+            self._prefill = joints
+            self._render()
 
     def reset_camera(self) -> None:
         """Put the browser camera at the depth sensor, looking at the hand (pixels line up); on
@@ -479,20 +529,63 @@ class AnnotateView:
             return None
         return self._edit(lambda: self.state.place_3d(xyz))
 
-    def _joint_near_ray(self, origin: np.ndarray, direction: np.ndarray) -> int | None:
+    def click_joint(
+        self, k: int | None, origin: np.ndarray, direction: np.ndarray, modifier: str | None
+    ) -> JournalEntry | None:
+        """A click on a placed joint's sphere. Mode 2D (no modifier): the click places the
+        selected joint's 2D position under the pointer, like a click on the image behind the
+        sphere (so neighbouring joints never swallow clicks). Mode 3D or Shift: selects joint
+        ``k`` and never moves it."""
+        if modifier is None and self.state.click_mode == "2d":
+            return self.click_image(origin, direction)
+        if k is None:
+            k = self._placed_joint_hit(origin, direction)
+        if k is not None:
+            self.select_joint(int(k))
+        return None
+
+    def click_scene_3d(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
+        """A click in mode 3D (or a Shift+click): on a placed joint's sphere it selects that joint
+        (the sphere's own click event may arrive before or after this one); anywhere else, guesses
+        included, it snaps the selected joint to the cloud."""
+        k = self._placed_joint_hit(origin, direction)
+        if k is not None:
+            self.select_joint(k)
+            return None
+        return self.click_cloud(origin, direction)
+
+    def _placed_joint_hit(self, origin: np.ndarray, direction: np.ndarray) -> int | None:
+        """The placed joint whose drawn sphere the ray hits first, or None."""
         pos = self._joint_positions_scene()
-        ok = np.all(np.isfinite(pos), axis=1)
+        radius = self._placed_radii()
+        ok = np.all(np.isfinite(pos), axis=1) & (radius > 0)
         if not ok.any():
             return None
-        d = direction / np.linalg.norm(direction)
-        rel = pos - origin
-        perp = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
-        perp[~ok] = np.inf
-        return int(np.argmin(perp))
+        d = np.asarray(direction, dtype=np.float64)
+        d = d / np.linalg.norm(d)
+        rel = np.where(ok[:, None], pos, 0.0) - np.asarray(origin, dtype=np.float64)
+        along = rel @ d
+        perp = np.linalg.norm(rel - along[:, None] * d, axis=1)
+        hit = ok & (along > 0) & (perp <= 1.05 * radius)
+        if not hit.any():
+            return None
+        return int(np.flatnonzero(hit)[np.argmin(along[hit])])
+
+    def _placed_radii(self) -> np.ndarray:
+        """(J,) drawn sphere radius (scene m) of each placed joint, 0 for joints not placed."""
+        radius = np.where(self._annotation.annotated, JOINT_RADIUS_M, 0.0)
+        radius[self.state.joint] *= SELECTED_SCALE
+        return radius
 
     def _on_joint_drag(self, event: viser.SceneNodeDragEvent) -> None:
         k = event.instance_index
         if k is None or self._frame_data is None:
+            return
+        if event.phase == "start" and self.state.click_mode == "3d" and k != self.state.joint:
+            # 3D mode: only the selected joint moves; grabbing another one selects it
+            self._dragging = None
+            self._drag_offset = None
+            self.select_joint(int(k))
             return
         if event.phase == "start":
             geo = self._frame_data.geometry
@@ -561,6 +654,15 @@ class AnnotateView:
     def clear_joint(self) -> JournalEntry | None:
         return self._edit(self.state.clear_joint)
 
+    def accept_guesses(self) -> JournalEntry | None:
+        """Every joint not placed yet goes where its guess is drawn (one journaled Batch)."""
+        if self._frame_data is None:
+            return None
+        entry = self._edit(lambda: self.state.accept_guesses(self._joint_positions_mm()))
+        if entry is None:
+            self.client.add_notification("No guesses to accept", "", auto_close_seconds=2.0)
+        return entry
+
     def undo(self) -> JournalEntry | None:
         entry = self._edit(self.state.undo)
         if entry is None:
@@ -579,8 +681,6 @@ class AnnotateView:
 
     def _follow(self, entry: JournalEntry) -> None:
         """Undo/redo of an edit on another frame: go there so the change is visible."""
-        from .annotate_state import entry_frame
-
         frame = entry_frame(entry)
         if frame != self.frame and frame in self.state.frames:
             self.go_to_index(self.state.frames.index(frame))
@@ -640,6 +740,11 @@ class AnnotateView:
             return
         if outcome.joints_mm is None:
             self.lift_md.content = f"*skeleton: {outcome.error}*"
+            if not self._annotation.annotated.any():
+                # everything undone or cleared: no skeleton is left to draw (or to click)
+                self._lifted = None
+                self._stale = {}
+                self._render()
             return
         self._lifted = outcome
         self._stale = {j: seq for j, seq in self._stale.items() if seq > outcome.journal_seq}
@@ -647,7 +752,8 @@ class AnnotateView:
 
     # ================================================================== drawing
     def _joint_positions_mm(self) -> np.ndarray:
-        """(J, 3) mm: lifted joints, else placed 3D, else 2D on the depth surface; NaN = unknown."""
+        """(J, 3) mm: lifted joints (else the pre-fill for joints not placed), else placed 3D,
+        else 2D on the depth surface; NaN = unknown."""
         ann = self._annotation
         data = self._frame_data
         out = np.full((self.skeleton.num_joints, 3), np.nan)
@@ -657,6 +763,9 @@ class AnnotateView:
             # the next lift result moves the whole skeleton.
             stale = [j for j in self._stale if ann.annotated[j]]
             out[stale] = np.nan
+        elif self._prefill is not None:  # before the first lift: the pre-filled pose
+            out[:] = self._prefill
+            out[ann.annotated] = np.nan  # placed joints are drawn where they were placed
         if data is None:
             return out
         missing = ~np.all(np.isfinite(out), axis=1)
@@ -701,14 +810,20 @@ class AnnotateView:
         sel = self.state.joint
         pos = self._joint_positions_scene()
         shown = np.all(np.isfinite(pos), axis=1)
+        placed = shown & ann.annotated
+        guessed = shown & ~ann.annotated
         pos_f = np.where(shown[:, None], pos, 0.0).astype(np.float32)
-        scales = np.where(shown, JOINT_RADIUS_M, 0.0)
-        scales[sel] *= 1.6
+        scales = np.where(placed, JOINT_RADIUS_M, 0.0)
+        scales[sel] *= SELECTED_SCALE
+        guess_scales = np.where(guessed, GUESS_SCALE * JOINT_RADIUS_M, 0.0)
+        guess_scales[sel] *= SELECTED_SCALE
         colours = self.base_colours.copy()
+        # occluded joints are greyed, not transparent: viser 1.1 reports no instance (and no
+        # position) for clicks and drags on instances drawn with opacity < 1
+        w = float(self.colours["occluded_mix"])
+        occluded = ~ann.visible
+        colours[occluded] = (w * colours[occluded] + (1.0 - w) * OCCLUDED_GREY).astype(np.uint8)
         colours[sel] = self.colours["selected"]
-        opac = np.where(ann.visible, 1.0, float(self.colours["occluded_opacity"])).astype(
-            np.float32
-        )
         has2d = ann.has_2d
         h2d = geo.pixel_to_scene(np.where(has2d[:, None], ann.uv_px, 0.0), offset_mm=2.0)
         # footprint of each joint's sphere on the image plane (perspective from the sensor)
@@ -726,7 +841,9 @@ class AnnotateView:
                 self.joints.batched_positions = pos_f
             self.joints.batched_scales = scales.astype(np.float32)
             self.joints.batched_colors = colours
-            self.joints.batched_opacities = opac
+            self.guesses.batched_positions = pos_f
+            self.guesses.batched_scales = guess_scales.astype(np.float32)
+            self.guesses.batched_colors = colours
             self.bones.points = seg.astype(np.float32)
             self.handles2d.batched_positions = h2d.astype(np.float32)
             self.handles2d.batched_scales = h2d_scales.astype(np.float32)
@@ -747,7 +864,6 @@ class AnnotateView:
     def _update_panel(self) -> None:
         st = self.state
         vis, order = st.joint_text()
-        name = self.skeleton.joint_names[st.joint]
         done, total = self.session.progress()
         data = self._frame_data
         complete = self.session.is_annotated(st.frame)
@@ -764,7 +880,7 @@ class AnnotateView:
             self.progress_bar.value = 100.0 * done / total if total else 0.0
             if int(self.frame_slider.value) != st.index:
                 self.frame_slider.value = st.index
-            label = f"{st.joint} {name}"
+            label = self._joint_option(st.joint)
             if self.joint_dropdown.value != label:
                 self.joint_dropdown.value = label
             self.visibility_button.label = f"Visibility: {vis} (V)"

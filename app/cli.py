@@ -42,17 +42,51 @@ def _strings(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
 
+WORKFLOW = """workflow (one session, in this order):
+  handanno new SESSION DATASET        create a session for a depth sequence
+  handanno select SESSION             choose the reference frames (5 % by default)
+  handanno serve SESSION              annotate them in the browser; the app's Review tab lifts,
+                                      propagates, refines, reviews and exports without the CLI
+  handanno lift / propagate / refine SESSION     the same stages from the command line
+  handanno export SESSION --format json -o OUT   write the result
+try it: handanno demo (a synthetic sequence, served at http://localhost:8080)"""
+
+#: default share of frames ``select`` makes references (the paper's operating point)
+DEFAULT_REF_FRACTION = 0.05
+ALIGNERS = ["sift", "dis", "ncc"]
+FORMATS = ["msra", "blender", "nyu", "icvl", "folder"]
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends ``(default: X)`` to every option that has a default (not None or False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """Every option has a help text; ``(default: ...)`` is appended by the formatter."""
+    fmt = _HelpFormatter
     parser = argparse.ArgumentParser(
         prog="handanno",
         description="Semi-automatic 3D hand-pose annotation of depth videos.",
+        epilog=WORKFLOW,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
         "--sessions-dir",
         default="sessions",
-        help="where bare session names live (default ./sessions)",
+        help="where bare session names live (default ./sessions; also accepted after the command)",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, help_text: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=fmt)
+        # after the command too; SUPPRESS keeps the value given before it
+        p.add_argument("--sessions-dir", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+        return p
 
     def session_arg(p: argparse.ArgumentParser) -> None:
         p.add_argument(
@@ -63,34 +97,40 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             "--host",
             default=DEFAULT_HOST,
-            help="interface to bind (default 127.0.0.1; 0.0.0.0 only behind a proxy)",
+            help="interface to bind (0.0.0.0 only behind a proxy)",
         )
-        p.add_argument("--port", type=int, default=DEFAULT_PORT)
-        p.add_argument("--sessions-dir", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+        p.add_argument(
+            "--port",
+            type=int,
+            default=DEFAULT_PORT,
+            help="port to serve on; a port in use is an error (never a silent move)",
+        )
 
-    p = sub.add_parser("demo", help="synthetic sequence -> session -> app")
+    p = add("demo", "synthetic sequence -> session -> app")
     server_args(p)
     p.add_argument(
         "--frames", type=int, default=300, help="frames in the demo sequence (first run only)"
     )
 
-    p = sub.add_parser("serve", help="serve an existing session in the browser app")
+    p = add("serve", "serve an existing session in the browser app")
     session_arg(p)
     server_args(p)
 
-    p = sub.add_parser(
-        "synth", help="write a synthetic sequence with exact ground truth (MSRA layout)"
-    )
-    p.add_argument("out_dir", metavar="OUT_DIR")
-    p.add_argument("--frames", type=int, default=3040)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2)
+    p = add("synth", "write a synthetic sequence with exact ground truth (MSRA layout)")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="folder to write the sequence to")
+    p.add_argument("--frames", type=int, default=3040, help="number of frames")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the motion and hand shape")
+    p.add_argument("--workers", type=int, default=2, help="processes rendering frames")
 
-    p = sub.add_parser("new", help="create a session for a depth dataset")
+    p = add("new", "create a session for a depth dataset")
     session_arg(p)
-    p.add_argument("dataset", metavar="DATASET")
-    p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
-    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,W,H]")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (or file list)")
+    p.add_argument("--format", choices=FORMATS, help="dataset layout (default: detected)")
+    p.add_argument(
+        "--intrinsics",
+        metavar="FX,FY,CX,CY[,W,H]",
+        help="camera intrinsics in px (default: the dataset's own)",
+    )
     p.add_argument("--depth-scale", type=float, help="mm per PNG unit for --format folder")
     p.add_argument(
         "--breaks",
@@ -100,61 +140,74 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
-    p = sub.add_parser("info", help="print a session's summary")
+    p = add("info", "print a session's summary")
     session_arg(p)
 
-    p = sub.add_parser("select", help="select reference frames")
+    p = add("select", "select reference frames")
     session_arg(p)
     p.add_argument(
         "--strategy",
         default="forest",
-        help="forest (ours, default), chain, chain-step, coverage, uniform",
+        help="forest (ours), chain, chain-step, coverage, uniform",
     )
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--ref-fraction", type=float, help="exact budget, e.g. 0.05 for 5 %% of frames")
-    g.add_argument("--rho", type=float, help="raw cosine-distance threshold")
-
-    p = sub.add_parser(
-        "annotate-from-gt", help="simulated annotator from ground truth (benchmarks only)"
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "--ref-fraction",
+        type=float,
+        default=None,
+        help=f"exact budget as a share of frames (default: {DEFAULT_REF_FRACTION} unless --rho)",
     )
-    session_arg(p)
-    p.add_argument("--noise-px", type=float, default=0.0)
-    p.add_argument("--seed", type=int, default=0)
+    g.add_argument("--rho", type=float, help="raw cosine-distance threshold instead of a budget")
 
-    p = sub.add_parser("lift", help="lift annotated references to 3D")
+    p = add("annotate-from-gt", "simulated annotator from ground truth (benchmarks only)")
     session_arg(p)
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--noise-px", type=float, default=0.0, help="2D click noise (std, px)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
 
-    p = sub.add_parser("propagate", help="propagate references to every frame")
+    p = add("lift", "lift annotated references to 3D and estimate the bone lengths")
     session_arg(p)
-    p.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="local processes")
+
+    p = add("propagate", "propagate references to every frame")
+    session_arg(p)
+    p.add_argument("--workers", type=int, default=1, help="local processes")
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
-    p.add_argument("--aligner", choices=["sift", "dis", "ncc"])
+    p.add_argument("--aligner", choices=ALIGNERS, help="flow method (default: the session's)")
 
-    p = sub.add_parser("refine", help="global refinement of all frames")
+    p = add("refine", "global refinement of all frames")
     session_arg(p)
 
-    p = sub.add_parser("export", help="export the result")
+    p = add("export", "export the result")
     session_arg(p)
-    p.add_argument("--format", required=True, choices=["json", "npz", "msra"])
-    p.add_argument("-o", "--output", required=True, type=Path)
+    p.add_argument("--format", required=True, choices=["json", "npz", "msra"], help="file format")
+    p.add_argument("-o", "--output", required=True, type=Path, help="file to write")
 
-    p = sub.add_parser("import", help="import a handanno JSON export into a session")
+    p = add("import", "import a handanno JSON export into a session")
     session_arg(p)
-    p.add_argument("json_file", type=Path)
+    p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
 
-    p = sub.add_parser("bench", help="whole pipeline with the simulated annotator; JSON report")
-    p.add_argument("dataset", metavar="DATASET")
-    p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
-    p.add_argument("--ref-fraction", type=_floats, default=[0.02, 0.05, 0.10])
-    p.add_argument("--strategy", type=_strings, default=["forest", "chain", "coverage", "uniform"])
-    p.add_argument("--noise-px", type=float, default=0.0)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--aligner", choices=["sift", "dis", "ncc"])
+    p = add("bench", "whole pipeline with the simulated annotator; JSON report")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder with ground truth")
+    p.add_argument("--format", choices=FORMATS, help="dataset layout (default: detected)")
+    p.add_argument(
+        "--ref-fraction",
+        type=_floats,
+        default=[0.02, 0.05, 0.10],
+        help="comma-separated reference budgets",
+    )
+    p.add_argument(
+        "--strategy",
+        type=_strings,
+        default=["forest", "chain", "coverage", "uniform"],
+        help="comma-separated selection strategies",
+    )
+    p.add_argument("--noise-px", type=float, default=0.0, help="2D click noise (std, px)")
+    p.add_argument("--workers", type=int, default=2, help="local processes")
+    p.add_argument("--aligner", choices=ALIGNERS, help="flow method (default: the session's)")
     p.add_argument(
         "--gt-bones", action="store_true", help="use ground-truth bone lengths (comparison only)"
     )
-    p.add_argument("--json", required=True, type=Path, dest="json_out")
+    p.add_argument("--json", required=True, type=Path, dest="json_out", help="report to write")
     return parser
 
 
@@ -217,22 +270,32 @@ def _progress_bar(desc: str):
     return bar, update
 
 
+def _serve(args) -> int | None:
+    """``demo`` / ``serve``; a busy port is an error naming it (never a silent move)."""
+    from app.server import PortInUseError, demo, serve
+
+    try:
+        if args.command == "demo":
+            demo(Path(args.sessions_dir), host=args.host, port=args.port, frames=args.frames)
+        else:
+            from handanno_core.session import Session, resolve_session
+
+            folder = resolve_session(args.session, args.sessions_dir)
+            Session.open(folder).close()  # fail fast, in the terminal, on a bad session
+            serve(folder, host=args.host, port=args.port)  # takes the writer lock (issue 16)
+    except PortInUseError as exc:
+        print(f"handanno {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return None
+
+
 def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     from handanno_core import pipeline
 
     cmd = args.command
-    if cmd == "demo":
-        from app.server import demo
-
-        demo(Path(args.sessions_dir), host=args.host, port=args.port, frames=args.frames)
-    elif cmd == "serve":
-        from app.server import serve
-        from handanno_core.session import Session, resolve_session
-
-        folder = resolve_session(args.session, args.sessions_dir)
-        Session.open(folder).close()  # fail fast, in the terminal, on a missing or corrupt session
-        serve(folder, host=args.host, port=args.port)  # takes the writer lock (issue 16)
-    elif cmd == "synth":
+    if cmd in ("demo", "serve"):
+        return _serve(args)
+    if cmd == "synth":
         from handanno_core.datasets import open_sequence
         from handanno_core.synth import generate_sequence
 
@@ -259,8 +322,11 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         print(_open(args).summary())
     elif cmd == "select":
         session = _open(args, write=True)
+        fraction = args.ref_fraction
+        if fraction is None and args.rho is None:
+            fraction = DEFAULT_REF_FRACTION
         selection = pipeline.select(
-            session, strategy=args.strategy, ref_fraction=args.ref_fraction, rho=args.rho
+            session, strategy=args.strategy, ref_fraction=fraction, rho=args.rho
         )
         print(f"references: {len(selection.reference_frames)} of {session.num_frames}")
         print(f"figures: {session.folder / 'selection_embedding.png'}")

@@ -36,13 +36,26 @@ class Hotkey:
         return mod.get(self.modifier, f"{self.modifier} + ") + key
 
 
+#: viser's keyboard camera keys, which the app turns off (app/server.py KEYBOARD_SHIM): the
+#: hotkeys D and the arrows would otherwise also move the camera and break the image alignment.
+CAMERA_KEYS_TEXT = "W A S D Q E, ← → ↑ ↓"
+CAMERA_KEYS_NOTE = (
+    "viser's keyboard camera is off: these keys never move the camera (orbit, pan and zoom "
+    "with the mouse; *Sensor view* resets it)"
+)
+
 HOTKEYS: tuple[Hotkey, ...] = (
-    Hotkey("next_frame", "Next reference frame", "N", description="go to the next reference frame"),
+    Hotkey(
+        "next_frame",
+        "Next reference frame",
+        "N",
+        description="go to the next reference frame (Review scene: the next frame)",
+    ),
     Hotkey(
         "prev_frame",
         "Previous reference frame",
         "P",
-        description="go to the previous reference frame",
+        description="go to the previous reference frame (Review scene: the previous frame)",
     ),
     Hotkey("next_joint", "Next joint", "arrowright", description="select the next joint"),
     Hotkey("prev_joint", "Previous joint", "arrowleft", description="select the previous joint"),
@@ -60,6 +73,12 @@ HOTKEYS: tuple[Hotkey, ...] = (
     ),
     Hotkey("clear_joint", "Clear joint", "X", description="remove the selected joint's placement"),
     Hotkey(
+        "accept_guesses",
+        "Accept guesses",
+        "G",
+        description="place every joint not placed yet where its guess is drawn (one undo step)",
+    ),
+    Hotkey(
         "toggle_click_mode",
         "Toggle click mode",
         "M",
@@ -67,6 +86,24 @@ HOTKEYS: tuple[Hotkey, ...] = (
     ),
     Hotkey("undo", "Undo", "Z", "cmd/ctrl", "undo your last edit"),
     Hotkey("redo", "Redo", "Z", "cmd/ctrl+shift", "redo your last undone edit"),
+)
+
+
+#: hotkeys of the Review tab; they act while the Review scene is shown (N / P above move its frame)
+REVIEW_HOTKEYS: tuple[Hotkey, ...] = (
+    Hotkey(
+        "review_accept",
+        "Review: accept frame",
+        "A",
+        description="mark the shown frame accepted and go to the next worst frame",
+    ),
+    Hotkey("review_flag", "Review: flag frame", "F", description="mark the shown frame flagged"),
+    Hotkey(
+        "review_next_worst",
+        "Review: next worst frame",
+        "W",
+        description="go to the frame with the next lowest review score",
+    ),
 )
 
 
@@ -95,13 +132,17 @@ def bind(gui: Any, hotkey: Hotkey, callback: Callable[[Any], None]) -> Any | Non
     return handle
 
 
-def bind_all(gui: Any, actions: dict[str, Callable[[Any], None]]) -> dict[str, Any]:
-    """Bind every :data:`HOTKEYS` entry whose action is in ``actions``."""
-    return {hk.action: bind(gui, hk, actions[hk.action]) for hk in HOTKEYS if hk.action in actions}
+def bind_all(
+    gui: Any, actions: dict[str, Callable[[Any], None]], hotkeys: tuple[Hotkey, ...] = HOTKEYS
+) -> dict[str, Any]:
+    """Bind every entry of ``hotkeys`` (default :data:`HOTKEYS`) whose action is in ``actions``."""
+    return {hk.action: bind(gui, hk, actions[hk.action]) for hk in hotkeys if hk.action in actions}
 
 
 def hotkey_table_markdown() -> str:
     """The hotkey table of static/help.md (a test keeps the two in sync)."""
     rows = ["| Keys | Action | What it does |", "|---|---|---|"]
     rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in HOTKEYS]
+    rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in REVIEW_HOTKEYS]
+    rows.append(f"| {CAMERA_KEYS_TEXT} | Camera | {CAMERA_KEYS_NOTE} |")
     return "\n".join(rows)

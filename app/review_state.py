@@ -11,9 +11,12 @@ the background job that propagates and refines while the app streams its results
 * :class:`LiveResults` - the joints shown by the review view, updated frame by frame while a job
   runs (``on_result``), thread-safe.
 * :class:`ReviewRunner` - one background thread running "propagate & refine" jobs: a full run, or
-  after review corrections only the corrected frames' descendants in the parent forest. Cancelling
-  leaves ``results.npz`` either as it was or completely new (never half-written) and never touches
-  the journal.
+  after review corrections only the corrected frames' descendants in the parent forest; and "lift
+  all" (:func:`handanno_core.pipeline.lift`: every annotated reference, bone lengths estimated),
+  which a full run does first when the session has no bone lengths or an annotated reference has
+  no lifted pose (a session annotated only in the browser). Cancelling leaves ``results.npz``
+  either as it was (or as the finished lift left it) or completely new (never half-written) and
+  never touches the journal.
 """
 
 from __future__ import annotations
@@ -444,8 +447,9 @@ def refine_all(
 
 @dataclass
 class JobStatus:
-    kind: str = ""  # "full" | "corrections"
-    phase: str = "idle"  # idle | lift | propagate | refine | saving | done | cancelled | failed
+    kind: str = ""  # "full" | "corrections" | "lift"
+    #: idle | lift-all | lift | propagate | refine | saving | done | cancelled | failed
+    phase: str = "idle"
     done: int = 0
     total: int = 0
     message: str = ""
@@ -455,7 +459,7 @@ class JobStatus:
 
     @property
     def running(self) -> bool:
-        return self.phase in ("lift", "propagate", "refine", "saving", "starting")
+        return self.phase in ("lift-all", "lift", "propagate", "refine", "saving", "starting")
 
     @property
     def percent(self) -> float:
@@ -472,6 +476,12 @@ class JobStatus:
             return f"refining: iteration {self.done}"
         if self.phase == "lift":
             return f"lifting corrected frame(s) {self.message}"
+        if self.phase == "lift-all":
+            return (
+                f"lifting references, estimating bone lengths: {self.done} of {self.total}"
+                if self.total
+                else "lifting references, estimating bone lengths"
+            )
         return self.message or self.phase
 
 
@@ -485,8 +495,10 @@ class ReviewRunner:
     :func:`refine_all` (tests inject slower or faster ones). ``lift_for(frame, min_seq)`` returns the
     lifted joints (J, 3) of a corrected frame reflecting journal entry ``min_seq`` or later (the app
     waits for its lift worker); without it the frame is lifted here with ``lift_frame``.
-    ``listeners`` are called as ``listener(event, runner, frame)`` with event ``"progress"``,
-    ``"frame"`` (a new skeleton for ``frame``) or ``"finished"``.
+    ``lift_all_fn`` (default :func:`handanno_core.pipeline.lift`) lifts every annotated reference
+    and stores the bone lengths. ``listeners`` are called as ``listener(event, runner, frame)``
+    with event ``"progress"``, ``"frame"`` (a new skeleton for ``frame``), ``"lifted"`` (lift all
+    saved new reference poses) or ``"finished"``.
     """
 
     def __init__(
@@ -497,6 +509,7 @@ class ReviewRunner:
         propagate_fn: Callable[..., Any] | None = None,
         refine_fn: Callable[..., np.ndarray] | None = None,
         lift_for: LiftFor | None = None,
+        lift_all_fn: Callable[..., Any] | None = None,
         workers: int = 1,
         checkpoint_every_s: float = 5.0,
         debounce_s: float = 1.0,
@@ -507,6 +520,9 @@ class ReviewRunner:
             from handanno_core.pipeline import propagate as propagate_fn
         self.propagate_fn = propagate_fn
         self.refine_fn = refine_fn or refine_all
+        if lift_all_fn is None:
+            from handanno_core.pipeline import lift as lift_all_fn
+        self.lift_all_fn = lift_all_fn
         self.lift_for = lift_for
         self.workers = workers
         self.checkpoint_every_s = checkpoint_every_s
@@ -517,6 +533,7 @@ class ReviewRunner:
         self._cond = threading.Condition()
         self._cancel = threading.Event()
         self._pending_full = False
+        self._pending_lift = False
         self._pending_corrections: dict[int, int] = {}  # frame -> journal seq of the edit
         self._corrections_due = 0.0
         self._stop = False
@@ -538,6 +555,33 @@ class ReviewRunner:
         self._emit("progress", -1)
         return True
 
+    def start_lift(self) -> bool:
+        """Queue "lift all" (every annotated reference, bone lengths re-estimated). False if a
+        job is running or queued."""
+        with self._cond:
+            if self.status.running or self._pending_full or self._pending_lift:
+                return False
+            self._pending_lift = True
+            self._cancel.clear()
+            self.status = JobStatus(
+                kind="lift", phase="starting", message="starting", started_at=time.time()
+            )
+            self._cond.notify_all()
+        self._emit("progress", -1)
+        return True
+
+    def needs_lift(self) -> bool:
+        """True if a full run must lift first: no bone lengths yet, or an annotated reference
+        without a lifted pose."""
+        session = self.session
+        if session.model.bone_lengths_mm is None:
+            return True
+        lifted = session.load_results()["lifted_mm"]
+        annotated = [
+            f for f, a in session.annotations(session.reference_frames).items() if a.annotated.any()
+        ]
+        return not np.all(np.isfinite(lifted[annotated]))
+
     def request_correction(self, frame: int, seq: int) -> None:
         """A review edit made ``frame`` a reference (journal entry ``seq``): re-propagate and refine
         its descendants once edits have been quiet for ``debounce_s``."""
@@ -558,7 +602,12 @@ class ReviewRunner:
     def wait_idle(self, timeout: float = 60.0) -> bool:
         deadline = time.monotonic() + timeout
         with self._cond:
-            while self._pending_full or self._pending_corrections or self.status.running:
+            while (
+                self._pending_full
+                or self._pending_lift
+                or self._pending_corrections
+                or self.status.running
+            ):
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -584,7 +633,7 @@ class ReviewRunner:
         while True:
             with self._cond:
                 while not self._stop:
-                    if self._pending_full:
+                    if self._pending_full or self._pending_lift:
                         break
                     if self._pending_corrections and time.monotonic() >= self._corrections_due:
                         break
@@ -598,6 +647,9 @@ class ReviewRunner:
                     self._pending_full = False
                     kind, corrections = "full", {}
                     self._pending_corrections.clear()
+                elif self._pending_lift:
+                    self._pending_lift = False
+                    kind, corrections = "lift", {}
                 else:
                     kind, corrections = "corrections", dict(self._pending_corrections)
                     self._pending_corrections.clear()
@@ -634,10 +686,28 @@ class ReviewRunner:
     def _remove_partial(self) -> None:
         (self.session.folder / PARTIAL_FILE).unlink(missing_ok=True)
 
+    def _lift_all(self) -> None:
+        """Lift every annotated reference and estimate the bone lengths (saved on success only)."""
+        self._set(phase="lift-all", done=0, total=0, message="")
+
+        def progress(done: int, total: int) -> None:
+            self._check()
+            self._set(done=int(done), total=int(total))
+
+        self.lift_all_fn(self.session, workers=self.workers, quiet=True, progress=progress)
+        self.live.reload()
+        self._emit("lifted", -1)
+
     def _job(self, kind: str, corrections: dict[int, int]) -> None:
         from handanno_core.propagate import descendants
 
         session = self.session
+        if kind == "lift":
+            self._lift_all()
+            self._finish("done", "done: references lifted, bone lengths estimated")
+            return
+        if kind == "full" and self.needs_lift():
+            self._lift_all()
         frames: np.ndarray | None = None
         if corrections:
             self._set(phase="lift", message=", ".join(map(str, sorted(corrections))))

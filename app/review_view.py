@@ -1,7 +1,9 @@
 """The "Review" view: one object per connected browser (a tab next to "Annotate").
 
 Panel: "Propagate & refine" (runs in the background :class:`~app.review_state.ReviewRunner`, with
-a progress bar; propagated skeletons appear while it runs), a timeline slider with play/pause
+a progress bar; propagated skeletons appear while it runs; on a session annotated only in the
+browser it first lifts the references and estimates the bone lengths), "Lift all references"
+(that lift alone), a timeline slider with play/pause
 (reference frames marked), the per-frame review score as a uPlot chart, "Next worst frame",
 Accept / Flag (``SetReview``), export (JSON / NPZ / MSRA download) and JSON import.
 
@@ -37,6 +39,7 @@ from handanno_core.session import JournalEntry, SessionError, SetReview
 from .annotate_view import joint_colours, load_colours
 from .frames import FrameData
 from .geometry import pull_in_front_of_surface
+from .hotkeys import REVIEW_HOTKEYS, bind_all
 from .review_state import LiveResults, ReviewRunner, correction_command, next_worst
 from .scene_nodes import UNIT_SPHERE, add_bones, add_hand_cloud, add_joint_meshes, show_hand_cloud
 
@@ -90,7 +93,9 @@ class ReviewHub:
         return None
 
     def _on_runner(self, event: str, runner: ReviewRunner, frame: int) -> None:
-        if event == "frame":
+        if event == "lifted":  # "lift all" replaced the references' lifted joints on disk
+            self.app.worker.forget(self.session.reference_frames)
+        elif event == "frame":
             for view in list(self.views):
                 if view.frame == frame:
                     view.render_skeleton()
@@ -168,6 +173,10 @@ class ReviewView:
         self.run_button = gui.add_button(
             "Propagate & refine", hint="Propagate every frame, then refine (background)"
         )
+        self.lift_button = gui.add_button(
+            "Lift all references",
+            hint="Lift every annotated reference to 3D and estimate the bone lengths (background)",
+        )
         self.cancel_button = gui.add_button("Cancel run", color="red", disabled=True)
         self.run_bar = gui.add_progress_bar(0.0, animated=False)
         self.run_md = gui.add_markdown("*no run yet*")
@@ -210,6 +219,10 @@ class ReviewView:
             self.activate_scene()
             self.start_run()
 
+        @self.lift_button.on_click
+        def _(_: Any) -> None:
+            self.start_lift()
+
         @self.cancel_button.on_click
         def _(_: Any) -> None:
             self.runner.cancel()
@@ -238,8 +251,20 @@ class ReviewView:
 
         @self.review_buttons.on_click
         def _(event: Any) -> None:
-            status = {"Accept": "accepted", "Flag": "flagged", "Clear": None}[event.target.value]
-            self.set_review(status)
+            {"Accept": self.accept, "Flag": self.flag, "Clear": lambda: self.set_review(None)}[
+                event.target.value
+            ]()
+
+        self._told_hotkeys = False
+        bind_all(
+            gui,
+            {
+                "review_accept": self._hotkey(self.accept),
+                "review_flag": self._hotkey(self.flag),
+                "review_next_worst": self._hotkey(self.go_worst),
+            },
+            REVIEW_HOTKEYS,
+        )
 
         @self.scene_button.on_click
         def _(_: Any) -> None:
@@ -263,7 +288,8 @@ class ReviewView:
         if view is None:
             return []
         return [
-            getattr(view, n, None) for n in ("cloud", "image", "handles2d", "joints", "bones")
+            getattr(view, n, None)
+            for n in ("cloud", "image", "handles2d", "joints", "guesses", "bones")
         ] + list(getattr(view, "labels", []))
 
     def activate_scene(self) -> None:
@@ -289,7 +315,7 @@ class ReviewView:
             self.cloud.visible = False
             self.joints.visible = False
             self.bones.visible = False
-            for h in self._annotate_handles()[:5]:
+            for h in self._annotate_handles()[:6]:
                 if h is not None:
                     h.visible = True
         self.scene_button.label = "Show review scene"
@@ -340,6 +366,36 @@ class ReviewView:
                 self._playing = False
                 return
             time.sleep(max(0.0, 1.0 / fps - (time.monotonic() - t0)))
+
+    def _hotkey(self, action: Any) -> Any:
+        """Review hotkeys act on the Review scene only (say so once otherwise)."""
+
+        def run(_client: Any) -> None:
+            if self.scene_active:
+                action()
+            elif not self._told_hotkeys:
+                self._told_hotkeys = True
+                self.client.add_notification(
+                    "Review hotkeys",
+                    "A / F / W act while the Review scene is shown (use the Review panel first).",
+                    auto_close_seconds=6.0,
+                )
+
+        return run
+
+    def step_frame(self, step: int) -> None:
+        """Previous / next frame of the review timeline (hotkeys P / N on the Review scene)."""
+        self.show_frame(self.frame + step)
+
+    def accept(self) -> JournalEntry | None:
+        """Accept the shown frame, then go on to the next worst frame."""
+        entry = self.set_review("accepted")
+        if entry is not None:
+            self.go_worst()
+        return entry
+
+    def flag(self) -> JournalEntry | None:
+        return self.set_review("flagged")
 
     def go_worst(self) -> int | None:
         """Go to the next frame by increasing review score (accepted frames and references skipped)."""
@@ -533,6 +589,7 @@ class ReviewView:
         with self._lock:
             self.run_bar.value = float(st.percent) if st.phase != "idle" else 0.0
             self.run_button.disabled = st.running
+            self.lift_button.disabled = st.running
             self.cancel_button.disabled = not st.running
             self.run_md.content = f"{st.text()} · {filled} of {n} frames have a skeleton"
             self.status_md.content = (
@@ -567,6 +624,15 @@ class ReviewView:
         if not self.runner.start_full():
             self.client.add_notification(
                 "Already running", "a propagation run is in progress", auto_close_seconds=3.0
+            )
+            return False
+        self.refresh(force=True)
+        return True
+
+    def start_lift(self) -> bool:
+        if not self.runner.start_lift():
+            self.client.add_notification(
+                "Already running", "a run is in progress", auto_close_seconds=3.0
             )
             return False
         self.refresh(force=True)

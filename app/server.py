@@ -17,6 +17,8 @@ the views; lift results are forwarded to the views too.
 from __future__ import annotations
 
 import argparse
+import html
+import json
 import re
 import sys
 import threading
@@ -27,6 +29,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import viser
 
 from handanno_core.session import JournalEntry, Session, SessionError, default_writer_command
@@ -45,6 +48,41 @@ def load_help_markdown() -> str:
         return (STATIC / "help.md").read_text()
     except OSError:
         return "## Hotkeys\n\n" + hotkey_table_markdown()
+
+
+class PortInUseError(OSError):
+    """The requested port is taken: the server refuses to move to another one silently."""
+
+
+#: viser's own keyboard camera keys (``CAMERA_MOVEMENT_KEYS`` in its client, 1.1.x), by
+#: ``KeyboardEvent.code``. viser 1.1 has no setting to turn them off (viser issue #366), and the
+#: app's hotkeys D and arrows would move the camera and break the image alignment.
+CAMERA_KEYS = ("KeyW", "KeyA", "KeyS", "KeyD", "KeyQ", "KeyE") + tuple(
+    f"Arrow{d}" for d in ("Up", "Down", "Left", "Right")
+)
+#: Added to every page as a GUI HTML element (viser runs no <script>, an inline error handler
+#: runs once). Key events of CAMERA_KEYS stop at <html>: the command palette's hotkeys listen
+#: there and still fire, viser's camera listener on ``document`` never sees them. Enter or Escape
+#: in a text or number box leaves the box, so the hotkeys (ignored while a box has focus) work
+#: again. tests/e2e/test_usability.py presses D and the arrows and checks the camera.
+_KEYBOARD_JS = """
+if (!window.__handannoKeys) {
+  window.__handannoKeys = true;
+  const cam = new Set(CAMERA_KEYS_JSON);
+  const stop = (e) => { if (cam.has(e.code)) e.stopPropagation(); };
+  document.documentElement.addEventListener("keydown", stop);
+  document.documentElement.addEventListener("keyup", stop);
+  document.addEventListener("keydown", (e) => {
+    const t = e.target;
+    if ((e.key === "Enter" || e.key === "Escape") && t && t.tagName === "INPUT") t.blur();
+  }, true);
+}
+""".replace("CAMERA_KEYS_JSON", json.dumps(CAMERA_KEYS))
+KEYBOARD_SHIM = (
+    '<img alt="" src="data:," style="display:none" onerror="'
+    + html.escape(" ".join(_KEYBOARD_JS.split()))
+    + '">'
+)
 
 
 #: localStorage key of this app's per-browser id (viser namespaces it under its own prefix).
@@ -97,13 +135,27 @@ class AnnoServer:
         self.session = session
         self.frames = FrameStore(session)
         self.help_markdown = load_help_markdown()
-        self.worker = LiftWorker(session, self.frames, lift_fn=lift_fn, on_result=self._on_lift)
+        self.worker = LiftWorker(
+            session,
+            self.frames,
+            lift_fn=lift_fn,
+            on_result=self._on_lift,
+            initial_guess=self.prefill,
+        )
         self.views: dict[int, dict[str, Any]] = {}
         self.client_names: dict[int, str] = {}  # viser client id -> journal name (see above)
         self._views_lock = threading.Lock()
         #: callbacks(view, outcome) after a view assigned a lifted skeleton (benchmarks).
         self.skeleton_listeners: list[Callable[[Any, LiftOutcome], None]] = []
         self.server = viser.ViserServer(host=host, port=port, label="handanno", verbose=verbose)
+        if port != 0 and self.server.get_port() != port:
+            # viser moved to the next free port: two servers on one session, or a surprise URL
+            moved = self.server.get_port()
+            self.server.stop()
+            raise PortInUseError(
+                f"port {port} on {host} is already in use (another handanno server?); stop it "
+                f"or choose another port with --port (viser would have moved to {moved})"
+            )
         self.server.gui.configure_theme(
             show_share_button=False,
             control_layout="floating",
@@ -132,6 +184,21 @@ class AnnoServer:
         host = self.host
         return f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{self.port}"
 
+    def prefill(self, frame: int) -> np.ndarray | None:
+        """``(J, 3)`` mm pre-filled joints of ``frame`` (:func:`handanno_core.prefill.prefill_reference`:
+        the frame's own results, else one propagation step from the nearest frame with joints),
+        or None. Never raises: a failed pre-fill only means no first guess."""
+        from handanno_core.prefill import prefill_reference
+
+        try:
+            joints = prefill_reference(self.session, frame, None)
+        except Exception:
+            traceback.print_exc()
+            return None
+        if joints is None or not np.all(np.isfinite(joints)):
+            return None
+        return np.asarray(joints, dtype=np.float64)
+
     def annotate_views(self) -> list[AnnotateView]:
         with self._views_lock:
             return [v["Annotate"] for v in self.views.values() if "Annotate" in v]
@@ -147,6 +214,7 @@ class AnnoServer:
     def _on_connect(self, client: viser.ClientHandle) -> None:
         views: dict[str, Any] = {}
         self.client_name(client)  # before the views: they journal under it
+        client.gui.add_html(KEYBOARD_SHIM)
         try:
             if len(self.view_classes) > 1:
                 tabs = client.gui.add_tab_group()
@@ -247,7 +315,11 @@ def serve(
         session.open_sequence()
     except SessionError as exc:
         print(f"warning: {exc}\n(the app will show frames as missing)", file=sys.stderr)
-    app = AnnoServer(session, host=host, port=port, lift_fn=lift_fn)
+    try:
+        app = AnnoServer(session, host=host, port=port, lift_fn=lift_fn)
+    except PortInUseError:
+        session.close()
+        raise
     done, total = session.progress()
     print(f"handanno: session {session.model.name}: {total} reference frames, {done} annotated")
     print(
@@ -288,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         serve(args.session, host=args.host, port=args.port, block=True)
-    except SessionError as exc:
+    except (SessionError, PortInUseError) as exc:
         print(f"handanno: error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -5,7 +5,7 @@ frame that is still pending replaces the pending one (coalescing), so a burst of
 frame costs one lift. The annotation is read from the session when the job *starts*, so the
 result always reflects the newest edits. Results go to ``on_result(frame, LiftOutcome)``
 (called on the worker thread) and are kept in ``latest`` (warm start for the next lift of the
-frame). Lifted joints are written to ``results.npz`` (``lifted_mm``, ``confidence``) when the
+frame; the first lift of a frame starts from ``initial_guess(frame)``, the app's pre-fill). Lifted joints are written to ``results.npz`` (``lifted_mm``, ``confidence``) when the
 queue has been idle for ``save_after_s`` seconds.
 """
 
@@ -73,12 +73,15 @@ class LiftWorker:
         lift_fn: LiftFunction | None = None,
         on_result: Callable[[int, LiftOutcome], None] | None = None,
         save_after_s: float = 3.0,
+        initial_guess: Callable[[int], np.ndarray | None] | None = None,
     ):
         self.session = session
         self.frames = frames
         self.lift_fn = lift_fn if lift_fn is not None else default_lift_function()
         self.on_result = on_result
         self.save_after_s = save_after_s
+        #: frame -> (J, 3) mm start of a frame's first lift (the pre-fill), or None
+        self.initial_guess = initial_guess
         self.latest: dict[int, LiftOutcome] = {}
         self._pending: OrderedDict[int, float] = OrderedDict()
         self._cond = threading.Condition()
@@ -114,6 +117,14 @@ class LiftWorker:
                 self.jobs_coalesced += 1
             self._pending[frame] = time.perf_counter()
             self._cond.notify()
+
+    def forget(self, frames: list[int] | np.ndarray) -> None:
+        """Drop the live lifts of ``frames`` (their lifted joints on disk were replaced, e.g. by
+        "lift all"): the next save does not write these previews back, and the next edit or view
+        of such a frame lifts it afresh. Called under the session lock by the caller's choice."""
+        with self.session.lock:
+            for f in frames:
+                self.latest.pop(int(f), None)
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Block until no job is pending or running (tests and benchmarks only)."""
@@ -190,6 +201,8 @@ class LiftWorker:
         init = (
             previous.joints_mm if previous is not None and previous.joints_mm is not None else None
         )
+        if init is None and self.initial_guess is not None:
+            init = self.initial_guess(frame)  # first lift of the frame: start hand-shaped
         slack_joints = previous.slack_joints if previous is not None else ()
         try:
             result = self.lift_fn(
@@ -218,13 +231,14 @@ class LiftWorker:
         if not self._dirty:
             return
         self._dirty = False
-        lifted = {f: o for f, o in list(self.latest.items()) if o.joints_mm is not None}
-        if not lifted:
-            return
         try:
-            # issue 8 (review helper): read-modify-write under the session lock, so a concurrent
-            # propagation save (review runner) is never overwritten with stale arrays.
+            # Read-modify-write under the session lock, so a concurrent propagation save (review
+            # runner) is never overwritten with stale arrays, and frames dropped by forget() are
+            # not written back.
             with self.session.lock:
+                lifted = {f: o for f, o in list(self.latest.items()) if o.joints_mm is not None}
+                if not lifted:
+                    return
                 current = self.session.load_results()
                 lifted_mm, conf = current["lifted_mm"], current["confidence"]
                 for f, o in lifted.items():

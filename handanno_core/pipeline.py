@@ -369,12 +369,18 @@ def annotate_from_gt(
     return len(annotations)
 
 
-def lift(session: Session, *, workers: int = 1, quiet: bool = False) -> dict[int, np.ndarray]:
-    """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths."""
+def lift(
+    session: Session, *, workers: int = 1, quiet: bool = False, progress: Progress = None
+) -> dict[int, np.ndarray]:
+    """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths.
+
+    ``progress(done, total)`` is called after every frame of every bone-estimation round."""
     from .lift import lift_references
 
     sequence = session.open_sequence()
-    annotations = session.annotations(session.reference_frames)
+    annotations = {  # a reference whose every joint was undone or cleared has nothing to lift
+        f: a for f, a in session.annotations(session.reference_frames).items() if a.annotated.any()
+    }
     if not annotations:
         raise SessionError(f"{session.folder}: no annotated reference frames to lift")
     pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
@@ -388,6 +394,7 @@ def lift(session: Session, *, workers: int = 1, quiet: bool = False) -> dict[int
         eps_mm=session.model.settings.eps_mm,
         angle_limits=session.model.settings.angle_limits,
         workers=workers,
+        progress=progress,
     )
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)

@@ -14,7 +14,7 @@ import pytest
 from app.annotate_state import AnnotateState, entry_frame
 from app.frames import FrameStore
 from app.geometry import MAX_CLOUD_POINTS, build_frame_geometry, colormap
-from app.hotkeys import HOTKEYS, bind, bind_all, hotkey_table_markdown
+from app.hotkeys import HOTKEYS, REVIEW_HOTKEYS, bind, bind_all, hotkey_table_markdown
 from app.worker import LiftWorker
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.datasets import write_msra_frame
@@ -328,7 +328,7 @@ def test_help_md_has_the_hotkey_table():
 
 
 def test_hotkeys_are_unique_and_bind_through_our_layer():
-    combos = [(h.key, h.modifier) for h in HOTKEYS]
+    combos = [(h.key, h.modifier) for h in HOTKEYS + REVIEW_HOTKEYS]  # one key, one command
     assert len(set(combos)) == len(combos)
     undo = next(h for h in HOTKEYS if h.action == "undo")
     redo = next(h for h in HOTKEYS if h.action == "redo")
@@ -361,3 +361,171 @@ def test_hotkeys_are_unique_and_bind_through_our_layer():
     handles["undo"].fn(SimpleNamespace(client="client-7"))
     assert fired == [("undo", "client-7")]
     assert bind(object(), undo, lambda c: None) is None  # no add_command: degrade, don't crash
+
+
+# ------------------------------------------------------------------ issue 15 (usability)
+def test_undo_selects_the_undone_joint_again(session):
+    st = AnnotateState(session, "browser-1")
+    st.place_2d(np.array([150.0, 130.0]))
+    st.place_2d(np.array([152.0, 120.0]))
+    assert st.joint == 2
+    st.undo()
+    assert st.joint == 1 and not session.annotation(0).has_2d[1]
+    st.undo()
+    assert st.joint == 0 and not session.annotation(0).annotated.any()
+    st.go_to_index(1)  # an undo of an edit on another frame leaves this frame's selection
+    st.select_joint(7)
+    st.redo()
+    st.undo()
+    assert st.joint == 7
+
+
+def test_worker_forget_keeps_replaced_lifts_on_disk(session):
+    """After "lift all" replaced the references' lifted joints, the worker's older live lifts
+    are not written back over them."""
+    worker = LiftWorker(session, FrameStore(session), lift_fn=fake_lift, save_after_s=60.0)
+    worker.start()
+    try:
+        AnnotateState(session, "c").place_2d(np.array([150.0, 130.0]))
+        worker.submit(0)
+        assert worker.wait_idle(5) and 0 in worker.latest
+        better = np.full((21, 3), 7.0)
+        lifted = session.load_results()["lifted_mm"]
+        lifted[0] = better
+        session.save_results(lifted_mm=lifted)
+        worker.forget([0])
+    finally:
+        worker.stop()  # saves what it still holds
+    np.testing.assert_allclose(session.load_results()["lifted_mm"][0], better)
+
+
+def test_runner_lifts_first_when_the_session_has_no_bone_lengths(session):
+    """A full run on a browser-annotated session (no bone lengths) lifts all references first,
+    with progress; "lift all" alone does only that; a lift error fails the job with its text."""
+    from app.review_state import ReviewRunner
+    from handanno_core.session import SessionError
+
+    calls, phases = [], []
+
+    def lift_all(s, *, workers, quiet, progress):
+        calls.append(workers)
+        for i in range(3):
+            progress(i + 1, 3)
+        lifted = s.load_results()["lifted_mm"]
+        lifted[0] = 1.0  # the one annotated reference
+        s.save_results(lifted_mm=lifted)
+        s.set_bone_lengths(s.skeleton.template_bone_lengths_mm)
+
+    def propagate(s, **kw):
+        phases.append("propagate")
+
+    def refine(s, progress=None):
+        phases.append("refine")
+        return np.full((s.num_frames, 21, 3), 1.0)
+
+    AnnotateState(session, "c").place_2d(np.array([150.0, 130.0]))
+    runner = ReviewRunner(session, propagate_fn=propagate, refine_fn=refine, lift_all_fn=lift_all)
+    seen = []
+    runner.listeners.append(lambda event, r, f: seen.append((event, r.status.phase)))
+    try:
+        assert runner.needs_lift()
+        assert runner.start_full() and runner.wait_idle(10)
+        assert runner.status.phase == "done", runner.status.message
+        assert calls == [1] and phases == ["propagate", "refine"]
+        assert ("lifted", "lift-all") in seen and ("progress", "lift-all") in seen
+        assert not runner.needs_lift()  # bone lengths now, and the lifted pose of frame 0 ...
+        assert runner.start_full() and runner.wait_idle(10)
+        assert calls == [1]  # ... so the next full run does not lift again
+        assert runner.start_lift() and runner.wait_idle(10)  # "Lift all" always lifts
+        assert calls == [1, 1] and phases.count("propagate") == 2
+        assert runner.status.text().startswith("done: references lifted")
+
+        def failing(s, **kw):
+            raise SessionError("sess: no annotated reference frames to lift")
+
+        runner.lift_all_fn = failing
+        assert runner.start_lift() and runner.wait_idle(10)
+        assert runner.status.phase == "failed" and "no annotated reference" in runner.status.text()
+    finally:
+        runner.stop()
+
+
+def test_busy_port_is_an_error_naming_the_port(tmp_path):
+    import socket
+
+    from app.server import PortInUseError, serve
+
+    s = make_session(tmp_path)
+    s.close()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(PortInUseError, match=f"port {port} on 127.0.0.1 is already in use"):
+            serve(s.folder, port=port, block=False, lift_fn=fake_lift)
+    # the session was closed again: a second open works and sees no edits
+    reopened = Session.open(s.folder)
+    assert reopened.model.journal_seq == s.model.journal_seq
+    reopened.close()
+
+
+def test_keyboard_shim_blocks_every_viser_camera_key():
+    from app.server import CAMERA_KEYS, KEYBOARD_SHIM
+
+    assert KEYBOARD_SHIM.startswith("<img") and 'onerror="' in KEYBOARD_SHIM
+    assert all(f"&quot;{code}&quot;" in KEYBOARD_SHIM for code in CAMERA_KEYS)
+    assert len(CAMERA_KEYS) == 10 and '"' not in KEYBOARD_SHIM.split('onerror="')[1][:-2]
+
+
+def test_accept_guesses_is_one_undoable_batch(session):
+    st = AnnotateState(session, "browser-1")
+    st.place_2d(np.array([150.0, 130.0]))  # joint 0 placed: its guess is ignored
+    guesses = CAM.backproject(np.tile([[160.0, 120.0]], (21, 1)), np.full(21, 400.0))
+    guesses[0] = CAM.backproject(np.array([10.0, 10.0]), np.float64(400.0))
+    guesses[3] = np.nan  # no guess
+    guesses[4] = CAM.backproject(np.array([-50.0, 10.0]), np.float64(400.0))  # off the image
+    entry = st.accept_guesses(guesses)
+    assert entry.command["kind"] == "batch"
+    placed = [c["joint"] for c in entry.command["commands"]]
+    assert placed == [j for j in range(21) if j not in (0, 3, 4)]
+    ann = session.annotation(0)
+    np.testing.assert_allclose(ann.uv_px[0], [150.0, 130.0])
+    np.testing.assert_allclose(ann.uv_px[5], [160.0, 120.0], atol=0.01)
+    assert st.joint == 3  # the first joint still to place
+    st.undo()  # one step removes every accepted guess, keeps the click
+    ann = session.annotation(0)
+    assert ann.annotated.tolist() == [True] + [False] * 20
+    assert st.accept_guesses(np.full((21, 3), np.nan)) is None
+
+
+# ------------------------------------------------------------------ CLI help and defaults
+def test_cli_every_option_has_help_and_select_defaults_to_5_percent(monkeypatch, tmp_path):
+    import argparse
+
+    from app import cli
+    from handanno_core import pipeline
+
+    parser = cli.build_parser()
+    assert "workflow" in parser.format_help() and "handanno select" in parser.format_help()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            if action.help is argparse.SUPPRESS or isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"handanno {name} {action.option_strings or action.dest}: no help"
+    assert "(default: 8080)" in sub.choices["serve"].format_help()
+
+    s = make_session(tmp_path)
+    s.close()
+    seen = {}
+
+    def fake_select(session, strategy, ref_fraction, rho):
+        seen.update(strategy=strategy, ref_fraction=ref_fraction, rho=rho)
+        return SimpleNamespace(reference_frames=[0])
+
+    monkeypatch.setattr(pipeline, "select", fake_select)
+    # --sessions-dir is accepted after the command as well
+    assert cli.main(["select", "sess", "--sessions-dir", str(tmp_path)]) == 0
+    assert seen == {"strategy": "forest", "ref_fraction": 0.05, "rho": None}
+    assert cli.main(["--sessions-dir", str(tmp_path), "select", "sess", "--rho", "0.3"]) == 0
+    assert seen["ref_fraction"] is None and seen["rho"] == 0.3

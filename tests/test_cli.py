@@ -127,8 +127,8 @@ def test_bad_input_gives_clear_errors(tmp_path, capsys):
     assert "no such session folder" in capsys.readouterr().err
     assert main(["new", str(tmp_path / "s"), str(tmp_path / "no-dataset")]) == 2
     assert "no-dataset" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["select", "s"])  # neither --ref-fraction nor --rho
+    with pytest.raises(SystemExit):  # a budget or a threshold, not both (5 % without either)
+        main(["select", "s", "--ref-fraction", "0.1", "--rho", "0.3"])
 
 
 def test_demo_creates_the_session_once_and_serves_it(tmp_path, monkeypatch):

@@ -188,12 +188,20 @@ def ensure_crops(
     centres, half_extent = locate_hands_with_extent(
         sequence, report=report, cube_mm=s.cube_mm, progress=not quiet
     )
-    cube = session_cube_mm(half_extent, s.cube_mm)
-    if cube != s.cube_mm:  # the hand does not fit: grow the session's cube (all stages use it)
+    # The hand does not fit: grow the session's cube (all stages use it). Centres and extents
+    # depend on the cube (the slack shift towards the wrist), so locate again until the cube stops
+    # growing: a rebuilt cache of this session then gives the same crops as this first build.
+    grown = False
+    while (cube := session_cube_mm(half_extent, s.cube_mm)) != s.cube_mm:
+        grown = True
         with session.lock:
             s.cube_mm = cube
             session.save()
-        _log(f"crops: hand larger than the cube, cube grown to {cube:g} mm", quiet)
+        centres, half_extent = locate_hands_with_extent(
+            sequence, report=BadFrameReport(), cube_mm=s.cube_mm, progress=not quiet
+        )
+    if grown:
+        _log(f"crops: hand larger than the cube, cube grown to {s.cube_mm:g} mm", quiet)
     boxes = crop_boxes(centres, sequence.camera, cube_mm=s.cube_mm, size=s.crop_size)
     # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
     compute_crops(

@@ -53,6 +53,8 @@ from scipy.linalg import LinAlgError, solveh_banded
 from .annotation import FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
+from .handmodel import Kinematics as _Kinematics
+from .handmodel import angle_jacobian, angle_violation
 from .skeleton import Skeleton
 
 __all__ = ["RefineResult", "RefineWeights", "refine"]
@@ -185,87 +187,6 @@ def _bilinear(flat: np.ndarray, size: int, base: np.ndarray, x: np.ndarray, y: n
     gx = np.where(inside, gx, np.float32(0.0))
     gy = np.where(inside, gy, np.float32(0.0))
     return val, gx, gy, fg
-
-
-# ------------------------------------------------------------------------------------------------
-# kinematic parameterization
-# ------------------------------------------------------------------------------------------------
-class _Kinematics:
-    """Root + unit bone directions with fixed lengths; joints and their Jacobian per frame."""
-
-    def __init__(self, skeleton: Skeleton, bone_lengths_mm: np.ndarray):
-        self.parents = skeleton.parent_array
-        self.bones = skeleton.bones
-        self.root = skeleton.root
-        j = skeleton.num_joints
-        b = len(self.bones)
-        self.lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
-        if self.lengths.shape != (b,) or not np.all(np.isfinite(self.lengths)):
-            raise ValueError(f"bone_lengths_mm must be ({b},) finite, got {self.lengths.shape}")
-        bone_of_child = np.full(j, -1)
-        bone_of_child[self.bones[:, 1]] = np.arange(b)
-        # ancestor[k, b] = 1 if bone b lies on the path root -> k
-        anc = np.zeros((j, b))
-        for k in range(j):
-            q = k
-            while self.parents[q] >= 0:
-                anc[k, bone_of_child[q]] = 1.0
-                q = self.parents[q]
-        self.ancestor_lengths = anc * self.lengths[None, :]  # (J, B)
-        self.num_params = 3 + 2 * b
-
-    def joints(self, root: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """root (N,3), u (N,B,3) -> joints (N,J,3)."""
-        return root[:, None, :] + np.einsum("kb,nbc->nkc", self.ancestor_lengths, u)
-
-    @staticmethod
-    def tangents(u: np.ndarray) -> np.ndarray:
-        """Orthonormal tangent bases (N,B,3,2) of the unit vectors u (N,B,3)."""
-        a = np.zeros_like(u)
-        use_x = np.abs(u[..., 0]) < 0.9
-        a[use_x, 0] = 1.0
-        a[~use_x, 1] = 1.0
-        t1 = np.cross(u, a)
-        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
-        t2 = np.cross(u, t1)
-        return np.stack([t1, t2], axis=-1)
-
-    def jacobian(self, u: np.ndarray) -> np.ndarray:
-        """dX/dθ (N, J·3, P) with θ = (root, tangent steps of each bone)."""
-        n, b = u.shape[:2]
-        j = self.ancestor_lengths.shape[0]
-        t = self.tangents(u)
-        m = np.empty((n, j, 3, self.num_params))
-        m[..., :3] = np.eye(3)
-        m[..., 3:] = np.einsum("kb,nbcd->nkcbd", self.ancestor_lengths, t).reshape(n, j, 3, 2 * b)
-        return m.reshape(n, j * 3, self.num_params)
-
-    def retract(self, root, u, step: np.ndarray):
-        """Apply a step (N, P) to (root, u): root += step[:3]; u <- normalize(u + T·δ)."""
-        n, b = u.shape[:2]
-        t = self.tangents(u)
-        delta = step[:, 3:].reshape(n, b, 2)
-        v = u + np.einsum("nbcd,nbd->nbc", t, delta)
-        v /= np.linalg.norm(v, axis=-1, keepdims=True)
-        return root + step[:, :3], v
-
-    def fit(self, target: np.ndarray, iterations: int = 8):
-        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN)."""
-        n = target.shape[0]
-        root = target[:, self.root].copy()
-        bv = target[:, self.bones[:, 1]] - target[:, self.bones[:, 0]]
-        norm = np.linalg.norm(bv, axis=-1, keepdims=True)
-        u = np.where(norm > 1e-9, bv / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
-        for _ in range(iterations):
-            r = (self.joints(root, u) - target).reshape(n, -1)
-            m = self.jacobian(u)
-            h = np.matmul(m.transpose(0, 2, 1), m) + 1e-6 * np.eye(self.num_params)
-            g = np.einsum("nrp,nr->np", m, r)
-            step = -np.linalg.solve(h, g[..., None])[..., 0]
-            root, u = self.retract(root, u, step)
-            if np.max(np.abs(step)) < 1e-7:
-                break
-        return root, u
 
 
 # ------------------------------------------------------------------------------------------------
@@ -493,35 +414,11 @@ class _Problem:
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
-        flex, abd = self.skel.joint_angles(x)
-        fl, al = self.skel.angle_limits()
-        v = np.concatenate(
-            [
-                np.maximum(flex - fl[:, 1], 0) + np.maximum(fl[:, 0] - flex, 0),
-                np.maximum(abd - al[:, 1], 0) + np.maximum(al[:, 0] - abd, 0),
-            ],
-            axis=-1,
-        )
-        return np.nan_to_num(v)
+        return angle_violation(self.skel, x)
 
-    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, h: float = 1e-4):
-        """Violations (m,2A) and d(violation)/dθ (m,2A,P) for the frames' parameters (root, u).
-
-        Forward differences over the 2B bone-direction tangent parameters (angles do not depend on
-        the root), evaluated for all of them at once: 2B extra pose evaluations per active frame.
-        """
-        m, b = u.shape[:2]
-        v0 = self._angle_violation(self.kin.joints(root, u))
-        t = self.kin.tangents(u)  # (m,B,3,2)
-        pert = np.repeat(u[:, None], 2 * b, axis=1)  # (m, 2B, B, 3)
-        idx = np.arange(2 * b)
-        pert[:, idx, idx // 2] += h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
-        pert /= np.linalg.norm(pert, axis=-1, keepdims=True)
-        xs = self.kin.joints(np.repeat(root, 2 * b, axis=0), pert.reshape(m * 2 * b, b, 3))
-        v1 = self._angle_violation(xs).reshape(m, 2 * b, -1)
-        jac = np.zeros((m, v0.shape[1], self.kin.num_params))
-        jac[:, :, 3:] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
-        return v0, jac
+    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray):
+        """Violations (m,2A) and d(violation)/dθ (m,2A,P) (forward differences, see handmodel)."""
+        return angle_jacobian(self.skel, self.kin, root, u)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -45,6 +45,7 @@ is accepted per frame only if it lowers that frame's energy.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
@@ -152,9 +153,79 @@ class Kinematics:
         return root, u
 
 
+class _AngleMeter:
+    """:meth:`Skeleton.joint_angles` evaluated one chain level at a time (all fingers at once):
+    the same definition (lateral axis transported along each finger), 3 vectorized steps instead of
+    one Python step per joint; the fit calls it 2B+1 times per iteration."""
+
+    def __init__(self, skeleton: Skeleton):
+        self.skeleton = skeleton
+        par = skeleton.parent_array
+        joints = skeleton.angle_joints
+        self.children = skeleton.angle_children
+        pos = {int(k): i for i, k in enumerate(joints)}
+        level = np.zeros(len(joints), dtype=int)
+        for i, k in enumerate(joints):
+            q = int(par[k])
+            while q >= 0:
+                level[i] += q in pos
+                q = int(par[q])
+        self.levels = [
+            np.flatnonzero(level == v) for v in range(level.max() + 1 if len(level) else 0)
+        ]
+        self.joints = joints
+        self.parents = par[joints]
+        self.parent_pos = np.array([pos.get(int(p), -1) for p in self.parents], dtype=np.int64)
+
+    def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand)."""
+        x = np.asarray(poses, dtype=np.float64)
+        normal = self.skeleton.palm_normal(x)[..., None, :]
+        a_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
+        lat_all = np.zeros_like(a_all)
+        flex = np.zeros(x.shape[:-2] + (len(self.joints),))
+        abd = np.zeros_like(flex)
+        for lv, idx in enumerate(self.levels):
+            k, p, c = self.joints[idx], self.parents[idx], self.children[idx]
+            a = _unit(x[..., k, :] - x[..., p, :])
+            if lv == 0:
+                n_perp = _unit(normal - np.sum(normal * a, axis=-1, keepdims=True) * a)
+                lateral = _cross(a, n_perp)
+            else:
+                lp = lat_all[..., self.parent_pos[idx], :]
+                lateral = _unit(lp - np.sum(lp * a, axis=-1, keepdims=True) * a)
+            lat_all[..., idx, :] = lateral
+            n_perp = _cross(lateral, a)
+            b = x[..., c, :] - x[..., k, :]
+            along = np.sum(b * a, axis=-1)
+            towards = np.sum(b * n_perp, axis=-1)
+            flex[..., idx] = np.degrees(np.arctan2(towards, along))
+            abd[..., idx] = np.degrees(
+                np.arctan2(np.sum(b * lateral, axis=-1), np.hypot(along, towards))
+            )
+        return flex, abd
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (np.cross's axis handling costs more than the math)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+_METERS: dict[int, _AngleMeter] = {}
+
+
 def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
     """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
-    flex, abd = skeleton.joint_angles(x)
+    meter = _METERS.get(id(skeleton))
+    if meter is None or meter.skeleton is not skeleton:
+        meter = _METERS[id(skeleton)] = _AngleMeter(skeleton)
+    flex, abd = meter(x)
     fl, al = skeleton.angle_limits()
     v = np.concatenate(
         [
@@ -207,6 +278,7 @@ class HandModel:
     palm_pairs: np.ndarray
     palm_dist_mm: np.ndarray
 
+    @cached_property
     def finger_of(self) -> np.ndarray:
         """(C,) the root child each capsule's chain starts at (-1 for capsules at the root)."""
         sk = self.skeleton
@@ -221,16 +293,22 @@ class HandModel:
             out[c] = k
         return out
 
+    @cached_property
     def collision_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Capsule pairs (Q,), (Q,) of different fingers (ordered both ways)."""
-        f = self.finger_of()
+        f = self.finger_of
         ia, ik = np.nonzero((f[:, None] >= 0) & (f[None, :] >= 0) & (f[:, None] != f[None, :]))
         return ia, ik
 
-    @property
+    @cached_property
+    def palm_chain(self) -> np.ndarray:
+        return _palm_chain(self.skeleton)
+
+    @cached_property
     def wrist(self) -> np.ndarray:
         return self.pairs[:, 0] == self.skeleton.root
 
+    @cached_property
     def fractions(self) -> tuple[np.ndarray, np.ndarray]:
         """(s0, s1) (C,) of each capsule's end points along its joint pair."""
         s0 = np.zeros(len(self.pairs))
@@ -252,7 +330,7 @@ class HandModel:
 
     def capsules(self, x: np.ndarray):
         """Capsule end points A, B (..., C, 3) mm for joints ``x (..., J, 3)``."""
-        s0, s1 = self.fractions()
+        s0, s1 = self.fractions
         xa, xb = x[..., self.pairs[:, 0], :], x[..., self.pairs[:, 1], :]
         d = xb - xa
         return xa + s0[:, None] * d, xa + s1[:, None] * d
@@ -465,24 +543,37 @@ def _nearest_capsule(points, a, b, radii):
 
 
 class _Accumulator:
-    """Normal equations in joint space: H (n, J, J, 3, 3), g (n, J, 3), built per capsule."""
+    """Gauss-Newton normal equations in θ: H (n,P,P), g (n,P), from residual rows whose Jacobian
+    is taken through dX/dθ ``m4`` (n,J,3,P) at the joints each residual depends on."""
 
-    def __init__(self, n: int, j: int):
-        self.h = np.zeros((n, j, j, 3, 3))
-        self.g = np.zeros((n, j, 3))
-        self.j = j
+    def __init__(self, m4: np.ndarray):
+        n, _, _, p = m4.shape
+        self.m4 = m4
+        self.rows = np.arange(n)[:, None]
+        self.h = np.zeros((n, p, p))
+        self.g = np.zeros((n, p))
+
+    def add_points(self, ja, jb, ca, cb, grad, w, r):
+        """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
+        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R)."""
+        shape = w.shape
+        ja, jb = np.broadcast_to(ja, shape), np.broadcast_to(jb, shape)
+        ca, cb = np.broadcast_to(ca, shape), np.broadcast_to(cb, shape)
+        jrow = np.einsum("nrx,nrxp->nrp", grad * ca[..., None], self.m4[self.rows, ja])
+        jrow += np.einsum("nrx,nrxp->nrp", grad * cb[..., None], self.m4[self.rows, jb])
+        jw = jrow * w[..., None]
+        self.h += np.matmul(jw.transpose(0, 2, 1), jrow)
+        self.g += np.einsum("nrp,nr->np", jw, r)
 
     def add_joint(self, w3, g3):
-        """Per-joint diagonal blocks w3 (n,J,3,3) and gradients g3 (n,J,3)."""
-        idx = np.arange(self.j)
-        self.h[:, idx, idx] += w3
-        self.g += g3
-
-    def theta(self, m):
-        """θ-space H (n,P,P) and g (n,P) with dX/dθ m (n, 3J, P)."""
-        n, j = self.g.shape[:2]
-        hx = self.h.transpose(0, 1, 3, 2, 4).reshape(n, 3 * j, 3 * j)
-        return m.transpose(0, 2, 1) @ hx @ m, np.einsum("nrp,nr->np", m, self.g.reshape(n, -1))
+        """Per-joint x-space blocks ``w3`` (n,J,3,3) and gradients ``g3`` (n,J,3)."""
+        n, j, _, p = self.m4.shape
+        m = self.m4.reshape(n, 3 * j, p)
+        blocks = np.zeros((n, j, 3, j, 3))
+        idx = np.arange(j)
+        blocks[:, idx, :, idx, :] = w3.transpose(1, 0, 2, 3)
+        self.h += m.transpose(0, 2, 1) @ blocks.reshape(n, 3 * j, 3 * j) @ m
+        self.g += np.einsum("nrp,nr->np", m, g3.reshape(n, -1))
 
 
 def frame_energy(
@@ -507,16 +598,16 @@ def frame_energy(
     x = kin.joints(root, u)
     n, j = x.shape[:2]
     a, b = model.capsules(x)
-    s0, s1 = model.fractions()
+    s0, s1 = model.fractions
     pa, pb = model.pairs[:, 0], model.pairs[:, 1]
     c_count = len(model.pairs)
     terms = {}
-    acc = _Accumulator(n, j) if want_jac else None
+    acc = _Accumulator(kin.jacobian(u).reshape(n, j, 3, -1)) if want_jac else None
 
     # ---------------- data: observed point -> nearest capsule surface
     pts = obs.points
     cidx, t, dist, sd = _nearest_capsule(pts, a, b, model.radii)
-    wrist_axis = x[:, _palm_chain(model.skeleton)].mean(axis=1) - x[:, kin.root]
+    wrist_axis = x[:, model.palm_chain].mean(axis=1) - x[:, kin.root]
     beyond = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis) < 0
     use = obs.valid & ~(model.wrist[cidx] & (t <= 0.0) & beyond)
     cnt = np.maximum(use.sum(axis=1), 1)
@@ -533,7 +624,7 @@ def frame_energy(
     tau = s0[cidx] + t * (s1[cidx] - s0[cidx])
     if want_jac:
         wgt = np.where(use, lam[:, None] * wr, 0.0)
-        _add_points(acc, pa[cidx], pb[cidx], 1.0 - tau, tau, -nvec, wgt, sd)
+        acc.add_points(pa[cidx], pb[cidx], 1.0 - tau, tau, -nvec, wgt, sd)
     else:
         absr = np.where(use, np.abs(sd), 0.0)
         onehot = (cidx[..., None] == np.arange(c_count)) & use[..., None]
@@ -607,18 +698,18 @@ def frame_energy(
         gz = np.zeros((n, len(cap), 3))
         gz[..., 2] = -1.0
         wf = lam_f * fw
-        _add_points(acc, ja, jb, ca, cb, gz, np.where(on_hand & (front > 0), wf, 0.0), front)
+        acc.add_points(ja, jb, ca, cb, gz, np.where(on_hand & (front > 0), wf, 0.0), front)
         # off the silhouette: residual (mm) per image axis, d/ds = mm_per_px · ∂π/∂s
         pj = camera.projection_jacobian(smp) * mm_per_px[..., None, None]
         for axis_i in (0, 1):
             r_ax = duv[..., axis_i] * mm_per_px
-            _add_points(acc, ja, jb, ca, cb, pj[..., axis_i, :], np.where(off, wf, 0.0), r_ax)
+            acc.add_points(ja, jb, ca, cb, pj[..., axis_i, :], np.where(off, wf, 0.0), r_ax)
     else:
         cap_free = (viol > 1.0).reshape(n, c_count, k_count).mean(axis=-1)
 
     # ---------------- collisions: capsules of different fingers must not interpenetrate
     terms["collision"] = np.zeros(n)
-    fa, fk = model.collision_pairs()
+    fa, fk = model.collision_pairs
     if w.collision > 0 and len(fa):
         ts = np.array([0.0, 0.5, 1.0])
         tau_s = s0[fa, None] + ts * (s1[fa, None] - s0[fa, None])  # (Q,3)
@@ -645,8 +736,8 @@ def frame_energy(
             ib = np.broadcast_to(pb[fa, None], (n, len(fa), 3)).reshape(n, -1)
             ka = np.broadcast_to(pa[fk, None], (n, len(fa), 3)).reshape(n, -1)
             kb = np.broadcast_to(pb[fk, None], (n, len(fa), 3)).reshape(n, -1)
-            _add_points(acc, ia, ib, 1.0 - tau_s, tau_s, -nv, wc, r)
-            _add_points(acc, ka, kb, 1.0 - tau_q, tau_q, nv, wc, r)
+            acc.add_points(ia, ib, 1.0 - tau_s, tau_s, -nv, wc, r)
+            acc.add_points(ka, kb, 1.0 - tau_q, tau_q, nv, wc, r)
 
     # ---------------- palm shape
     terms["palm"] = np.zeros(n)
@@ -659,17 +750,7 @@ def frame_energy(
         terms["palm"] = w.palm * 0.5 * np.sum(r**2, axis=1)
         if want_jac:
             unit = dv / np.maximum(ln, 1e-9)[..., None]
-            one = np.ones((n, len(qa)))
-            _add_points(
-                acc,
-                np.broadcast_to(qa, (n, len(qa))),
-                np.broadcast_to(qb, (n, len(qa))),
-                one,
-                -one,
-                unit,
-                np.full((n, len(qa)), w.palm),
-                r,
-            )
+            acc.add_points(qa, qb, 1.0, -1.0, unit, np.full((n, len(qa)), w.palm), r)
 
     # ---------------- priors: pose (temporal closeness / start) and 2D
     terms["pose"] = np.zeros(n)
@@ -707,41 +788,12 @@ def frame_energy(
     energy = sum(terms.values())
     if not want_jac:
         return energy, terms, x, {"capsule_data_mm": cap_data, "capsule_free": cap_free}
-    m = kin.jacobian(u)
-    h, g = acc.theta(m)
+    h, g = acc.h, acc.g
     if ang is not None:
         hit, va, jac_a = ang
         h[hit] += w.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
         g[hit] += w.angle * np.einsum("nap,na->np", jac_a, va)
     return energy, terms, x, (h, g)
-
-
-def _add_points(acc: _Accumulator, ja, jb, ca, cb, grad, w, r):
-    """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
-    (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused) added to the joint-space normal equations."""
-    n, rr = w.shape
-    j = acc.j
-    gg = (w[..., None, None] * grad[..., :, None] * grad[..., None, :]).reshape(n, rr, 9)
-    gr = (w * r)[..., None] * grad
-    base = (np.arange(n) * (j * j))[:, None]
-    hf = acc.h.reshape(n * j * j, 9)
-    for key, coef in (
-        (ja * j + ja, ca * ca),
-        (jb * j + jb, cb * cb),
-        (ja * j + jb, ca * cb),
-        (jb * j + ja, ca * cb),
-    ):
-        _bincount_add(hf, (base + key).ravel(), (gg * coef[..., None]).reshape(-1, 9))
-    gbase = (np.arange(n) * j)[:, None]
-    gf = acc.g.reshape(n * j, 3)
-    _bincount_add(gf, (gbase + ja).ravel(), (gr * ca[..., None]).reshape(-1, 3))
-    _bincount_add(gf, (gbase + jb).ravel(), (gr * cb[..., None]).reshape(-1, 3))
-
-
-def _bincount_add(target: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
-    """``target[index[i]] += values[i]`` (rows of a 2-D view, repeated indices summed)."""
-    for k in range(target.shape[1]):
-        target[:, k] += np.bincount(index, weights=values[:, k], minlength=target.shape[0])
 
 
 # ------------------------------------------------------------------------------------------------

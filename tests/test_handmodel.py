@@ -163,3 +163,19 @@ def test_fit_recovers_pose_from_15_degree_perturbation(scene):
     assert res.energy[0] < res.energy_start[0]
     # bones stay exact
     assert np.allclose(MSRA21.bone_lengths(res.joints_mm[0]), model.bone_lengths_mm, atol=1e-6)
+
+
+def test_angle_meter_matches_skeleton_joint_angles():
+    rng = np.random.default_rng(0)
+    poses = np.stack([_pose(g, (rng.uniform(-90, 90), 0.0, 0.0)) for g in ("open", "fist")])
+    poses = poses + rng.normal(0, 3.0, poses.shape)
+    flex, abd = hm._AngleMeter(MSRA21)(poses)
+    f_ref, a_ref = MSRA21.joint_angles(poses)
+    assert np.allclose(flex, f_ref, atol=1e-9) and np.allclose(abd, a_ref, atol=1e-9)
+    fl, al = MSRA21.angle_limits()
+    assert np.any(hm.angle_violation(MSRA21, poses) > 0)
+    expected = np.concatenate(
+        [np.clip(f_ref - fl[:, 1], 0, None) + np.clip(fl[:, 0] - f_ref, 0, None),
+         np.clip(a_ref - al[:, 1], 0, None) + np.clip(al[:, 0] - a_ref, 0, None)], axis=-1
+    )  # fmt: skip
+    assert np.allclose(hm.angle_violation(MSRA21, poses), expected)

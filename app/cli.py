@@ -117,9 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
     p.add_argument("--aligner", choices=["sift", "dis", "ncc"])
+    no_model = "do not fit the personalized hand model to each frame's depth"
+    p.add_argument("--no-model", action="store_true", help=no_model)
 
     p = sub.add_parser("refine", help="global refinement of all frames")
     session_arg(p)
+    p.add_argument("--no-model", action="store_true", help=no_model)
 
     p = sub.add_parser("export", help="export the result")
     session_arg(p)
@@ -237,6 +240,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             scheduler=args.scheduler,
             aligner=args.aligner,
             progress=update,
+            use_model=not args.no_model,
         )
         bar.close()
         done = int(result.joints_mm.shape[0] - len(result.skipped))
@@ -247,7 +251,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         def report(iteration: int, energy: float) -> None:
             print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
 
-        result = pipeline.refine(session, progress=report)
+        result = pipeline.refine(session, progress=report, use_model=not args.no_model)
         print(
             f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
         )

@@ -12,6 +12,11 @@ A batched fit of all frames at once (as refinement evaluates the term) is timed 
     nice .venv/bin/python benchmarks/bench_handmodel.py [--frames 200] [--seed 3]
 
 Writes benchmarks/results/handmodel.json.
+
+``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (forest selection,
+simulated exact 2D annotator, bones estimated by the lift) once per dataset and reference
+fraction, then propagation + refinement twice on the same lift: without and with the hand model
+(``--no-model`` / default), and prints both rows side by side (``--json`` to save them).
 """
 
 from __future__ import annotations
@@ -32,6 +37,86 @@ from handanno_core.datasets import open_sequence
 from handanno_core.synth import generate_sequence
 
 
+def compare(datasets: list[str], fractions: list[float], json_out: str | None) -> None:
+    """With / without the hand model on the same selection and lift (see the module docstring)."""
+    import shutil
+
+    from handanno_core import pipeline
+    from handanno_core.bench import _summary, peak_rss_mb
+    from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+
+    rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-cmp-"))
+    for dataset in datasets:
+        base = pipeline.new_session(tmp / "base", dataset, overwrite=True)
+        gt = base.open_sequence().ground_truth.joints_mm
+        pipeline.ensure_crops(base, quiet=True)
+        for fraction in fractions:
+            folder = tmp / f"run-{fraction:g}"
+            if folder.exists():
+                shutil.rmtree(folder)
+            session = Session.create(
+                folder,
+                base.model.dataset,
+                base.num_frames,
+                base.camera,
+                base.model.skeleton,
+                base.model.sequence_breaks,
+            )
+            for name in (CROPS_FILE, CROPS_META_FILE):
+                (folder / name).symlink_to((tmp / "base" / name).resolve())
+            pipeline.select(
+                session, strategy="forest", ref_fraction=fraction, figures=False, quiet=True
+            )
+            pipeline.annotate_from_gt(session, quiet=True)
+            t = time.perf_counter()
+            pipeline.lift(session, workers=2, quiet=True)
+            t_lift = time.perf_counter() - t
+            refs = session.reference_frames
+            non_ref = np.setdiff1d(np.arange(session.num_frames), refs)
+            for use_model in (False, True):
+                t = time.perf_counter()
+                pipeline.propagate(session, workers=2, quiet=True, use_model=use_model)
+                t_prop = time.perf_counter() - t
+                t = time.perf_counter()
+                res = pipeline.refine(session, quiet=True, use_model=use_model)
+                t_ref = time.perf_counter() - t
+                r = session.load_results()
+                row = {
+                    "dataset": str(dataset),
+                    "frames": int(session.num_frames),
+                    "ref_fraction": fraction,
+                    "references": int(len(refs)),
+                    "model": use_model,
+                    "lift": _summary(r["lifted_mm"], gt, refs),
+                    "init": _summary(r["init_mm"], gt),
+                    "final": _summary(r["final_mm"], gt),
+                    "final_non_reference": _summary(r["final_mm"], gt, non_ref),
+                    "kept_initialization": len(res.info.get("kept_initialization", [])),
+                    "timings_s": {
+                        "lift": round(t_lift, 1),
+                        "propagate": round(t_prop, 1),
+                        "refine": round(t_ref, 1),
+                    },
+                    "peak_rss_mb": round(peak_rss_mb(), 1),
+                    "load_average": [round(x, 2) for x in os.getloadavg()],
+                }
+                rows.append(row)
+                print(
+                    f"{Path(dataset).name:>12} {fraction * 100:4.0f}% model={use_model!s:5} "
+                    f"init {row['init']['mean_mm']:6.2f} / max {row['init']['max_mm']:6.1f}  "
+                    f"final {row['final']['mean_mm']:6.2f} / max {row['final']['max_mm']:6.1f}  "
+                    f"nonref {row['final_non_reference']['mean_mm']:6.2f}  "
+                    f"t_prop {t_prop:6.1f} t_ref {t_ref:6.1f} s  load {os.getloadavg()[0]:.1f}",
+                    flush=True,
+                )
+                if json_out:
+                    Path(json_out).write_text(json.dumps(rows, indent=1))
+            session.close()
+        base.close()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=200)
@@ -39,7 +124,13 @@ def main() -> None:
     ap.add_argument("--ref-step", type=int, default=20)
     ap.add_argument("--perturb-mm", type=float, default=6.0)
     ap.add_argument("--out", default="benchmarks/results/handmodel.json")
+    ap.add_argument("--compare", nargs="+", metavar="DATASET")
+    ap.add_argument("--fractions", default="0.05,0.10")
+    ap.add_argument("--json", dest="json_out")
     args = ap.parse_args()
+    if args.compare:
+        compare(args.compare, [float(f) for f in args.fractions.split(",")], args.json_out)
+        return
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-"))
     generate_sequence(tmp / "seq", frames=args.frames, seed=args.seed, progress=False)
@@ -65,7 +156,6 @@ def main() -> None:
     offs[:, list(sk.fingertips)] *= 1.5
     start = gt + offs
     kin = hm.Kinematics(sk, model.bone_lengths_mm)
-    w = hm.FitWeights()
     fitted = np.empty_like(gt)
     iters = []
     with single_blas_thread():

@@ -416,35 +416,34 @@ def observe(
     Hand pixels are the crop values strictly inside (-1, 1); up to ``max_points`` of them, evenly
     spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``.
     """
-    crops = np.asarray(crops, dtype=np.float32)
     n, s = crops.shape[0], crops.shape[-1]
     boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
     zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
     half = 0.5 * cube_mm
-    fg = (np.abs(crops) < 0.999) & np.isfinite(zc)[:, None, None]
-    depth = np.where(fg, zc[:, None, None] + half * crops, np.inf)
-    # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front of
-    # every surface it could project onto after resampling (no false violations at depth edges)
-    depth = minimum_filter(depth, size=(1, 3, 3), mode="nearest")
-    depth[~np.isfinite(depth)] = np.nan
     points = np.zeros((n, max_points, 3))
     valid = np.zeros((n, max_points), dtype=bool)
+    depth = np.full((n, s, s), np.nan, dtype=np.float32)
     nearest = np.zeros((n, s, s), dtype=np.int32)
-    grid = np.arange(s * s)
+    grid = np.arange(s * s, dtype=np.int32).reshape(s, s)
     for i in range(n):
-        flat = np.flatnonzero(fg[i])
-        if len(flat) == 0:
-            nearest[i] = grid.reshape(s, s)
+        crop = np.asarray(crops[i], dtype=np.float32)
+        fg = np.abs(crop) < 0.999
+        flat = np.flatnonzero(fg)
+        if len(flat) == 0 or not np.isfinite(zc[i]):
+            nearest[i] = grid
             continue
-        pick = flat[
-            np.unique(np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int))
-        ]
+        # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front
+        # of every surface it could project onto after resampling (no false violations at edges)
+        d = minimum_filter(np.where(fg, zc[i] + half * crop, np.inf), size=3, mode="nearest")
+        depth[i] = np.where(np.isfinite(d), d, np.nan)
+        take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
+        pick = flat[np.unique(take)]
         xy = np.stack([pick % s, pick // s], axis=-1).astype(np.float64)
         uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled (nearest)
-        pts = camera.backproject(uv, zc[i] + half * crops[i].reshape(-1)[pick].astype(np.float64))
-        points[i, : len(pick)] = pts
+        z = zc[i] + half * crop.reshape(-1)[pick].astype(np.float64)
+        points[i, : len(pick)] = camera.backproject(uv, z)
         valid[i, : len(pick)] = True
-        _, ind = distance_transform_edt(~fg[i], return_indices=True)
+        _, ind = distance_transform_edt(~fg, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return FrameObservations(points, valid, depth, nearest, boxes)
 
@@ -471,6 +470,10 @@ class FitWeights:
         0.1  #: per degree² outside the limits (0.01 let a thumb tip fold into its own capsule)
     )
     palm: float = 1.0
+    #: points near the root end of a palm capsule (foot at t <= forearm_t) and less than
+    #: forearm_margin_mm past the wrist towards the fingers are taken as forearm and ignored
+    forearm_t: float = 0.35
+    forearm_margin_mm: float = 25.0
     collision: float = 1.0  #: per mm² of interpenetration of capsules of different fingers
     collision_slack_mm: float = 1.0
     pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)
@@ -608,8 +611,10 @@ def frame_energy(
     pts = obs.points
     cidx, t, dist, sd = _nearest_capsule(pts, a, b, model.radii)
     wrist_axis = x[:, model.palm_chain].mean(axis=1) - x[:, kin.root]
-    beyond = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis) < 0
-    use = obs.valid & ~(model.wrist[cidx] & (t <= 0.0) & beyond)
+    wrist_axis /= np.maximum(np.linalg.norm(wrist_axis, axis=-1, keepdims=True), 1e-9)
+    along = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis)
+    forearm = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    use = obs.valid & ~forearm
     cnt = np.maximum(use.sum(axis=1), 1)
     if w.data_robust == "huber":
         cost, wr = _huber(np.abs(sd), w.data_scale_mm)

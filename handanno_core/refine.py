@@ -45,11 +45,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import LinAlgError, solveh_banded
 
+from . import handmodel as hmod
 from .annotation import FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
@@ -114,6 +115,11 @@ class RefineWeights:
     init_huber_mm: float = 10.0
     patch_size: int = 7
     patch_spacing_px: float = 2.0
+    model: float = 1.0  #: multiplies the hand-model energy of each frame (handmodel.frame_energy)
+    #: with the model on, the temporal weight of a frame pair is divided by 1 + (v / this)², v the
+    #: pair's median joint displacement in the initialization (mm/frame): fast motion is not
+    #: smoothed away
+    temporal_motion_mm: float = 8.0
 
 
 @dataclass
@@ -258,6 +264,12 @@ class _Problem:
             self.tmpl_of[:, None] >= 0, self.ref_visible[np.maximum(self.tmpl_of, 0)], True
         )
         self.templates, self.tmpl_valid = self._templates()
+        # hand model (set by refine() when switched on)
+        self.model: hmod.HandModel | None = None
+        self.obs: hmod.FrameObservations | None = None
+        self.fit_w = hmod.FitWeights()
+        self.model_chunk = 32
+        self.pair_scale = np.ones(max(n - 1, 0))
 
     # -------------------------------------------------------------------- geometry
     def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
@@ -366,6 +378,23 @@ class _Problem:
                     jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
                     hd[fr] += np.matmul(jw, ja)
                     gx[fr] += np.matmul(jw, r[..., None])[..., 0]
+        # ---------------- hand model fitted to each frame's own depth (θ-space blocks)
+        mod = None
+        if self.model is not None and w.model > 0:
+            terms["model"] = 0.0
+            if want_jac:
+                p = self.kin.num_params
+                mod = (np.zeros((n, p, p)), np.zeros((n, p)))
+            for a in range(0, n, self.model_chunk):
+                fr = np.arange(a, min(n, a + self.model_chunk))
+                e, _, _, extra = hmod.frame_energy(
+                    self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
+                    self.fit_w, None, want_jac,
+                )  # fmt: skip
+                terms["model"] += w.model * float(np.sum(e))
+                if want_jac:
+                    mod[0][fr] = w.model * extra[0]
+                    mod[1][fr] = w.model * extra[1]
         # ---------------- reprojection on reference frames
         if len(self.refs):
             xr = x[self.refs]
@@ -391,8 +420,9 @@ class _Problem:
             dvec = x[1:] - x[:-1]
             dn = np.linalg.norm(dvec, axis=-1)
             cost, wt = _huber(dn, w.temporal_huber_mm)
-            wt = w.temporal * wt * self.pair_ok[:, None]
-            terms["temporal"] = w.temporal * float(np.sum(cost * self.pair_ok[:, None]))
+            scale = (self.pair_ok * self.pair_scale)[:, None]
+            wt = w.temporal * wt * scale
+            terms["temporal"] = w.temporal * float(np.sum(cost * scale))
             if want_jac:
                 eye = np.eye(3)
                 hd[:-1] += wt[..., None, None] * eye
@@ -410,7 +440,7 @@ class _Problem:
                     ang = (active, *self._angle_jacobian(root[active], u[active]))
         if not want_jac:
             return terms, x
-        return terms, x, hd, gx, wt, ang
+        return terms, x, hd, gx, wt, ang, mod
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
@@ -424,7 +454,7 @@ class _Problem:
 # ------------------------------------------------------------------------------------------------
 # block-tridiagonal system in θ-space
 # ------------------------------------------------------------------------------------------------
-def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarray):
+def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, mod, fixed: np.ndarray):
     """θ-space diagonal blocks (N,P,P), super-diagonal blocks (N-1,P,P) and gradient (N,P)."""
     n, j = problem.n, problem.j
     p = m.shape[-1]
@@ -437,6 +467,9 @@ def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarr
         wa = problem.w.angle
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
+    if mod is not None:
+        diag += mod[0]
+        grad += mod[1]
     if n > 1:
         if wt is None:
             off = np.zeros((n - 1, p, p))
@@ -474,6 +507,38 @@ def _banded(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
     return ab.reshape(u + 1, n * p)
 
 
+def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, centres, cube_mm):
+    """Switch the hand-model term on: observations of every frame, the personalized model and the
+    motion-adaptive temporal weights."""
+    refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
+    obs = hmod.observe(crops, boxes, centres, problem.cam, cube_mm=cube_mm)
+    if isinstance(hand_model, hmod.HandModel):
+        model = hand_model
+    elif len(refs):
+        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], obs.take(refs))
+    else:
+        return
+    problem.model, problem.obs = model, obs
+    # the refinement has its own angle prior; the model term brings data, free space, collisions
+    # and the palm shape
+    problem.fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
+    if problem.n > 1 and problem.w.temporal_motion_mm > 0:
+        v = np.median(np.linalg.norm(np.diff(init, axis=0), axis=-1), axis=1)
+        problem.pair_scale = 1.0 / (1.0 + (v / problem.w.temporal_motion_mm) ** 2)
+
+
+def _model_energy(problem: _Problem, root, u) -> np.ndarray:
+    """(N,) hand-model energy of every frame at (root, u)."""
+    out = np.zeros(problem.n)
+    for a in range(0, problem.n, 4 * problem.model_chunk):
+        fr = np.arange(a, min(problem.n, a + 4 * problem.model_chunk))
+        out[fr] = hmod.frame_energy(
+            problem.model, problem.kin, root[fr], u[fr], problem.obs.take(fr), problem.cam,
+            problem.fit_w,
+        )[0]  # fmt: skip
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # public API
 # ------------------------------------------------------------------------------------------------
@@ -498,6 +563,8 @@ def refine(
     cube_mm: float = 220.0,
     tol: float = 1e-5,
     chunk_frames: int = 256,
+    hand_model: bool | hmod.HandModel = True,
+    fit_weights: hmod.FitWeights | None = None,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
 
@@ -521,6 +588,11 @@ def refine(
     weights : :class:`RefineWeights`.
     iterations : maximum LM iterations. ``progress(iteration, energy)`` is called after each.
     fixed_frames : frames kept at their initialization (returned unchanged).
+    hand_model : ``True`` adds the personalized hand model's energy of every frame (fitted to
+        the frame's own crop; personalized from the reference frames' initialization, i.e. their
+        lift), scales the temporal weight down where the initialization moves fast, and keeps a
+        frame's initialization where refinement raised its model energy; a
+        :class:`handmodel.HandModel` is used as given; ``False`` is the model-free energy.
 
     Returns
     -------
@@ -574,7 +646,9 @@ def refine(
         chunk_frames,
     )
     p = kin.num_params
-    terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
+    if hand_model is not False and hand_model is not None:
+        _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
+    terms, x, hd, gx, wt, ang, mod = problem.evaluate(root, u, want_jac=True)
     energy = sum(terms.values())
     history = [energy]
     lam = 1e-4
@@ -584,7 +658,7 @@ def refine(
     log = []
     for it in range(1, iterations + 1):
         m = kin.jacobian(u)
-        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, fixed)
+        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, mod, fixed)
         dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
         ab0 = _banded(diag, off)
         g = grad.reshape(-1)
@@ -625,7 +699,7 @@ def refine(
         nu = 2.0
         log.append((it, lam, tries, gain))
         root, u = root_n, u_n
-        terms, x, hd, gx, wt, ang = trial
+        terms, x, hd, gx, wt, ang, mod = trial
         energy = e_new
         history.append(energy)
         if progress is not None:
@@ -636,6 +710,13 @@ def refine(
     joints = kin.joints(root, u)
     viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
     joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
+    kept = np.zeros(0, dtype=np.int64)
+    if problem.model is not None:
+        # never worse than the start: a frame whose own model energy rose keeps its initialization
+        e0 = _model_energy(problem, *kin.fit(init))
+        e1 = _model_energy(problem, root, u)
+        kept = np.flatnonzero((e1 > e0 + np.maximum(0.1 * e0, 1.0)) & ~fixed)
+        joints[kept] = init[kept]
     return RefineResult(
         joints_mm=joints,
         energy_history=history,
@@ -644,5 +725,5 @@ def refine(
         iterations=it,
         converged=converged,
         time_s=time.perf_counter() - t0,
-        info={"lambda": lam, "log": log},
+        info={"lambda": lam, "log": log, "kept_initialization": kept.tolist()},
     )

@@ -115,7 +115,9 @@ class RefineWeights:
     init_huber_mm: float = 10.0
     patch_size: int = 7
     patch_spacing_px: float = 2.0
-    model: float = 1.0  #: multiplies the hand-model energy of each frame (handmodel.frame_energy)
+    #: multiplies the hand-model energy of each frame (handmodel.frame_energy) inside the LM; 0
+    #: leaves the model to propagation (which fits it to every frame) and to the never-worse check
+    model: float = 0.0
     #: with the model on, the temporal weight of a frame pair is divided by 1 + (v / this)², v the
     #: pair's median joint displacement in the initialization (mm/frame): fast motion is not
     #: smoothed away

@@ -55,8 +55,10 @@ from .crops import crop_to_image, image_to_crop
 from .skeleton import Skeleton
 
 __all__ = [
+    "FitResult",
     "FitWeights",
     "FrameObservations",
+    "Priors",
     "HandModel",
     "Kinematics",
     "build_model",

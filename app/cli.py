@@ -173,9 +173,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1, help="local processes")
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
     p.add_argument("--aligner", choices=ALIGNERS, help="flow method (default: the session's)")
+    use_model = (
+        "fit the personalized hand model to each frame's depth (articulated ICP; off by default: "
+        "about 5x slower, see README)"
+    )
+    p.add_argument("--model", action="store_true", help=use_model)
 
     p = add("refine", "global refinement of all frames")
     session_arg(p)
+    p.add_argument("--model", action="store_true", help=use_model)
 
     p = add("export", "export the result")
     session_arg(p)
@@ -343,6 +349,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             scheduler=args.scheduler,
             aligner=args.aligner,
             progress=update,
+            use_model=args.model,
         )
         bar.close()
         done = int(result.joints_mm.shape[0] - len(result.skipped))
@@ -353,7 +360,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         def report(iteration: int, energy: float) -> None:
             print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
 
-        result = pipeline.refine(session, progress=report)
+        result = pipeline.refine(session, progress=report, use_model=args.model)
         print(
             f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
         )

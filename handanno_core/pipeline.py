@@ -440,8 +440,10 @@ def propagate(
     progress: Progress = None,
     on_result: Callable | None = None,
     quiet: bool = False,
+    use_model: bool = False,
 ):
-    """Propagate lifted references to every frame along the selection's parent forest."""
+    """Propagate lifted references to every frame along the selection's parent forest
+    (``use_model``: fit the personalized hand model to every frame, see ``handmodel``)."""
     from .propagate import propagate as run_propagation
 
     sequence = session.open_sequence()
@@ -468,6 +470,7 @@ def propagate(
         initial_confidence=results["confidence"] if frames is not None else None,
         progress=progress,
         on_result=on_result,
+        hand_model=use_model,
     )
     computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))
     with session.lock:
@@ -487,7 +490,12 @@ def propagate(
 
 
 def refine(
-    session: Session, *, progress: Callable | None = None, save: bool = True, quiet: bool = False
+    session: Session,
+    *,
+    progress: Callable | None = None,
+    save: bool = True,
+    quiet: bool = False,
+    use_model: bool = False,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
 
@@ -521,6 +529,7 @@ def refine(
         sequence_breaks=session.model.sequence_breaks,
         cube_mm=session.model.settings.cube_mm,
         progress=progress,
+        hand_model=use_model,
     )
     if save:
         session.save_results(final_mm=result.joints_mm)

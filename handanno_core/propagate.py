@@ -22,6 +22,13 @@ reference), parents always before children:
    25 mm predicted). When a joint-angle limit of the skeleton is exceeded by more than 3 deg, the
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
+5. with the hand model on (``hand_model=True``, off by default: about 5x slower; :mod:`handanno_core.handmodel`), the
+   personalized capsule model is fitted to the frame's own depth from several starts (the flowed
+   pose, the parent's pose, the nearest references before and after the frame in time) and the fit
+   of lowest energy is kept (:func:`_model_fit`). On the report part of the synthetic data at 5 %
+   references this halved the median error of fast motion (see ``benchmarks/bench_handmodel.py``)
+   at about five times the propagation time.
+
 An optional second alignment straight from the subtree's reference
 (``PropagationSettings(anchor_fusion=True)``) did not help on the synthetic data (4.53 vs 4.47 mm)
 and is off by default.
@@ -29,7 +36,8 @@ and is off by default.
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
 of the normalized crops at the matched points (mm), the depth residual of the fit (mm) and the
-bone-length violation of the flowed pose before the fit. ``PropagationResult.frame_score`` is the
+bone-length violation of the flowed pose before the fit, and with the model the fit residual of
+the capsules touching the joint. ``PropagationResult.frame_score`` is the
 per-frame mean over joints (``frame_min`` the minimum).
 
 Bad frames: a frame whose depth raises ``FrameError``, has no valid pixel, or has no hand centre is
@@ -56,6 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import handmodel as hm
 from .camera import CameraIntrinsics
 from .crops import crop_to_image, image_to_crop
 from .datasets.base import FrameError
@@ -104,6 +113,9 @@ class PropagationSettings:
     bone_scale: float = 0.2  #: relative bone-length violation scale
     ncc_patch: int = 21
     ncc_search: int = 12
+    model_fits: int = 2  #: hand-model fits per frame: the candidate starts of lowest energy
+    model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
+    model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
 
 
 @dataclass
@@ -213,6 +225,10 @@ class _Context:
     aligner_kwargs: dict
     settings: PropagationSettings
     crops_array: np.ndarray | None = None  # in-process only
+    hand_model: hm.HandModel | None = None
+    fit_weights: hm.FitWeights | None = None
+    model_refs: np.ndarray | None = None  #: (K,) reference frames, sorted
+    model_ref_joints: np.ndarray | None = None  #: (K, J, 3) their lifted joints
 
     def crops(self) -> np.ndarray:
         if self.crops_array is not None:
@@ -529,6 +545,10 @@ def _step(
                 st.angle_iterations, angles=hinge,
             )  # fmt: skip
 
+    model_conf = None
+    if ctx.hand_model is not None:
+        x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f)
+
     # confidence
     half = 0.5 * st.cube_mm
     # matched points should show the same centre-relative depth in both crops
@@ -542,10 +562,80 @@ def _step(
         * np.exp(-0.5 * (depth_res / st.depth_scale_mm) ** 2)
         * np.exp(-0.5 * (bone_viol / st.bone_scale) ** 2)
     )
+    if model_conf is not None:
+        local = local * model_conf
     conf = np.clip(conf_s * local, 0.0, 1.0)
     # a joint is "on its surface" in this frame if the fit kept it there
     vis_f = visible & (np.abs(x[:, 2] - z_obs) < st.near_surface_mm)
     return x, conf, np.where(vis_f, below, np.nan)
+
+
+def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, crop_f):
+    """Fit the hand model to ``frame``'s own depth from several starts; keep the lowest energy.
+
+    Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s`` and the lifted poses
+    of the nearest references before and after ``frame`` in time, each moved by the difference of
+    the hand centres. All share one energy (priors: closeness to the flowed pose, the flowed 2D
+    ``uv_f`` weighted by the flow's forward-backward consistency ``fb``), so the energies compare;
+    the ``model_fits`` starts of lowest energy are fitted (batched) and the best fit is kept.
+    Returns the joints (J,3) and a per-joint confidence factor (J,) from the fit residuals of the
+    capsules touching each joint (mean point-to-surface mm, fraction of free-space violations).
+    """
+    st = ctx.settings
+    model = ctx.hand_model
+    c_f = ctx.centres_mm[frame]
+    j = len(x_flow)
+    starts = [x_flow, joints_s + (c_f - ctx.centres_mm[src])]
+    refs = ctx.model_refs
+    if refs is not None and len(refs):
+        i = int(np.searchsorted(refs, frame))
+        for k in {max(i - 1, 0), min(i, len(refs) - 1)}:
+            if int(refs[k]) != src:
+                starts.append(ctx.model_ref_joints[k] + (c_f - ctx.centres_mm[refs[k]]))
+    starts = np.stack(starts)
+    n = len(starts)
+    obs = hm.observe(
+        crop_f[None], ctx.boxes[frame][None], c_f[None], ctx.camera, cube_mm=st.cube_mm
+    ).take(np.zeros(n, dtype=np.int64))
+    fb_w = np.exp(-0.5 * (np.nan_to_num(fb, nan=1e3) / st.fb_scale_px) ** 2)
+    priors = hm.Priors(
+        pose=np.repeat(x_flow[None], n, axis=0),
+        pose_w=np.ones((n, j)),
+        uv=np.repeat(uv_f[None], n, axis=0),
+        uv_w=np.repeat(fb_w[None], n, axis=0),
+    )
+    kin = hm.Kinematics(ctx.skeleton, model.bone_lengths_mm)
+    w = ctx.fit_weights or hm.FitWeights()
+    e0 = hm.frame_energy(model, kin, *kin.fit(starts), obs, ctx.camera, w, priors)[0]
+    best = np.argsort(e0)[: max(1, st.model_fits)]
+    fit = hm.fit_frames(
+        model,
+        starts[best],
+        obs.take(best),
+        ctx.camera,
+        weights=w,
+        priors=priors.take(best),
+        kin=kin,
+    )
+    k = int(np.argmin(fit.energy))
+    x = fit.joints_mm[k]
+    _, _, _, diag = hm.frame_energy(
+        model, kin, fit.root[k : k + 1], fit.u[k : k + 1], obs.take([0]), ctx.camera, w,
+        priors.take([0]),
+    )  # fmt: skip
+    res = diag["capsule_data_mm"][0]
+    free = diag["capsule_free"][0]
+    touch = np.zeros((j, len(model.pairs)), dtype=bool)
+    touch[model.pairs[:, 0], np.arange(len(model.pairs))] = True
+    touch[model.pairs[:, 1], np.arange(len(model.pairs))] = True
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res_j = np.nan_to_num(np.nanmax(np.where(touch, res, np.nan), axis=1), nan=0.0)
+    free_j = np.max(np.where(touch, free, 0.0), axis=1)
+    conf = np.exp(-0.5 * (res_j / st.model_scale_mm) ** 2) * np.clip(
+        1.0 - st.model_free_scale * free_j, 0.0, 1.0
+    )
+    return x, conf
 
 
 class _Skip(Exception):
@@ -691,6 +781,8 @@ def propagate(
     aligner_kwargs: dict | None = None,
     settings: PropagationSettings | None = None,
     tasks_per_worker: int = 2,
+    hand_model: bool | hm.HandModel = False,
+    fit_weights: hm.FitWeights | None = None,
 ) -> PropagationResult:
     """Propagate reference poses to the frames of the parent forest.
 
@@ -714,6 +806,9 @@ def propagate(
         Use :func:`descendants` to get the frames below a changed reference.
     progress : ``progress(done, total)`` in frames; on_result : ``on_result(frame, joints, conf)``
         for each computed frame, in the main process, parents before children.
+    hand_model : ``True`` personalizes a :class:`handmodel.HandModel` from the references
+        (bone lengths, radii from their crops) and fits it to every propagated frame's own depth
+        (see :func:`_model_fit`); a ``HandModel`` is used as given; ``False`` turns it off.
 
     Returns a :class:`PropagationResult`; rows outside ``frames`` are NaN.
     """
@@ -801,6 +896,26 @@ def propagate(
             mm[:] = crops
             crops_path, crops_offset = str(tmp), int(mm.offset)
             del mm
+    model_obj = None
+    known_refs = sorted(f for f in known if f in reference_joints)
+    ref_frames = np.asarray(known_refs, dtype=np.int64)
+    if hand_model is not False and hand_model is not None:
+        if isinstance(hand_model, hm.HandModel):
+            model_obj = hand_model
+        elif len(ref_frames):
+            obs = hm.observe(
+                np.asarray(crops[ref_frames], dtype=np.float32),
+                np.asarray(boxes, dtype=np.float64)[ref_frames],
+                np.asarray(centres_mm, dtype=np.float64)[ref_frames],
+                camera,
+                cube_mm=settings.cube_mm,
+            )
+            model_obj = hm.personalize(
+                skeleton,
+                bone_lengths_mm,
+                np.stack([known[f][0] for f in known_refs]),
+                obs,
+            )
     ctx = _Context(
         crops_path=crops_path,
         crops_offset=crops_offset,
@@ -816,6 +931,14 @@ def propagate(
         aligner_kwargs=dict(aligner_kwargs or {}),
         settings=settings,
         crops_array=None if remote else crops,
+        hand_model=model_obj,
+        fit_weights=fit_weights,
+        model_refs=ref_frames if model_obj is not None else None,
+        model_ref_joints=(
+            np.stack([known[int(f)][0] for f in ref_frames])
+            if model_obj is not None and len(ref_frames)
+            else None
+        ),
     )
 
     joints = np.full((n, j, 3), np.nan)

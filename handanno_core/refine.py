@@ -35,6 +35,14 @@ couples neighbouring frames), are assembled with batched numpy products (no Pyth
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
 lowers the true robust energy, so ``energy_history`` never increases.
 
+**Hand model** (``hand_model=True``; off by default): the temporal weight of each frame pair is divided by
+``1 + (v / temporal_motion_mm)²`` (``v`` the pair's median joint displacement in the
+initialization), and after the solve a frame whose hand-model energy
+(:func:`handanno_core.handmodel.frame_energy`, fitted to its own crop) rose by more than 10 %
+keeps its initialization, so refinement never makes a frame's fit to its depth worse. The model
+energy can also be a term of the LM (``RefineWeights.model`` > 0: θ-space blocks added to the
+diagonal of the banded system); it is off by default for its cost.
+
 Versus the anchors (anchor-algorithms.md §d): weights are √λ in mm/px instead of λ/N; the
 appearance template is the closest *true* reference; smoothing is in camera coordinates along
 true time order, robust, cut at sequence breaks; bones are exact instead of a quadratic penalty;
@@ -45,14 +53,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import LinAlgError, solveh_banded
 
+from . import handmodel as hmod
 from .annotation import FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
+from .handmodel import Kinematics as _Kinematics
+from .handmodel import angle_jacobian, angle_violation
 from .skeleton import Skeleton
 
 __all__ = ["RefineResult", "RefineWeights", "refine"]
@@ -112,6 +123,13 @@ class RefineWeights:
     init_huber_mm: float = 10.0
     patch_size: int = 7
     patch_spacing_px: float = 2.0
+    #: multiplies the hand-model energy of each frame (handmodel.frame_energy) inside the LM; 0
+    #: leaves the model to propagation (which fits it to every frame) and to the never-worse check
+    model: float = 0.0
+    #: with the model on, the temporal weight of a frame pair is divided by 1 + (v / this)², v the
+    #: pair's median joint displacement in the initialization (mm/frame): fast motion is not
+    #: smoothed away
+    temporal_motion_mm: float = 8.0
 
 
 @dataclass
@@ -188,87 +206,6 @@ def _bilinear(flat: np.ndarray, size: int, base: np.ndarray, x: np.ndarray, y: n
 
 
 # ------------------------------------------------------------------------------------------------
-# kinematic parameterization
-# ------------------------------------------------------------------------------------------------
-class _Kinematics:
-    """Root + unit bone directions with fixed lengths; joints and their Jacobian per frame."""
-
-    def __init__(self, skeleton: Skeleton, bone_lengths_mm: np.ndarray):
-        self.parents = skeleton.parent_array
-        self.bones = skeleton.bones
-        self.root = skeleton.root
-        j = skeleton.num_joints
-        b = len(self.bones)
-        self.lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
-        if self.lengths.shape != (b,) or not np.all(np.isfinite(self.lengths)):
-            raise ValueError(f"bone_lengths_mm must be ({b},) finite, got {self.lengths.shape}")
-        bone_of_child = np.full(j, -1)
-        bone_of_child[self.bones[:, 1]] = np.arange(b)
-        # ancestor[k, b] = 1 if bone b lies on the path root -> k
-        anc = np.zeros((j, b))
-        for k in range(j):
-            q = k
-            while self.parents[q] >= 0:
-                anc[k, bone_of_child[q]] = 1.0
-                q = self.parents[q]
-        self.ancestor_lengths = anc * self.lengths[None, :]  # (J, B)
-        self.num_params = 3 + 2 * b
-
-    def joints(self, root: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """root (N,3), u (N,B,3) -> joints (N,J,3)."""
-        return root[:, None, :] + np.einsum("kb,nbc->nkc", self.ancestor_lengths, u)
-
-    @staticmethod
-    def tangents(u: np.ndarray) -> np.ndarray:
-        """Orthonormal tangent bases (N,B,3,2) of the unit vectors u (N,B,3)."""
-        a = np.zeros_like(u)
-        use_x = np.abs(u[..., 0]) < 0.9
-        a[use_x, 0] = 1.0
-        a[~use_x, 1] = 1.0
-        t1 = np.cross(u, a)
-        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
-        t2 = np.cross(u, t1)
-        return np.stack([t1, t2], axis=-1)
-
-    def jacobian(self, u: np.ndarray) -> np.ndarray:
-        """dX/dθ (N, J·3, P) with θ = (root, tangent steps of each bone)."""
-        n, b = u.shape[:2]
-        j = self.ancestor_lengths.shape[0]
-        t = self.tangents(u)
-        m = np.empty((n, j, 3, self.num_params))
-        m[..., :3] = np.eye(3)
-        m[..., 3:] = np.einsum("kb,nbcd->nkcbd", self.ancestor_lengths, t).reshape(n, j, 3, 2 * b)
-        return m.reshape(n, j * 3, self.num_params)
-
-    def retract(self, root, u, step: np.ndarray):
-        """Apply a step (N, P) to (root, u): root += step[:3]; u <- normalize(u + T·δ)."""
-        n, b = u.shape[:2]
-        t = self.tangents(u)
-        delta = step[:, 3:].reshape(n, b, 2)
-        v = u + np.einsum("nbcd,nbd->nbc", t, delta)
-        v /= np.linalg.norm(v, axis=-1, keepdims=True)
-        return root + step[:, :3], v
-
-    def fit(self, target: np.ndarray, iterations: int = 8):
-        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN)."""
-        n = target.shape[0]
-        root = target[:, self.root].copy()
-        bv = target[:, self.bones[:, 1]] - target[:, self.bones[:, 0]]
-        norm = np.linalg.norm(bv, axis=-1, keepdims=True)
-        u = np.where(norm > 1e-9, bv / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
-        for _ in range(iterations):
-            r = (self.joints(root, u) - target).reshape(n, -1)
-            m = self.jacobian(u)
-            h = np.matmul(m.transpose(0, 2, 1), m) + 1e-6 * np.eye(self.num_params)
-            g = np.einsum("nrp,nr->np", m, r)
-            step = -np.linalg.solve(h, g[..., None])[..., 0]
-            root, u = self.retract(root, u, step)
-            if np.max(np.abs(step)) < 1e-7:
-                break
-        return root, u
-
-
-# ------------------------------------------------------------------------------------------------
 # the problem
 # ------------------------------------------------------------------------------------------------
 class _Problem:
@@ -337,6 +274,12 @@ class _Problem:
             self.tmpl_of[:, None] >= 0, self.ref_visible[np.maximum(self.tmpl_of, 0)], True
         )
         self.templates, self.tmpl_valid = self._templates()
+        # hand model (set by refine() when switched on)
+        self.model: hmod.HandModel | None = None
+        self.obs: hmod.FrameObservations | None = None
+        self.fit_w = hmod.FitWeights()
+        self.model_chunk = 32
+        self.pair_scale = np.ones(max(n - 1, 0))
 
     # -------------------------------------------------------------------- geometry
     def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
@@ -445,6 +388,23 @@ class _Problem:
                     jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
                     hd[fr] += np.matmul(jw, ja)
                     gx[fr] += np.matmul(jw, r[..., None])[..., 0]
+        # ---------------- hand model fitted to each frame's own depth (θ-space blocks)
+        mod = None
+        if self.model is not None and w.model > 0:
+            terms["model"] = 0.0
+            if want_jac:
+                p = self.kin.num_params
+                mod = (np.zeros((n, p, p)), np.zeros((n, p)))
+            for a in range(0, n, self.model_chunk):
+                fr = np.arange(a, min(n, a + self.model_chunk))
+                e, _, _, extra = hmod.frame_energy(
+                    self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
+                    self.fit_w, None, want_jac,
+                )  # fmt: skip
+                terms["model"] += w.model * float(np.sum(e))
+                if want_jac:
+                    mod[0][fr] = w.model * extra[0]
+                    mod[1][fr] = w.model * extra[1]
         # ---------------- reprojection on reference frames
         if len(self.refs):
             xr = x[self.refs]
@@ -470,8 +430,9 @@ class _Problem:
             dvec = x[1:] - x[:-1]
             dn = np.linalg.norm(dvec, axis=-1)
             cost, wt = _huber(dn, w.temporal_huber_mm)
-            wt = w.temporal * wt * self.pair_ok[:, None]
-            terms["temporal"] = w.temporal * float(np.sum(cost * self.pair_ok[:, None]))
+            scale = (self.pair_ok * self.pair_scale)[:, None]
+            wt = w.temporal * wt * scale
+            terms["temporal"] = w.temporal * float(np.sum(cost * scale))
             if want_jac:
                 eye = np.eye(3)
                 hd[:-1] += wt[..., None, None] * eye
@@ -489,45 +450,21 @@ class _Problem:
                     ang = (active, *self._angle_jacobian(root[active], u[active]))
         if not want_jac:
             return terms, x
-        return terms, x, hd, gx, wt, ang
+        return terms, x, hd, gx, wt, ang, mod
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
-        flex, abd = self.skel.joint_angles(x)
-        fl, al = self.skel.angle_limits()
-        v = np.concatenate(
-            [
-                np.maximum(flex - fl[:, 1], 0) + np.maximum(fl[:, 0] - flex, 0),
-                np.maximum(abd - al[:, 1], 0) + np.maximum(al[:, 0] - abd, 0),
-            ],
-            axis=-1,
-        )
-        return np.nan_to_num(v)
+        return angle_violation(self.skel, x)
 
-    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, h: float = 1e-4):
-        """Violations (m,2A) and d(violation)/dθ (m,2A,P) for the frames' parameters (root, u).
-
-        Forward differences over the 2B bone-direction tangent parameters (angles do not depend on
-        the root), evaluated for all of them at once: 2B extra pose evaluations per active frame.
-        """
-        m, b = u.shape[:2]
-        v0 = self._angle_violation(self.kin.joints(root, u))
-        t = self.kin.tangents(u)  # (m,B,3,2)
-        pert = np.repeat(u[:, None], 2 * b, axis=1)  # (m, 2B, B, 3)
-        idx = np.arange(2 * b)
-        pert[:, idx, idx // 2] += h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
-        pert /= np.linalg.norm(pert, axis=-1, keepdims=True)
-        xs = self.kin.joints(np.repeat(root, 2 * b, axis=0), pert.reshape(m * 2 * b, b, 3))
-        v1 = self._angle_violation(xs).reshape(m, 2 * b, -1)
-        jac = np.zeros((m, v0.shape[1], self.kin.num_params))
-        jac[:, :, 3:] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
-        return v0, jac
+    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray):
+        """Violations (m,2A) and d(violation)/dθ (m,2A,P) (forward differences, see handmodel)."""
+        return angle_jacobian(self.skel, self.kin, root, u)
 
 
 # ------------------------------------------------------------------------------------------------
 # block-tridiagonal system in θ-space
 # ------------------------------------------------------------------------------------------------
-def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarray):
+def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, mod, fixed: np.ndarray):
     """θ-space diagonal blocks (N,P,P), super-diagonal blocks (N-1,P,P) and gradient (N,P)."""
     n, j = problem.n, problem.j
     p = m.shape[-1]
@@ -540,6 +477,9 @@ def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, fixed: np.ndarr
         wa = problem.w.angle
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
+    if mod is not None:
+        diag += mod[0]
+        grad += mod[1]
     if n > 1:
         if wt is None:
             off = np.zeros((n - 1, p, p))
@@ -577,6 +517,38 @@ def _banded(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
     return ab.reshape(u + 1, n * p)
 
 
+def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, centres, cube_mm):
+    """Switch the hand-model term on: observations of every frame, the personalized model and the
+    motion-adaptive temporal weights."""
+    refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
+    obs = hmod.observe(crops, boxes, centres, problem.cam, cube_mm=cube_mm)
+    if isinstance(hand_model, hmod.HandModel):
+        model = hand_model
+    elif len(refs):
+        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], obs.take(refs))
+    else:
+        return
+    problem.model, problem.obs = model, obs
+    # the refinement has its own angle prior; the model term brings data, free space, collisions
+    # and the palm shape
+    problem.fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
+    if problem.n > 1 and problem.w.temporal_motion_mm > 0:
+        v = np.median(np.linalg.norm(np.diff(init, axis=0), axis=-1), axis=1)
+        problem.pair_scale = 1.0 / (1.0 + (v / problem.w.temporal_motion_mm) ** 2)
+
+
+def _model_energy(problem: _Problem, root, u) -> np.ndarray:
+    """(N,) hand-model energy of every frame at (root, u)."""
+    out = np.zeros(problem.n)
+    for a in range(0, problem.n, 4 * problem.model_chunk):
+        fr = np.arange(a, min(problem.n, a + 4 * problem.model_chunk))
+        out[fr] = hmod.frame_energy(
+            problem.model, problem.kin, root[fr], u[fr], problem.obs.take(fr), problem.cam,
+            problem.fit_w,
+        )[0]  # fmt: skip
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # public API
 # ------------------------------------------------------------------------------------------------
@@ -601,6 +573,8 @@ def refine(
     cube_mm: float = 220.0,
     tol: float = 1e-5,
     chunk_frames: int = 256,
+    hand_model: bool | hmod.HandModel = False,
+    fit_weights: hmod.FitWeights | None = None,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
 
@@ -624,6 +598,11 @@ def refine(
     weights : :class:`RefineWeights`.
     iterations : maximum LM iterations. ``progress(iteration, energy)`` is called after each.
     fixed_frames : frames kept at their initialization (returned unchanged).
+    hand_model : ``True`` adds the personalized hand model's energy of every frame (fitted to
+        the frame's own crop; personalized from the reference frames' initialization, i.e. their
+        lift), scales the temporal weight down where the initialization moves fast, and keeps a
+        frame's initialization where refinement raised its model energy; a
+        :class:`handmodel.HandModel` is used as given; ``False`` is the model-free energy.
 
     Returns
     -------
@@ -677,7 +656,9 @@ def refine(
         chunk_frames,
     )
     p = kin.num_params
-    terms, x, hd, gx, wt, ang = problem.evaluate(root, u, want_jac=True)
+    if hand_model is not False and hand_model is not None:
+        _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
+    terms, x, hd, gx, wt, ang, mod = problem.evaluate(root, u, want_jac=True)
     energy = sum(terms.values())
     history = [energy]
     lam = 1e-4
@@ -687,7 +668,7 @@ def refine(
     log = []
     for it in range(1, iterations + 1):
         m = kin.jacobian(u)
-        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, fixed)
+        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, mod, fixed)
         dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
         ab0 = _banded(diag, off)
         g = grad.reshape(-1)
@@ -728,7 +709,7 @@ def refine(
         nu = 2.0
         log.append((it, lam, tries, gain))
         root, u = root_n, u_n
-        terms, x, hd, gx, wt, ang = trial
+        terms, x, hd, gx, wt, ang, mod = trial
         energy = e_new
         history.append(energy)
         if progress is not None:
@@ -739,6 +720,13 @@ def refine(
     joints = kin.joints(root, u)
     viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
     joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
+    kept = np.zeros(0, dtype=np.int64)
+    if problem.model is not None:
+        # never worse than the start: a frame whose own model energy rose keeps its initialization
+        e0 = _model_energy(problem, *kin.fit(init))
+        e1 = _model_energy(problem, root, u)
+        kept = np.flatnonzero((e1 > e0 + np.maximum(0.1 * e0, 1.0)) & ~fixed)
+        joints[kept] = init[kept]
     return RefineResult(
         joints_mm=joints,
         energy_history=history,
@@ -747,5 +735,5 @@ def refine(
         iterations=it,
         converged=converged,
         time_s=time.perf_counter() - t0,
-        info={"lambda": lam, "log": log},
+        info={"lambda": lam, "log": log, "kept_initialization": kept.tolist()},
     )

@@ -167,6 +167,8 @@ def test_temporal_term_does_not_cross_sequence_breaks():
     gt, init, kwargs = _two_segment_problem()
     n_half = len(gt) // 2
     w = RefineWeights(temporal=5.0, temporal_huber_mm=200.0)
+    # without the hand model: its motion-adaptive temporal weight would also let the jump survive
+    kwargs["hand_model"] = False
     cut = refine(init, sequence_breaks=[n_half], weights=w, iterations=30, **kwargs)
     joined = refine(init, sequence_breaks=[], weights=w, iterations=30, **kwargs)
     gap = lambda x: np.linalg.norm(x[n_half, 0] - x[n_half - 1, 0])  # noqa: E731
@@ -202,3 +204,18 @@ def test_banded_storage_matches_dense():
 def test_rejects_bad_shapes(scene):
     with pytest.raises(ValueError):
         _run(scene, scene["gt"][:, :5])
+
+
+def test_hand_model_term_improves_and_never_keeps_a_worse_frame(scene):
+    gt = scene["gt"]
+    init = _perturb(gt, scene["refs"])
+    on = _run(scene, init, iterations=8, weights=RefineWeights(model=1.0))
+    off = _run(scene, init, iterations=8, hand_model=False)
+    assert on.terms["model"] > 0 and "model" not in off.terms
+    assert np.all(np.diff(on.energy_history) <= 0)
+    err = lambda x: np.linalg.norm(x - gt, axis=-1).mean()  # noqa: E731
+    assert err(on.joints_mm) < err(init)
+    # frames whose model energy refinement raised are returned at their initialization
+    kept = on.info["kept_initialization"]
+    np.testing.assert_array_equal(on.joints_mm[kept], init[kept])
+    assert len(kept) < len(gt)

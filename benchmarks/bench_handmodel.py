@@ -1,0 +1,200 @@
+"""Benchmark of the per-frame hand-model fit (handanno_core.handmodel) on synthetic frames.
+
+A synthetic sequence (``synth.generate_sequence``: sensor noise, forearm, ellipsoid palm, i.e. a
+hand that is *not* the capsule model) is cropped with ``crops.locate_hands`` (no ground truth).
+The model is personalized from every ``--ref-step``-th frame with the ground-truth joints standing
+in for lifted references (this benchmark measures speed and basin, not the lift). Every frame is
+then fitted alone (as propagation does) from its ground truth perturbed by ``--perturb-mm``
+(smooth per-joint offsets, larger at the tips), with a weak pose prior to that start; reported:
+wall ms per frame on one core (single-threaded BLAS), LM iterations, error before/after.
+A batched fit of all frames at once (as refinement evaluates the term) is timed too.
+
+    nice .venv/bin/python benchmarks/bench_handmodel.py [--frames 200] [--seed 3]
+
+Writes benchmarks/results/handmodel.json.
+
+``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (forest selection,
+simulated exact 2D annotator, bones estimated by the lift) once per dataset and reference
+fraction, then propagation + refinement twice on the same lift: without and with the hand model
+(``--no-model`` / default), and prints both rows side by side (``--json`` to save them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from handanno_core import handmodel as hm
+from handanno_core.blas import single_blas_thread
+from handanno_core.crops import compute_crops, crop_boxes, locate_hands
+from handanno_core.datasets import open_sequence
+from handanno_core.synth import generate_sequence
+
+
+def compare(datasets: list[str], fractions: list[float], json_out: str | None) -> None:
+    """With / without the hand model on the same selection and lift (see the module docstring)."""
+    import shutil
+
+    from handanno_core import pipeline
+    from handanno_core.bench import _summary, peak_rss_mb
+    from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+
+    rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-cmp-"))
+    for dataset in datasets:
+        base = pipeline.new_session(tmp / "base", dataset, overwrite=True)
+        gt = base.open_sequence().ground_truth.joints_mm
+        pipeline.ensure_crops(base, quiet=True)
+        for fraction in fractions:
+            folder = tmp / f"run-{fraction:g}"
+            if folder.exists():
+                shutil.rmtree(folder)
+            session = Session.create(
+                folder,
+                base.model.dataset,
+                base.num_frames,
+                base.camera,
+                base.model.skeleton,
+                base.model.sequence_breaks,
+            )
+            for name in (CROPS_FILE, CROPS_META_FILE):
+                (folder / name).symlink_to((tmp / "base" / name).resolve())
+            pipeline.select(
+                session, strategy="forest", ref_fraction=fraction, figures=False, quiet=True
+            )
+            pipeline.annotate_from_gt(session, quiet=True)
+            t = time.perf_counter()
+            pipeline.lift(session, workers=2, quiet=True)
+            t_lift = time.perf_counter() - t
+            refs = session.reference_frames
+            non_ref = np.setdiff1d(np.arange(session.num_frames), refs)
+            for use_model in (False, True):
+                t = time.perf_counter()
+                pipeline.propagate(session, workers=2, quiet=True, use_model=use_model)
+                t_prop = time.perf_counter() - t
+                t = time.perf_counter()
+                res = pipeline.refine(session, quiet=True, use_model=use_model)
+                t_ref = time.perf_counter() - t
+                r = session.load_results()
+                row = {
+                    "dataset": str(dataset),
+                    "frames": int(session.num_frames),
+                    "ref_fraction": fraction,
+                    "references": int(len(refs)),
+                    "model": use_model,
+                    "lift": _summary(r["lifted_mm"], gt, refs),
+                    "init": _summary(r["init_mm"], gt),
+                    "final": _summary(r["final_mm"], gt),
+                    "final_non_reference": _summary(r["final_mm"], gt, non_ref),
+                    "kept_initialization": len(res.info.get("kept_initialization", [])),
+                    "timings_s": {
+                        "lift": round(t_lift, 1),
+                        "propagate": round(t_prop, 1),
+                        "refine": round(t_ref, 1),
+                    },
+                    "peak_rss_mb": round(peak_rss_mb(), 1),
+                    "load_average": [round(x, 2) for x in os.getloadavg()],
+                }
+                rows.append(row)
+                print(
+                    f"{Path(dataset).name:>12} {fraction * 100:4.0f}% model={use_model!s:5} "
+                    f"init {row['init']['mean_mm']:6.2f} / max {row['init']['max_mm']:6.1f}  "
+                    f"final {row['final']['mean_mm']:6.2f} / max {row['final']['max_mm']:6.1f}  "
+                    f"nonref {row['final_non_reference']['mean_mm']:6.2f}  "
+                    f"t_prop {t_prop:6.1f} t_ref {t_ref:6.1f} s  load {os.getloadavg()[0]:.1f}",
+                    flush=True,
+                )
+                if json_out:
+                    Path(json_out).write_text(json.dumps(rows, indent=1))
+            session.close()
+        base.close()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--ref-step", type=int, default=20)
+    ap.add_argument("--perturb-mm", type=float, default=6.0)
+    ap.add_argument("--out", default="benchmarks/results/handmodel.json")
+    ap.add_argument("--compare", nargs="+", metavar="DATASET")
+    ap.add_argument("--fractions", default="0.05,0.10")
+    ap.add_argument("--json", dest="json_out")
+    args = ap.parse_args()
+    if args.compare:
+        compare(args.compare, [float(f) for f in args.fractions.split(",")], args.json_out)
+        return
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-"))
+    generate_sequence(tmp / "seq", frames=args.frames, seed=args.seed, progress=False)
+    seq = open_sequence(tmp / "seq")
+    gt = seq.ground_truth.joints_mm
+    centres = locate_hands(seq)
+    boxes = crop_boxes(centres, seq.camera)
+    crops = compute_crops(seq, centres)
+    cam, sk = seq.camera, seq.skeleton
+    bones = sk.estimate_bone_lengths(gt)
+
+    t = time.perf_counter()
+    obs = hm.observe(crops, boxes, centres, cam)
+    observe_ms = (time.perf_counter() - t) * 1000 / len(gt)
+    refs = np.arange(0, len(gt), args.ref_step)
+    t = time.perf_counter()
+    model = hm.personalize(sk, bones, gt[refs], obs.take(refs))
+    personalize_s = time.perf_counter() - t
+
+    rng = np.random.default_rng(args.seed)
+    offs = rng.normal(size=gt.shape)
+    offs *= args.perturb_mm / np.sqrt(np.mean(np.sum(offs**2, axis=-1)))
+    offs[:, list(sk.fingertips)] *= 1.5
+    start = gt + offs
+    kin = hm.Kinematics(sk, model.bone_lengths_mm)
+    fitted = np.empty_like(gt)
+    iters = []
+    with single_blas_thread():
+        t = time.perf_counter()
+        for f in range(len(gt)):
+            pri = hm.Priors(pose=start[f][None], pose_w=np.ones((1, sk.num_joints)))
+            r = hm.fit_frames(model, start[f][None], obs.take([f]), cam, priors=pri, kin=kin)
+            fitted[f] = r.joints_mm[0]
+            iters.append(r.iterations)
+        single_ms = (time.perf_counter() - t) * 1000 / len(gt)
+        t = time.perf_counter()
+        pri = hm.Priors(pose=start, pose_w=np.ones(gt.shape[:2]))
+        batched = hm.fit_frames(model, start, obs, cam, priors=pri, kin=kin)
+        batched_ms = (time.perf_counter() - t) * 1000 / len(gt)
+
+    def err(x):
+        e = np.linalg.norm(x - gt, axis=-1)
+        return {"mean_mm": round(float(e.mean()), 2), "max_mm": round(float(e.max()), 1)}
+
+    doc = {
+        "frames": len(gt),
+        "seed": args.seed,
+        "perturb_mm": args.perturb_mm,
+        "radii_mm": [round(float(r), 2) for r in model.radii],
+        "personalize_s": round(personalize_s, 2),
+        "observe_ms_per_frame": round(observe_ms, 2),
+        "fit_ms_per_frame_single": round(single_ms, 1),
+        "fit_ms_per_frame_batched": round(batched_ms, 1),
+        "iterations_mean": round(float(np.mean(iters)), 1),
+        "start": err(start),
+        "fitted_single": err(fitted),
+        "fitted_batched": err(batched.joints_mm),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+    }
+    print(json.dumps(doc, indent=1))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+
+
+if __name__ == "__main__":
+    main()

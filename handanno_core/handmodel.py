@@ -1,0 +1,941 @@
+"""A personalized articulated hand model (one capsule per bone plus palm capsules) and its fit to
+one frame's own depth (articulated ICP), after Tagliasacchi et al., "Robust Articulated-ICP for
+Real-Time Hand Tracking" (SGP 2015) and Tkach et al., "Sphere-Meshes for Real-Time Hand Modeling
+and Tracking" (SIGGRAPH Asia 2016), with what those trackers lack: exact bone lengths from the
+lift and verified reference poses.
+
+**Model** (:class:`HandModel`): capsule ``c`` spans joints ``pairs[c] = (a, b)`` from
+``X_a + s0_c (X_b − X_a)`` to ``X_a + s1_c (X_b − X_a)`` with radius ``radii[c]`` mm. Every bone is
+a capsule; a fingertip bone ends one radius before the tip joint (``s1 = 1 − r/L``) so its cap
+reaches the tip, which lies on the surface; the knuckle line adds capsules between neighbouring
+MCPs. Bone lengths come from the lift; radii from the references' point clouds
+(:func:`estimate_radii`: iteratively reweighted fit of each observed point's distance to its
+capsule's axis segment); the palm's shape (distances between the root's children) from the
+references' lifted poses. Ground truth is never used.
+
+**Pose**: :class:`Kinematics`, a root position (3) plus one unit direction per bone updated on the
+sphere through a 2-D tangent step, joints ``X_k = root + Σ_{b on path to k} L_b·u_b``: bones are
+exact by construction. Joint angles are not separate parameters; the prior below keeps them
+inside the skeleton's limits and the palm term keeps the palm rigid.
+
+**Per-frame energy** (:func:`frame_energy`), each residual weighted by √λ in the stated unit:
+
+``E = λ_data  mean_i ρ_W(‖p_i − q_i‖ − r)      observed hand point to the nearest capsule surface, mm
+    + λ_free  mean_s ρ_H(free-space violation)   front-facing capsule samples: in front of the
+                                                observed surface (mm) or off the silhouette (px → mm)
+    + λ_angle ½ Σ (angle outside limits)²        skeleton.angle_limits(), degrees
+    + λ_palm  ½ Σ (‖X_a − X_b‖ − d_ab)²          palm shape from the references, mm
+    + λ_pose  Σ_k w_k ρ_H(‖X_k − Y_k‖)           closeness to a given pose (temporal / start), mm
+    + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px``
+
+Observed points (:func:`observe`) come from the normalized crops (no extra depth reads), a few
+hundred per frame; points beyond the wrist (forearm) whose nearest model point is the wrist end of
+a palm capsule are ignored. Model samples are 4 positions × 3 angles per capsule on the surface
+facing the camera; each is projected into the crop: on a hand pixel it must not lie more than
+``free_margin_mm`` in front of the observed depth; off the silhouette it is pulled to the nearest
+hand pixel (distance transform, as in Tagliasacchi et al.).
+
+**Solver** (:func:`fit_frames`): Levenberg-Marquardt on all given frames at once (independent
+frames: batched 43×43 systems), correspondences and IRLS weights re-found at every evaluation.
+Jacobians are analytic (point-to-segment distances, projection) except the joint-angle prior
+(forward differences over the 2B direction parameters, as in :mod:`handanno_core.refine`). A step
+is accepted per frame only if it lowers that frame's energy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt, minimum_filter
+
+from .camera import CameraIntrinsics
+from .crops import crop_to_image, image_to_crop
+from .skeleton import Skeleton
+
+__all__ = [
+    "FitResult",
+    "FitWeights",
+    "FrameObservations",
+    "Priors",
+    "HandModel",
+    "Kinematics",
+    "build_model",
+    "estimate_radii",
+    "fit_frames",
+    "frame_energy",
+    "observe",
+    "personalize",
+]
+
+
+# ------------------------------------------------------------------------------------------------
+# kinematic parameterization (shared with refine)
+# ------------------------------------------------------------------------------------------------
+class Kinematics:
+    """Root + unit bone directions with fixed lengths; joints and their Jacobian per frame.
+
+    Parameters per frame θ = (root step (3), tangent step (2) per bone): ``num_params = 3 + 2B``.
+    """
+
+    def __init__(self, skeleton: Skeleton, bone_lengths_mm: np.ndarray):
+        self.parents = skeleton.parent_array
+        self.bones = skeleton.bones
+        self.root = skeleton.root
+        j = skeleton.num_joints
+        b = len(self.bones)
+        self.lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
+        if self.lengths.shape != (b,) or not np.all(np.isfinite(self.lengths)):
+            raise ValueError(f"bone_lengths_mm must be ({b},) finite, got {self.lengths.shape}")
+        bone_of_child = np.full(j, -1)
+        bone_of_child[self.bones[:, 1]] = np.arange(b)
+        self.bone_of_child = bone_of_child
+        # ancestor[k, b] = 1 if bone b lies on the path root -> k
+        anc = np.zeros((j, b))
+        for k in range(j):
+            q = k
+            while self.parents[q] >= 0:
+                anc[k, bone_of_child[q]] = 1.0
+                q = self.parents[q]
+        self.ancestor_lengths = anc * self.lengths[None, :]  # (J, B)
+        self.num_params = 3 + 2 * b
+
+    def joints(self, root: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """root (N,3) mm, u (N,B,3) unit -> joints (N,J,3) mm."""
+        return root[:, None, :] + np.einsum("kb,nbc->nkc", self.ancestor_lengths, u)
+
+    @staticmethod
+    def tangents(u: np.ndarray) -> np.ndarray:
+        """Orthonormal tangent bases (N,B,3,2) of the unit vectors u (N,B,3)."""
+        a = np.zeros_like(u)
+        use_x = np.abs(u[..., 0]) < 0.9
+        a[use_x, 0] = 1.0
+        a[~use_x, 1] = 1.0
+        t1 = np.cross(u, a)
+        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
+        t2 = np.cross(u, t1)
+        return np.stack([t1, t2], axis=-1)
+
+    def jacobian(self, u: np.ndarray) -> np.ndarray:
+        """dX/dθ (N, J·3, P) with θ = (root, tangent steps of each bone)."""
+        n, b = u.shape[:2]
+        j = self.ancestor_lengths.shape[0]
+        t = self.tangents(u)
+        m = np.empty((n, j, 3, self.num_params))
+        m[..., :3] = np.eye(3)
+        m[..., 3:] = np.einsum("kb,nbcd->nkcbd", self.ancestor_lengths, t).reshape(n, j, 3, 2 * b)
+        return m.reshape(n, j * 3, self.num_params)
+
+    def retract(self, root, u, step: np.ndarray):
+        """Apply a step (N, P) to (root, u): root += step[:3]; u <- normalize(u + T·δ)."""
+        n, b = u.shape[:2]
+        t = self.tangents(u)
+        delta = step[:, 3:].reshape(n, b, 2)
+        v = u + np.einsum("nbcd,nbd->nbc", t, delta)
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        return root + step[:, :3], v
+
+    def fit(self, target: np.ndarray, iterations: int = 8):
+        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN)."""
+        n = target.shape[0]
+        root = target[:, self.root].copy()
+        bv = target[:, self.bones[:, 1]] - target[:, self.bones[:, 0]]
+        norm = np.linalg.norm(bv, axis=-1, keepdims=True)
+        u = np.where(norm > 1e-9, bv / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
+        for _ in range(iterations):
+            r = (self.joints(root, u) - target).reshape(n, -1)
+            m = self.jacobian(u)
+            h = np.matmul(m.transpose(0, 2, 1), m) + 1e-6 * np.eye(self.num_params)
+            g = np.einsum("nrp,nr->np", m, r)
+            step = -np.linalg.solve(h, g[..., None])[..., 0]
+            root, u = self.retract(root, u, step)
+            if np.max(np.abs(step)) < 1e-7:
+                break
+        return root, u
+
+
+class _AngleMeter:
+    """:meth:`Skeleton.joint_angles` evaluated one chain level at a time (all fingers at once):
+    the same definition (lateral axis transported along each finger), 3 vectorized steps instead of
+    one Python step per joint; the fit calls it 2B+1 times per iteration."""
+
+    def __init__(self, skeleton: Skeleton):
+        self.skeleton = skeleton
+        par = skeleton.parent_array
+        joints = skeleton.angle_joints
+        self.children = skeleton.angle_children
+        pos = {int(k): i for i, k in enumerate(joints)}
+        level = np.zeros(len(joints), dtype=int)
+        for i, k in enumerate(joints):
+            q = int(par[k])
+            while q >= 0:
+                level[i] += q in pos
+                q = int(par[q])
+        self.levels = [
+            np.flatnonzero(level == v) for v in range(level.max() + 1 if len(level) else 0)
+        ]
+        self.joints = joints
+        self.parents = par[joints]
+        self.parent_pos = np.array([pos.get(int(p), -1) for p in self.parents], dtype=np.int64)
+
+    def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand)."""
+        x = np.asarray(poses, dtype=np.float64)
+        normal = self.skeleton.palm_normal(x)[..., None, :]
+        a_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
+        lat_all = np.zeros_like(a_all)
+        flex = np.zeros(x.shape[:-2] + (len(self.joints),))
+        abd = np.zeros_like(flex)
+        for lv, idx in enumerate(self.levels):
+            k, p, c = self.joints[idx], self.parents[idx], self.children[idx]
+            a = _unit(x[..., k, :] - x[..., p, :])
+            if lv == 0:
+                n_perp = _unit(normal - np.sum(normal * a, axis=-1, keepdims=True) * a)
+                lateral = _cross(a, n_perp)
+            else:
+                lp = lat_all[..., self.parent_pos[idx], :]
+                lateral = _unit(lp - np.sum(lp * a, axis=-1, keepdims=True) * a)
+            lat_all[..., idx, :] = lateral
+            n_perp = _cross(lateral, a)
+            b = x[..., c, :] - x[..., k, :]
+            along = np.sum(b * a, axis=-1)
+            towards = np.sum(b * n_perp, axis=-1)
+            flex[..., idx] = np.degrees(np.arctan2(towards, along))
+            abd[..., idx] = np.degrees(
+                np.arctan2(np.sum(b * lateral, axis=-1), np.hypot(along, towards))
+            )
+        return flex, abd
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (np.cross's axis handling costs more than the math)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+_METERS: dict[int, _AngleMeter] = {}
+
+
+def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
+    """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
+    meter = _METERS.get(id(skeleton))
+    if meter is None or meter.skeleton is not skeleton:
+        meter = _METERS[id(skeleton)] = _AngleMeter(skeleton)
+    flex, abd = meter(x)
+    fl, al = skeleton.angle_limits()
+    v = np.concatenate(
+        [
+            np.maximum(flex - fl[:, 1], 0) + np.maximum(fl[:, 0] - flex, 0),
+            np.maximum(abd - al[:, 1], 0) + np.maximum(al[:, 0] - abd, 0),
+        ],
+        axis=-1,
+    )
+    return np.nan_to_num(v)
+
+
+def angle_jacobian(skeleton: Skeleton, kin: Kinematics, root, u, h: float = 1e-4):
+    """Violations (m,2A) and d(violation)/dθ (m,2A,P) at the frames' parameters (root, u).
+
+    Forward differences over the 2B bone-direction tangent parameters (angles do not depend on
+    the root), evaluated for all of them at once: 2B extra pose evaluations per frame.
+    """
+    m, b = u.shape[:2]
+    v0 = angle_violation(skeleton, kin.joints(root, u))
+    t = kin.tangents(u)  # (m,B,3,2)
+    pert = np.repeat(u[:, None], 2 * b, axis=1)  # (m, 2B, B, 3)
+    idx = np.arange(2 * b)
+    pert[:, idx, idx // 2] += h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
+    pert /= np.linalg.norm(pert, axis=-1, keepdims=True)
+    xs = kin.joints(np.repeat(root, 2 * b, axis=0), pert.reshape(m * 2 * b, b, 3))
+    v1 = angle_violation(skeleton, xs).reshape(m, 2 * b, -1)
+    jac = np.zeros((m, v0.shape[1], kin.num_params))
+    jac[:, :, 3:] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
+    return v0, jac
+
+
+# ------------------------------------------------------------------------------------------------
+# the model
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HandModel:
+    """Capsules of a hand, personalized (all lengths in mm).
+
+    ``pairs`` (C, 2) joints each capsule spans; ``radii`` (C,); ``tip`` (C,) bool, capsule ends one
+    radius before its second joint (fingertip bones); ``wrist`` (C,) bool, capsule starts at the
+    root (points beyond its root end are forearm); ``bone_lengths_mm`` (B,);
+    ``palm_pairs`` (Q, 2) joints whose distance ``palm_dist_mm`` (Q,) is kept (palm shape).
+    """
+
+    skeleton: Skeleton
+    bone_lengths_mm: np.ndarray
+    pairs: np.ndarray
+    radii: np.ndarray
+    tip: np.ndarray
+    palm_pairs: np.ndarray
+    palm_dist_mm: np.ndarray
+
+    @cached_property
+    def finger_of(self) -> np.ndarray:
+        """(C,) the root child each capsule's chain starts at (-1 for capsules at the root)."""
+        sk = self.skeleton
+        par = sk.parent_array
+        out = np.full(len(self.pairs), -1)
+        for c, (a, b) in enumerate(self.pairs):
+            if a == sk.root or par[b] != a:
+                continue
+            k = int(a)
+            while par[k] != sk.root:
+                k = int(par[k])
+            out[c] = k
+        return out
+
+    @cached_property
+    def collision_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Capsule pairs (Q,), (Q,) of different fingers (ordered both ways)."""
+        f = self.finger_of
+        ia, ik = np.nonzero((f[:, None] >= 0) & (f[None, :] >= 0) & (f[:, None] != f[None, :]))
+        return ia, ik
+
+    @cached_property
+    def palm_chain(self) -> np.ndarray:
+        return _palm_chain(self.skeleton)
+
+    @cached_property
+    def wrist(self) -> np.ndarray:
+        return self.pairs[:, 0] == self.skeleton.root
+
+    @cached_property
+    def fractions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(s0, s1) (C,) of each capsule's end points along its joint pair."""
+        s0 = np.zeros(len(self.pairs))
+        s1 = np.ones(len(self.pairs))
+        kin_len = self._pair_lengths()
+        s1 = np.where(self.tip, 1.0 - self.radii / np.maximum(kin_len, 1e-6), s1)
+        return s0, np.maximum(s1, 0.05)
+
+    def _pair_lengths(self) -> np.ndarray:
+        """(C,) bone length of bone capsules (NaN for the others)."""
+        sk = self.skeleton
+        out = np.full(len(self.pairs), np.nan)
+        par = sk.parent_array
+        is_bone = par[self.pairs[:, 1]] == self.pairs[:, 0]
+        boc = np.full(sk.num_joints, -1)
+        boc[sk.bones[:, 1]] = np.arange(len(sk.bones))
+        out[is_bone] = self.bone_lengths_mm[boc[self.pairs[is_bone, 1]]]
+        return out
+
+    def capsules(self, x: np.ndarray):
+        """Capsule end points A, B (..., C, 3) mm for joints ``x (..., J, 3)``."""
+        s0, s1 = self.fractions
+        xa, xb = x[..., self.pairs[:, 0], :], x[..., self.pairs[:, 1], :]
+        d = xb - xa
+        return xa + s0[:, None] * d, xa + s1[:, None] * d
+
+
+def _palm_chain(skeleton: Skeleton) -> np.ndarray:
+    """The root's children from the index to the little finger (MCPs), or empty."""
+    if skeleton.palm_joints is None:
+        return np.zeros(0, dtype=np.int64)
+    _, first, last = skeleton.palm_joints
+    kids = np.sort(skeleton.children(skeleton.root))
+    i, k = np.searchsorted(kids, first), np.searchsorted(kids, last)
+    return kids[min(i, k) : max(i, k) + 1]
+
+
+def build_model(
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    radii_mm: np.ndarray | None = None,
+    palm_dist_mm: np.ndarray | None = None,
+) -> HandModel:
+    """The capsule layout for ``skeleton`` with default radii (the skeleton's surface offsets of each
+    bone's parent joint; 12 mm for palm capsules); palm distances from the skeleton's template
+    pose geometry are unknown, so ``palm_dist_mm`` NaN means "no palm term" until
+    :func:`personalize` measures them."""
+    sk = skeleton
+    lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
+    bones = sk.bones
+    mcps = _palm_chain(sk)
+    extra = np.stack([mcps[:-1], mcps[1:]], axis=1) if len(mcps) > 1 else np.zeros((0, 2), int)
+    pairs = np.concatenate([bones, extra]).astype(np.int64)
+    offsets = np.asarray(sk.surface_offsets_mm, dtype=np.float64)
+    default = np.where(pairs[:, 0] == sk.root, 12.0, offsets[pairs[:, 0]])
+    default[len(bones) :] = 12.0
+    default = np.clip(default, 4.0, 20.0)
+    radii = default if radii_mm is None else np.asarray(radii_mm, dtype=np.float64)
+    tip = np.isin(pairs[:, 1], np.asarray(sk.fingertips, dtype=np.int64))
+    tip[len(bones) :] = False
+    kids = np.sort(sk.children(sk.root))
+    pp = np.array([(a, b) for i, a in enumerate(kids) for b in kids[i + 1 :]], dtype=np.int64)
+    pp = pp.reshape(-1, 2)
+    dist = np.full(len(pp), np.nan) if palm_dist_mm is None else np.asarray(palm_dist_mm, float)
+    if radii.shape != (len(pairs),):
+        raise ValueError(f"radii_mm must be ({len(pairs)},), got {radii.shape}")
+    return HandModel(sk, lengths, pairs, radii, tip, pp, dist)
+
+
+# ------------------------------------------------------------------------------------------------
+# observations of a frame
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class FrameObservations:
+    """What the fit sees of ``n`` frames (from their normalized crops).
+
+    ``points`` (n, M, 3) mm observed hand points, ``valid`` (n, M) bool; ``depth`` (n, S, S) mm
+    observed depth per crop pixel (NaN off the hand); ``nearest`` (n, S, S) int32 flat crop index
+    of the nearest hand pixel (distance transform); ``boxes`` (n, 4) crop boxes.
+    """
+
+    points: np.ndarray
+    valid: np.ndarray
+    depth: np.ndarray
+    nearest: np.ndarray
+    boxes: np.ndarray
+
+    def take(self, idx) -> FrameObservations:
+        return FrameObservations(
+            self.points[idx], self.valid[idx], self.depth[idx], self.nearest[idx], self.boxes[idx]
+        )
+
+
+def observe(
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = 220.0,
+    max_points: int = 512,
+) -> FrameObservations:
+    """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1).
+
+    Hand pixels are the crop values strictly inside (-1, 1); up to ``max_points`` of them, evenly
+    spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``.
+    """
+    n, s = crops.shape[0], crops.shape[-1]
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
+    zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
+    half = 0.5 * cube_mm
+    points = np.zeros((n, max_points, 3))
+    valid = np.zeros((n, max_points), dtype=bool)
+    depth = np.full((n, s, s), np.nan, dtype=np.float32)
+    nearest = np.zeros((n, s, s), dtype=np.int32)
+    grid = np.arange(s * s, dtype=np.int32).reshape(s, s)
+    for i in range(n):
+        crop = np.asarray(crops[i], dtype=np.float32)
+        fg = np.abs(crop) < 0.999
+        flat = np.flatnonzero(fg)
+        if len(flat) == 0 or not np.isfinite(zc[i]):
+            nearest[i] = grid
+            continue
+        # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front
+        # of every surface it could project onto after resampling (no false violations at edges)
+        d = minimum_filter(np.where(fg, zc[i] + half * crop, np.inf), size=3, mode="nearest")
+        depth[i] = np.where(np.isfinite(d), d, np.nan)
+        take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
+        pick = flat[np.unique(take)]
+        xy = np.stack([pick % s, pick // s], axis=-1).astype(np.float64)
+        uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled (nearest)
+        z = zc[i] + half * crop.reshape(-1)[pick].astype(np.float64)
+        points[i, : len(pick)] = camera.backproject(uv, z)
+        valid[i, : len(pick)] = True
+        _, ind = distance_transform_edt(~fg, return_indices=True)
+        nearest[i] = ind[0] * s + ind[1]
+    return FrameObservations(points, valid, depth, nearest, boxes)
+
+
+# ------------------------------------------------------------------------------------------------
+# weights and priors
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FitWeights:
+    """Weights λ of the per-frame model energy (see the module docstring for units).
+
+    ``data``/``free_space`` multiply the *mean* robust cost over a frame's points/samples, so a
+    frame's energy does not scale with the number of hand pixels.
+    """
+
+    data: float = 100.0
+    data_scale_mm: float = 12.0  #: scale of the robust point-to-surface loss
+    data_robust: str = "welsch"  #: "welsch" (redescending) or "huber"
+    free_space: float = 50.0
+    free_huber_mm: float = 5.0
+    free_margin_mm: float = 3.0  #: a model sample may lie this far in front of the observed surface
+    free_tolerance_px: float = 1.0  #: ... or this far (image px) off the silhouette
+    angle: float = (
+        0.1  #: per degree² outside the limits (0.01 let a thumb tip fold into its own capsule)
+    )
+    palm: float = 1.0
+    #: points near the root end of a palm capsule (foot at t <= forearm_t) and less than
+    #: forearm_margin_mm past the wrist towards the fingers are taken as forearm and ignored
+    forearm_t: float = 0.35
+    forearm_margin_mm: float = 25.0
+    collision: float = 1.0  #: per mm² of interpenetration of capsules of different fingers
+    collision_slack_mm: float = 1.0
+    pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)
+    pose_huber_mm: float = 20.0
+    uv: float = 0.002  #: per px² per joint to the prior 2D positions
+    iterations: int = 12
+
+
+@dataclass
+class Priors:
+    """Per-frame priors (n frames): ``pose`` (n,J,3) mm with weights ``pose_w`` (n,J) (0 = none);
+    ``uv`` (n,J,2) image px with ``uv_w`` (n,J)."""
+
+    pose: np.ndarray | None = None
+    pose_w: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    uv_w: np.ndarray | None = None
+
+    def take(self, idx) -> Priors:
+        def t(a):
+            return None if a is None else a[idx]
+
+        return Priors(t(self.pose), t(self.pose_w), t(self.uv), t(self.uv_w))
+
+
+# ------------------------------------------------------------------------------------------------
+# robust helpers
+# ------------------------------------------------------------------------------------------------
+def _huber(r_abs, delta):
+    inside = r_abs <= delta
+    cost = np.where(inside, 0.5 * r_abs**2, delta * (r_abs - 0.5 * delta))
+    return cost, np.where(inside, 1.0, delta / np.maximum(r_abs, 1e-12))
+
+
+def _welsch(r_abs, scale):
+    e = np.exp(-((r_abs / scale) ** 2))
+    return 0.5 * scale**2 * (1.0 - e), e
+
+
+# ------------------------------------------------------------------------------------------------
+# energy
+# ------------------------------------------------------------------------------------------------
+_SAMPLE_T = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
+_SAMPLE_PHI = np.radians([-45.0, 0.0, 45.0])
+
+
+def _nearest_capsule(points, a, b, radii):
+    """For points (n,M,3) and capsules A, B (n,C,3): index (n,M), t (n,M), distance to the axis
+    segment (n,M) mm, signed surface distance (n,M) of the nearest capsule surface."""
+    d = b - a
+    dd = np.maximum(np.einsum("ncx,ncx->nc", d, d), 1e-9)
+    pd = np.einsum("nmx,ncx->nmc", points, d) - np.einsum("ncx,ncx->nc", a, d)[:, None, :]
+    t = np.clip(pd / dd[:, None, :], 0.0, 1.0)
+    pa2 = (
+        np.einsum("nmx,nmx->nm", points, points)[..., None]
+        - 2.0 * np.einsum("nmx,ncx->nmc", points, a)
+        + np.einsum("ncx,ncx->nc", a, a)[:, None, :]
+    )
+    dist2 = np.maximum(pa2 - 2.0 * t * pd + t * t * dd[:, None, :], 0.0)
+    dist = np.sqrt(dist2)
+    sd = dist - radii
+    c = np.argmin(sd, axis=-1)
+    take = c[..., None]
+    return (
+        c,
+        np.take_along_axis(t, take, -1)[..., 0],
+        np.take_along_axis(dist, take, -1)[..., 0],
+        np.take_along_axis(sd, take, -1)[..., 0],
+    )
+
+
+class _Accumulator:
+    """Gauss-Newton normal equations in θ: H (n,P,P), g (n,P), from residual rows whose Jacobian
+    is taken through dX/dθ ``m4`` (n,J,3,P) at the joints each residual depends on."""
+
+    def __init__(self, m4: np.ndarray):
+        n, _, _, p = m4.shape
+        self.m4 = m4
+        self.rows = np.arange(n)[:, None]
+        self.h = np.zeros((n, p, p))
+        self.g = np.zeros((n, p))
+
+    def add_points(self, ja, jb, ca, cb, grad, w, r):
+        """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
+        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R)."""
+        shape = w.shape
+        ja, jb = np.broadcast_to(ja, shape), np.broadcast_to(jb, shape)
+        ca, cb = np.broadcast_to(ca, shape), np.broadcast_to(cb, shape)
+        jrow = np.einsum("nrx,nrxp->nrp", grad * ca[..., None], self.m4[self.rows, ja])
+        jrow += np.einsum("nrx,nrxp->nrp", grad * cb[..., None], self.m4[self.rows, jb])
+        jw = jrow * w[..., None]
+        self.h += np.matmul(jw.transpose(0, 2, 1), jrow)
+        self.g += np.einsum("nrp,nr->np", jw, r)
+
+    def add_joint(self, w3, g3):
+        """Per-joint x-space blocks ``w3`` (n,J,3,3) and gradients ``g3`` (n,J,3)."""
+        n, j, _, p = self.m4.shape
+        m = self.m4.reshape(n, 3 * j, p)
+        blocks = np.zeros((n, j, 3, j, 3))
+        idx = np.arange(j)
+        blocks[:, idx, :, idx, :] = w3.transpose(1, 0, 2, 3)
+        self.h += m.transpose(0, 2, 1) @ blocks.reshape(n, 3 * j, 3 * j) @ m
+        self.g += np.einsum("nrp,nr->np", m, g3.reshape(n, -1))
+
+
+def frame_energy(
+    model: HandModel,
+    kin: Kinematics,
+    root: np.ndarray,
+    u: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    weights: FitWeights,
+    priors: Priors | None = None,
+    want_jac: bool = False,
+):
+    """Energy of ``n`` frames at (root (n,3), u (n,B,3)).
+
+    Returns ``(energy (n,), terms {name: (n,)}, x (n,J,3), extra)``; with ``want_jac`` ``extra`` =
+    (H (n,P,P), g (n,P)) Gauss-Newton normal equations in θ, else per-capsule diagnostics
+    ``{"capsule_data_mm": (n,C) mean |point residual| (NaN: no points), "capsule_free": (n,C)
+    fraction of samples violating free space}``.
+    """
+    w = weights
+    x = kin.joints(root, u)
+    n, j = x.shape[:2]
+    a, b = model.capsules(x)
+    s0, s1 = model.fractions
+    pa, pb = model.pairs[:, 0], model.pairs[:, 1]
+    c_count = len(model.pairs)
+    terms = {}
+    acc = _Accumulator(kin.jacobian(u).reshape(n, j, 3, -1)) if want_jac else None
+
+    # ---------------- data: observed point -> nearest capsule surface
+    pts = obs.points
+    cidx, t, dist, sd = _nearest_capsule(pts, a, b, model.radii)
+    wrist_axis = x[:, model.palm_chain].mean(axis=1) - x[:, kin.root]
+    wrist_axis /= np.maximum(np.linalg.norm(wrist_axis, axis=-1, keepdims=True), 1e-9)
+    along = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis)
+    forearm = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    use = obs.valid & ~forearm
+    cnt = np.maximum(use.sum(axis=1), 1)
+    if w.data_robust == "huber":
+        cost, wr = _huber(np.abs(sd), w.data_scale_mm)
+    else:
+        cost, wr = _welsch(np.abs(sd), w.data_scale_mm)
+    lam = w.data / cnt
+    terms["data"] = lam * np.sum(np.where(use, cost, 0.0), axis=1)
+    ai = np.take_along_axis(a, cidx[..., None], 1)
+    bi = np.take_along_axis(b, cidx[..., None], 1)
+    q = ai + t[..., None] * (bi - ai)
+    nvec = (pts - q) / np.maximum(dist, 1e-9)[..., None]
+    tau = s0[cidx] + t * (s1[cidx] - s0[cidx])
+    if want_jac:
+        wgt = np.where(use, lam[:, None] * wr, 0.0)
+        acc.add_points(pa[cidx], pb[cidx], 1.0 - tau, tau, -nvec, wgt, sd)
+    else:
+        absr = np.where(use, np.abs(sd), 0.0)
+        onehot = (cidx[..., None] == np.arange(c_count)) & use[..., None]
+        num = onehot.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cap_data = np.einsum("nmc,nm->nc", onehot, absr) / num
+        cap_data[num == 0] = np.nan
+
+    # ---------------- free space: camera-facing samples must lie on the observed hand, not in front
+    axis = b - a
+    mid = 0.5 * (a + b)
+    e = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
+    v = -mid / np.linalg.norm(mid, axis=-1, keepdims=True)
+    vp = v - np.sum(v * e, axis=-1, keepdims=True) * e
+    vp /= np.maximum(np.linalg.norm(vp, axis=-1, keepdims=True), 1e-9)
+    side = np.cross(e, vp)
+    dirs = (
+        np.cos(_SAMPLE_PHI)[:, None, None, None] * vp
+        + np.sin(_SAMPLE_PHI)[:, None, None, None] * side
+    )
+    dirs = dirs.transpose(1, 2, 0, 3)  # (n,C,K_phi,3)
+    tt = np.repeat(_SAMPLE_T, len(_SAMPLE_PHI))  # (K,)
+    dirs = np.tile(dirs, (1, 1, len(_SAMPLE_T), 1))  # (n,C,K,3)
+    smp = (
+        a[:, :, None]
+        + tt[None, None, :, None] * axis[:, :, None]
+        + model.radii[:, None, None] * dirs
+    )
+    k_count = len(tt)
+    smp = smp.reshape(n, c_count * k_count, 3)
+    uv = camera.project(smp)
+    xy = image_to_crop(uv, obs.boxes[:, None, :])
+    s_px = obs.depth.shape[-1]
+    ix = np.clip(np.rint(np.nan_to_num(xy[..., 0], nan=-1.0)), 0, s_px - 1).astype(np.int64)
+    iy = np.clip(np.rint(np.nan_to_num(xy[..., 1], nan=-1.0)), 0, s_px - 1).astype(np.int64)
+    flat = iy * s_px + ix
+    inside = (
+        np.all(np.isfinite(xy), axis=-1)
+        & (np.abs(xy[..., 0] - ix) <= 0.5)
+        & (np.abs(xy[..., 1] - iy) <= 0.5)
+    )
+    dmap = obs.depth.reshape(n, -1)
+    d_obs = np.take_along_axis(dmap, flat, 1)
+    on_hand = inside & np.isfinite(d_obs)
+    front = np.where(on_hand, np.maximum(d_obs - w.free_margin_mm - smp[..., 2], 0.0), 0.0)
+    near = np.take_along_axis(obs.nearest.reshape(n, -1), flat, 1)
+    target_uv = crop_to_image(
+        np.stack([near % s_px, near // s_px], axis=-1).astype(np.float64), obs.boxes[:, None, :]
+    )
+    mm_per_px = smp[..., 2] / camera.fx
+    off = ~on_hand
+    duv = np.where(off[..., None], uv - target_uv, 0.0)
+    duv = np.nan_to_num(duv)
+    # a sample within ``free_tolerance_px`` image px of the silhouette is not penalized
+    dn = np.linalg.norm(duv, axis=-1)
+    duv *= (np.maximum(dn - w.free_tolerance_px, 0.0) / np.maximum(dn, 1e-9))[..., None]
+    off_mm = np.maximum(dn - w.free_tolerance_px, 0.0) * mm_per_px
+    viol = np.where(off, off_mm, front)
+    fcost, fw = _huber(viol, w.free_huber_mm)
+    lam_f = w.free_space / (c_count * k_count)
+    terms["free_space"] = lam_f * np.sum(fcost, axis=1)
+    if want_jac:
+        cap = np.repeat(np.arange(c_count), k_count)
+        ta = np.tile(tt, c_count)
+        tau_s = s0[cap] + ta * (s1[cap] - s0[cap])
+        ca = np.broadcast_to(1.0 - tau_s, (n, len(cap)))
+        cb = np.broadcast_to(tau_s, (n, len(cap)))
+        ja = np.broadcast_to(pa[cap], (n, len(cap)))
+        jb = np.broadcast_to(pb[cap], (n, len(cap)))
+        # in front of the surface: residual d_obs - margin - z (> 0), d/ds = -e_z
+        gz = np.zeros((n, len(cap), 3))
+        gz[..., 2] = -1.0
+        wf = lam_f * fw
+        acc.add_points(ja, jb, ca, cb, gz, np.where(on_hand & (front > 0), wf, 0.0), front)
+        # off the silhouette: residual (mm) per image axis, d/ds = mm_per_px · ∂π/∂s
+        pj = camera.projection_jacobian(smp) * mm_per_px[..., None, None]
+        for axis_i in (0, 1):
+            r_ax = duv[..., axis_i] * mm_per_px
+            acc.add_points(ja, jb, ca, cb, pj[..., axis_i, :], np.where(off, wf, 0.0), r_ax)
+    else:
+        cap_free = (viol > 1.0).reshape(n, c_count, k_count).mean(axis=-1)
+
+    # ---------------- collisions: capsules of different fingers must not interpenetrate
+    terms["collision"] = np.zeros(n)
+    fa, fk = model.collision_pairs
+    if w.collision > 0 and len(fa):
+        ts = np.array([0.0, 0.5, 1.0])
+        tau_s = s0[fa, None] + ts * (s1[fa, None] - s0[fa, None])  # (Q,3)
+        sp = a[:, fa, None] + ts[:, None] * (b[:, fa] - a[:, fa])[:, :, None]  # (n,Q,3,3)
+        ak, bk = a[:, fk, None], b[:, fk, None]
+        dk = bk - ak
+        tq = np.clip(
+            np.sum((sp - ak) * dk, axis=-1) / np.maximum(np.sum(dk * dk, axis=-1), 1e-9), 0, 1
+        )
+        qp = ak + tq[..., None] * dk
+        dv = sp - qp
+        dist = np.linalg.norm(dv, axis=-1)
+        pen = np.maximum(
+            model.radii[fa, None] + model.radii[fk, None] - w.collision_slack_mm - dist, 0
+        )
+        terms["collision"] = w.collision * 0.5 * np.sum(pen**2, axis=(1, 2))
+        if want_jac:
+            nv = (dv / np.maximum(dist, 1e-9)[..., None]).reshape(n, -1, 3)
+            wc = np.where(pen > 0, w.collision, 0.0).reshape(n, -1)
+            r = pen.reshape(n, -1)
+            tau_q = (s0[fk, None] + tq * (s1[fk, None] - s0[fk, None])).reshape(n, -1)
+            tau_s = np.broadcast_to(tau_s, (n,) + tau_s.shape).reshape(n, -1)
+            ia = np.broadcast_to(pa[fa, None], (n, len(fa), 3)).reshape(n, -1)
+            ib = np.broadcast_to(pb[fa, None], (n, len(fa), 3)).reshape(n, -1)
+            ka = np.broadcast_to(pa[fk, None], (n, len(fa), 3)).reshape(n, -1)
+            kb = np.broadcast_to(pb[fk, None], (n, len(fa), 3)).reshape(n, -1)
+            acc.add_points(ia, ib, 1.0 - tau_s, tau_s, -nv, wc, r)
+            acc.add_points(ka, kb, 1.0 - tau_q, tau_q, nv, wc, r)
+
+    # ---------------- palm shape
+    terms["palm"] = np.zeros(n)
+    ok = np.isfinite(model.palm_dist_mm)
+    if w.palm > 0 and np.any(ok):
+        qa, qb = model.palm_pairs[ok, 0], model.palm_pairs[ok, 1]
+        dv = x[:, qa] - x[:, qb]
+        ln = np.linalg.norm(dv, axis=-1)
+        r = ln - model.palm_dist_mm[ok]
+        terms["palm"] = w.palm * 0.5 * np.sum(r**2, axis=1)
+        if want_jac:
+            unit = dv / np.maximum(ln, 1e-9)[..., None]
+            acc.add_points(qa, qb, 1.0, -1.0, unit, np.full((n, len(qa)), w.palm), r)
+
+    # ---------------- priors: pose (temporal closeness / start) and 2D
+    terms["pose"] = np.zeros(n)
+    terms["uv"] = np.zeros(n)
+    if priors is not None and priors.pose is not None and w.pose > 0:
+        dvec = np.nan_to_num(x - priors.pose)
+        pw = np.where(np.all(np.isfinite(priors.pose), axis=-1), priors.pose_w, 0.0)
+        pc, pirls = _huber(np.linalg.norm(dvec, axis=-1), w.pose_huber_mm)
+        terms["pose"] = w.pose * np.sum(pw * pc, axis=1)
+        if want_jac:
+            ww = w.pose * pw * pirls
+            acc.add_joint(ww[..., None, None] * np.eye(3), ww[..., None] * dvec)
+    if priors is not None and priors.uv is not None and w.uv > 0:
+        pj = camera.projection_jacobian(x)
+        res = np.nan_to_num(camera.project(x) - priors.uv)
+        uw = np.where(np.all(np.isfinite(priors.uv), axis=-1), priors.uv_w, 0.0)
+        terms["uv"] = w.uv * 0.5 * np.sum(uw * np.sum(res**2, axis=-1), axis=1)
+        if want_jac:
+            ww = (w.uv * uw)[..., None, None]
+            acc.add_joint(
+                ww * np.einsum("nkac,nkad->nkcd", pj, pj),
+                ww[..., 0] * np.einsum("nkac,nka->nkc", pj, res),
+            )
+
+    # ---------------- joint-angle limits
+    terms["angle"] = np.zeros(n)
+    ang = None
+    if w.angle > 0 and model.skeleton.flexion_limits_deg is not None:
+        v0 = angle_violation(model.skeleton, x)
+        hit = np.flatnonzero(np.any(v0 > 0, axis=1))
+        if want_jac and len(hit):
+            ang = (hit, *angle_jacobian(model.skeleton, kin, root[hit], u[hit]))
+        terms["angle"] = w.angle * 0.5 * np.sum(v0**2, axis=1)
+
+    energy = sum(terms.values())
+    if not want_jac:
+        return energy, terms, x, {"capsule_data_mm": cap_data, "capsule_free": cap_free}
+    h, g = acc.h, acc.g
+    if ang is not None:
+        hit, va, jac_a = ang
+        h[hit] += w.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
+        g[hit] += w.angle * np.einsum("nap,na->np", jac_a, va)
+    return energy, terms, x, (h, g)
+
+
+# ------------------------------------------------------------------------------------------------
+# the fit
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class FitResult:
+    """``joints_mm`` (n,J,3), ``energy`` (n,) final, ``energy_start`` (n,) at the start, ``terms``
+    per term (n,), ``root``/``u`` the parameters, ``iterations`` run."""
+
+    joints_mm: np.ndarray
+    energy: np.ndarray
+    energy_start: np.ndarray
+    terms: dict
+    root: np.ndarray
+    u: np.ndarray
+    iterations: int
+
+
+def fit_frames(
+    model: HandModel,
+    start_mm: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    *,
+    weights: FitWeights | None = None,
+    priors: Priors | None = None,
+    iterations: int | None = None,
+    kin: Kinematics | None = None,
+) -> FitResult:
+    """Fit the model to ``n`` frames independently from poses ``start_mm`` (n,J,3) mm.
+
+    Levenberg-Marquardt per frame (batched), each step accepted only if it lowers that frame's
+    energy; stops when no frame improves by more than 1e-4 relative.
+    """
+    w = weights or FitWeights()
+    kin = kin or Kinematics(model.skeleton, model.bone_lengths_mm)
+    start = np.asarray(start_mm, dtype=np.float64)
+    n = start.shape[0]
+    root, u = kin.fit(start)
+    energy, terms, x, (h, g) = frame_energy(model, kin, root, u, obs, camera, w, priors, True)
+    e_start = energy.copy()
+    lam = np.full(n, 1e-3)
+    eye = np.eye(kin.num_params)
+    active = np.ones(n, dtype=bool)
+    it = 0
+    for _ in range(iterations or w.iterations):
+        it += 1
+        dg = np.einsum("npp->np", h) + 1e-6
+        step = -np.linalg.solve(h + (lam[:, None] * dg)[:, :, None] * eye, g[..., None])[..., 0]
+        step[~active] = 0.0
+        root_n, u_n = kin.retract(root, u, step)
+        e_n, t_n, x_n, (h_n, g_n) = frame_energy(
+            model, kin, root_n, u_n, obs, camera, w, priors, True
+        )
+        better = active & np.isfinite(e_n) & (e_n < energy)
+        rel = np.where(better, (energy - e_n) / np.maximum(energy, 1e-12), 0.0)
+        root = np.where(better[:, None], root_n, root)
+        u = np.where(better[:, None, None], u_n, u)
+        h = np.where(better[:, None, None], h_n, h)
+        g = np.where(better[:, None], g_n, g)
+        x = np.where(better[:, None, None], x_n, x)
+        terms = {k: np.where(better, t_n[k], terms[k]) for k in terms}
+        energy = np.where(better, e_n, energy)
+        lam = np.where(better, np.maximum(lam * 0.3, 1e-7), lam * 10.0)
+        active &= ~(better & (rel < 1e-4)) & (lam < 1e4)
+        if not np.any(active):
+            break
+    return FitResult(x, energy, e_start, terms, root, u, it)
+
+
+# ------------------------------------------------------------------------------------------------
+# personalization
+# ------------------------------------------------------------------------------------------------
+def estimate_radii(
+    model: HandModel,
+    joints_mm: np.ndarray,
+    obs: FrameObservations,
+    *,
+    iterations: int = 6,
+    scale_mm: float = 4.0,
+    min_points: int = 30,
+    bounds_mm: tuple[float, float] = (3.0, 25.0),
+) -> np.ndarray:
+    """Capsule radii (C,) mm from posed frames ``joints_mm`` (K,J,3) and their observations.
+
+    Each observed point is assigned to the nearest capsule surface under the current radii; a
+    capsule's radius is then the Welsch-weighted mean (scale ``scale_mm``) of its points' distance
+    to its axis segment, using only points whose foot lies strictly inside the segment
+    (``0.1 < t < 0.9``, away from the joints where capsules overlap). Repeated ``iterations``
+    times; capsules with fewer than ``min_points`` points keep their radius.
+    """
+    radii = model.radii.copy()
+    x = np.asarray(joints_mm, dtype=np.float64)
+    keep = np.all(np.isfinite(x), axis=(1, 2))
+    x = x[keep]
+    obs = obs.take(np.flatnonzero(keep))
+    if len(x) == 0:
+        return radii
+    c_count = len(radii)
+    for _ in range(iterations):
+        cur = replace(model, radii=radii)
+        a, b = cur.capsules(x)
+        cidx, t, dist, sd = _nearest_capsule(obs.points, a, b, radii)
+        ok = obs.valid & (t > 0.1) & (t < 0.9)
+        new = radii.copy()
+        for c in range(c_count):
+            sel = ok & (cidx == c)
+            if sel.sum() < min_points:
+                continue
+            dd = dist[sel]
+            r = radii[c]
+            for _ in range(5):
+                wts = np.exp(-(((dd - r) / scale_mm) ** 2))
+                r = float(np.sum(wts * dd) / max(np.sum(wts), 1e-9))
+            new[c] = np.clip(r, *bounds_mm)
+        if np.max(np.abs(new - radii)) < 0.01:
+            radii = new
+            break
+        radii = new
+    return radii
+
+
+def personalize(
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    reference_joints_mm: np.ndarray,
+    obs: FrameObservations,
+) -> HandModel:
+    """The hand model of a sequence: bone lengths (from the lift), radii fitted to the references'
+    point clouds, palm distances = median over the references' lifted poses (K,J,3)."""
+    model = build_model(skeleton, bone_lengths_mm)
+    x = np.asarray(reference_joints_mm, dtype=np.float64)
+    fin = np.all(np.isfinite(x), axis=(1, 2))
+    if np.any(fin):
+        dv = x[fin][:, model.palm_pairs[:, 0]] - x[fin][:, model.palm_pairs[:, 1]]
+        model = replace(model, palm_dist_mm=np.median(np.linalg.norm(dv, axis=-1), axis=0))
+    return replace(model, radii=estimate_radii(model, x, obs))

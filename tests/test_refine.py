@@ -209,7 +209,7 @@ def test_rejects_bad_shapes(scene):
 def test_hand_model_term_improves_and_never_keeps_a_worse_frame(scene):
     gt = scene["gt"]
     init = _perturb(gt, scene["refs"])
-    on = _run(scene, init, iterations=8, weights=RefineWeights(model=1.0))
+    on = _run(scene, init, iterations=8, weights=RefineWeights(model=1.0), hand_model=True)
     off = _run(scene, init, iterations=8, hand_model=False)
     assert on.terms["model"] > 0 and "model" not in off.terms
     assert np.all(np.diff(on.energy_history) <= 0)

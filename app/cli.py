@@ -79,6 +79,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2)
 
+    p = sub.add_parser(
+        "suite", help="write the benchmark suite (tune and report parts) with suite.json"
+    )
+    p.add_argument("out_dir", metavar="OUT_DIR")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--part", choices=["tune", "report", "all"], default="all")
+    p.add_argument(
+        "--frames-scale", type=float, default=1.0, help="scale every sequence's length (0.5: half)"
+    )
+    p.add_argument("--workers", type=int, default=2)
+
     p = sub.add_parser("new", help="create a session for a depth dataset")
     session_arg(p)
     p.add_argument("dataset", metavar="DATASET")
@@ -131,7 +142,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("json_file", type=Path)
 
     p = sub.add_parser("bench", help="whole pipeline with the simulated annotator; JSON report")
-    p.add_argument("dataset", metavar="DATASET")
+    p.add_argument(
+        "dataset", metavar="DATASET", nargs="+", help="datasets and/or suite folders (suite.json)"
+    )
+    p.add_argument(
+        "--part",
+        choices=["tune", "report", "all"],
+        help="which part of a suite folder to run (required for a suite folder)",
+    )
     p.add_argument("--format", choices=["msra", "blender", "nyu", "icvl", "folder"])
     p.add_argument("--ref-fraction", type=_floats, default=[0.02, 0.05, 0.10])
     p.add_argument("--strategy", type=_strings, default=["forest", "chain", "coverage", "uniform"])
@@ -202,6 +220,19 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             args.out_dir, frames=args.frames, seed=args.seed, workers=args.workers
         )
         print(open_sequence(out).describe())
+    elif cmd == "suite":
+        from handanno_core.suite import generate_suite
+
+        manifest = generate_suite(
+            args.out_dir,
+            seed=args.seed,
+            part=args.part,
+            frames_scale=args.frames_scale,
+            workers=args.workers,
+        )
+        for e in manifest["sequences"]:
+            print(f"{e['part']:>6} {e['name']:<28} {e['frames']:5d} frames  {e['motion']}")
+        print(manifest["split"])
     elif cmd == "new":
         from handanno_core.session import resolve_session
 
@@ -262,10 +293,16 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         n = import_json(_open(args), args.json_file)
         print(f"imported joints for {n} frames")
     elif cmd == "bench":
-        from handanno_core.bench import run_bench
+        from handanno_core.bench import expand_datasets, run_bench_datasets
 
-        run_bench(
+        try:
+            expand_datasets(args.dataset, args.part)  # fail fast on a suite without --part
+        except ValueError as exc:
+            print(f"handanno bench: error: {exc}", file=sys.stderr)
+            return 2
+        run_bench_datasets(
             args.dataset,
+            part=args.part,
             format=args.format,
             fractions=args.ref_fraction,
             strategies=args.strategy,

@@ -229,8 +229,14 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
 
 #: bone-length factors: prior SD of their logarithm (per bone, around the global scale); the
 #: residual weight turns one SD into this many mm of marker error
-_BONE_LOG_SD = 0.15
+_BONE_LOG_SD = 0.08
 _PRIOR_MM = 2.0
+#: prior SD of a bone marker's position along its bone (fraction of the bone) around its start
+#: value: without it the global scale trades off against where the markers sit
+_MARKER_T_SD = 0.25
+#: prior SD (mm) of a hand-frame marker (palm centre, wrist sides) around its start value: without
+#: it the metacarpals' lengths trade off against where the palm markers sit
+_MARKER_OFFSET_SD_MM = 10.0
 #: soft couplings per frame (mm per degree): DIP = 2/3 PIP, thumb MCP abduction 0
 _COUPLING_MM_PER_DEG = 0.05
 
@@ -240,7 +246,7 @@ def fit_skeleton(
     markers: tuple[Marker, ...],
     *,
     shape_frames: int = 30,
-    shape_iterations: int = 15,
+    shape_iterations: int = 30,
     pose_iterations: int = 30,
 ) -> SkeletonFit:
     """Inverse kinematics of the synthetic MSRA21 hand to recorded joints ``(N, K, 3)`` mm.
@@ -342,18 +348,28 @@ def fit_skeleton(
         shared = x[s0:]
         r = frame_residuals(hand(shared), shared, x[:s0].reshape(m, per_frame), sel)
         prior = np.concatenate(
-            [_PRIOR_MM / _BONE_LOG_SD * shared[1:21], [_PRIOR_MM / 0.1 * shared[21]]]
+            [
+                _PRIOR_MM / _BONE_LOG_SD * shared[1:21],
+                [_PRIOR_MM / 0.1 * shared[21]],
+                _PRIOR_MM / _MARKER_T_SD * (shared[22 : 22 + len(bone_idx)] - t0),
+                _PRIOR_MM / _MARKER_OFFSET_SD_MM * (shared[22 + len(bone_idx) :] - offset0),
+            ]
         )
         return np.concatenate([r.ravel(), prior])
 
     rows_per_frame = k_count * 3 + len(dip_pairs) + 1
-    sparsity = lil_matrix((m * rows_per_frame + 21, s0 + shared0.size), dtype=np.int8)
+    t0 = np.array([markers[i].t for i in bone_idx])
+    offset0 = shared0[22 + len(bone_idx) :].copy()
+    n_prior = 21 + len(bone_idx) + offset0.size
+    sparsity = lil_matrix((m * rows_per_frame + n_prior, s0 + shared0.size), dtype=np.int8)
     for f in range(m):
         sparsity[
             f * rows_per_frame : (f + 1) * rows_per_frame, f * per_frame : (f + 1) * per_frame
         ] = 1
     sparsity[: m * rows_per_frame, s0:] = 1
-    sparsity[m * rows_per_frame :, s0 + 1 : s0 + 22] = 1
+    sparsity[m * rows_per_frame : m * rows_per_frame + 21, s0 + 1 : s0 + 22] = 1
+    for k in range(len(bone_idx) + offset0.size):
+        sparsity[m * rows_per_frame + 21 + k, s0 + 22 + k] = 1
     sol = least_squares(
         residuals,
         np.concatenate([frames0[sel].ravel(), shared0]),

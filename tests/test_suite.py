@@ -313,3 +313,35 @@ def test_bench_over_two_datasets_end_to_end(tmp_path):
     means = [d["runs"][0]["final"]["mean_mm"] for d in doc["datasets"]]
     assert row["final"]["mean_of_means_mm"] == pytest.approx(np.mean(means), abs=1e-3)
     assert (tmp_path / "two.datasets" / "s2.json").is_file()
+
+
+def test_cli_bench_refuses_a_suite_without_part(small_suite, tmp_path, capsys):
+    from app.cli import main
+
+    assert main(["bench", str(small_suite), "--json", str(tmp_path / "b.json")]) == 2
+    err = capsys.readouterr().err
+    assert "needs --part" in err and str(small_suite) in err and "\n" == err[-1]
+    assert not (tmp_path / "b.json").exists()
+
+
+def test_cli_suite_command(tmp_path, capsys, monkeypatch):
+    from app.cli import main
+
+    monkeypatch.setattr(
+        suite,
+        "catalogue",
+        lambda seed, real_motion=None: [
+            suite.SuiteSequence("tune-x", "tune", "smooth", 100, seed + 1),
+            suite.SuiteSequence("report-x", "report", "fast", 100, seed + 2, hand="varied"),
+        ],
+    )
+    out = tmp_path / "s"
+    assert (
+        main(["suite", str(out), "--part", "report", "--frames-scale", "0.3", "--workers", "1"])
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "report-x" in text and "tune-x" not in text and "report part only" in text
+    manifest = json.loads((out / "suite.json").read_text())
+    assert [e["name"] for e in manifest["sequences"]] == ["report-x"]
+    assert len(open_sequence(out / "report-x")) == 30

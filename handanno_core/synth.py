@@ -103,11 +103,67 @@ def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
     template = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
     scale = rng.uniform(0.92, 1.08)
     jitter = np.clip(rng.normal(1.0, 0.025, len(template)), 0.95, 1.05)
-    lengths = template * scale * jitter
+    return build_hand_model(template * scale * jitter, scale)
+
+
+# Hand-shape variation (make_varied_hand_model), from published hand measurements:
+# * overall size: hand length of adults is about 180 mm (women) to 194 mm (men) with SDs of about
+#   9 mm (ANSUR II: Gordon et al., "2012 Anthropometric Survey of U.S. Army Personnel", NATICK
+#   TR-15/007, 2014), so 0.8-1.2x of the template spans small women's to large men's hands;
+# * per-finger proportions: phalanx and metacarpal lengths vary with coefficients of variation of
+#   about 6-9 % (Buryanov & Kotiuk, "Proportions of hand segments", Int. J. Morphol. 28(3):755-758,
+#   2010); most of that is overall size, so after the global scale each finger gets a factor of
+#   SD 3.5 % and each bone one of SD 3 %;
+# * finger thickness: finger breadths at the PIP and DIP joints (e.g. index PIP about 21 mm in men,
+#   18.5 mm in women, SDs about 1.1-1.3 mm, i.e. 6 %: Greiner, "Hand Anthropometry of U.S. Army
+#   Personnel", NATICK TR-92/011, 1991): radii scale with size, times a per-hand factor of SD 6 %
+#   (slender or stubby fingers) and a per-finger factor of SD 3 %;
+# * hand breadth relative to length: SD about 5 % (same surveys): the MCP spread gets its own factor.
+SHAPE_FINGER_SD = 0.035
+SHAPE_BONE_SD = 0.03
+SHAPE_RADIUS_SD = 0.06
+SHAPE_RADIUS_FINGER_SD = 0.03
+SHAPE_BREADTH_SD = 0.05
+
+
+def make_varied_hand_model(
+    seed: int, scale: float | None = None, skeleton: Skeleton = MSRA21
+) -> HandModel:
+    """A hand drawn from adult hand measurements (see the comment above): overall ``scale``
+    (None: uniform 0.8-1.2), per-finger and per-bone proportions, finger radii and palm breadth.
+    Factors are normal with the SDs above, clipped at 2.5 SD."""
+    rng = np.random.default_rng([seed, 102])
+    template = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    size = rng.uniform(0.8, 1.2) if scale is None else float(scale)
+
+    def factor(sd: float, n: int) -> np.ndarray:
+        return 1.0 + np.clip(rng.normal(0.0, sd, n), -2.5 * sd, 2.5 * sd)
+
+    per_finger = np.repeat(factor(SHAPE_FINGER_SD, 5), 4)  # bones are 4 per finger (MSRA21)
+    lengths = template * size * per_finger * factor(SHAPE_BONE_SD, len(template))
+    radii = (
+        _FINGER_RADII
+        * size
+        * factor(SHAPE_RADIUS_SD, 1)
+        * factor(SHAPE_RADIUS_FINGER_SD, 5)[:, None]
+    )
+    breadth = float(factor(SHAPE_BREADTH_SD, 1)[0])
+    return build_hand_model(lengths, size * breadth, radii, thickness_scale=size)
+
+
+def build_hand_model(
+    lengths: np.ndarray,
+    spread_scale: float = 1.0,
+    finger_radii: np.ndarray | None = None,
+    thickness_scale: float = 1.0,
+) -> HandModel:
+    """A :class:`HandModel` from bone lengths ``(20,)`` mm (MSRA21 order), the MCP spread's scale,
+    finger radii ``(5, 3)`` mm (None: the template's) and a palm/forearm thickness scale."""
+    lengths = np.asarray(lengths, dtype=np.float64)
     base = np.zeros((21, 3))
     # MCPs spread across ~52 mm (scaled), slight transverse arch (middle/ring dorsal, -z).
-    xs = np.array([26.0, 8.0, -10.0, -26.0]) * scale
-    zs = np.array([0.0, -3.0, -2.0, 0.0]) * scale
+    xs = np.array([26.0, 8.0, -10.0, -26.0]) * spread_scale
+    zs = np.array([0.0, -3.0, -2.0, 0.0]) * spread_scale
     for f, (mcp, bone) in enumerate(zip((1, 5, 9, 13), (0, 4, 8, 12), strict=True)):
         length = lengths[bone]
         y = np.sqrt(length**2 - xs[f] ** 2 - zs[f] ** 2)
@@ -117,7 +173,16 @@ def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
     n = np.cross(base[1], base[13])
     n /= np.linalg.norm(n)
     palm_centre = np.array([0.0, 0.5 * base[[1, 5, 9, 13], 1].mean(), 0.0])
-    return HandModel(lengths, base, palm_centre, n)
+    radii = _FINGER_RADII.copy() if finger_radii is None else np.asarray(finger_radii, float)
+    return HandModel(
+        lengths,
+        base,
+        palm_centre,
+        n,
+        radii,
+        _PALM_HALF_THICKNESS * thickness_scale,
+        _FOREARM_RADIUS * thickness_scale,
+    )
 
 
 # ---------------------------------------------------------------------------- kinematics
@@ -324,7 +389,14 @@ def _max_step_mm(model: HandModel, params: np.ndarray, glob: np.ndarray) -> floa
     return float(np.linalg.norm(np.diff(joints, axis=0), axis=-1).max())
 
 
-def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
+def synthesize_motion(
+    frames: int,
+    seed: int = 0,
+    *,
+    model: HandModel | None = None,
+    speed_mm: tuple[float, float] | None = None,
+    hold_frames: tuple[int, int] = (0, 40),
+) -> SynthMotion:
     """Generate the motion (articulation + global pose) of a ``frames``-long sequence.
 
     Keyframes pick a gesture (random, never the same twice in a row) with a few degrees of
@@ -333,11 +405,15 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
     transition to the next one is timed so that the fastest joint moves at a target peak speed of
     2.5-6 mm/frame (about 1 in 8 transitions is fast: 9-10 mm/frame). A small smooth tremor
     (about 1 degree, 1 mm) runs throughout.
+
+    ``model`` replaces the per-seed hand of :func:`make_hand_model`; ``speed_mm`` (low, high)
+    replaces the peak-speed mix with one uniform range (fast motion: transitions of 3 or more
+    frames); ``hold_frames`` (low, high) bounds the holds after the first keyframe.
     """
     if frames < 1:
         raise ValueError("frames must be >= 1")
     rng = np.random.default_rng([seed, 202])
-    model = make_hand_model(seed)
+    model = make_hand_model(seed) if model is None else model
     lib = gesture_library(model)
     names = sorted(lib)
     keyframes: list[Keyframe] = []
@@ -363,7 +439,10 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
     name, rev, params, glob = new_keyframe(0, None)
     current = Keyframe(0, name, rev, 0, 0, params, glob)
     while True:
-        hold = int(rng.integers(0, 8)) if not keyframes else int(rng.integers(0, 41))
+        if keyframes:
+            hold = int(rng.integers(hold_frames[0], hold_frames[1] + 1))
+        else:
+            hold = int(rng.integers(0, min(8, hold_frames[1] + 1)))
         current.hold = hold
         current.frame = total
         keyframes.append(current)
@@ -374,13 +453,16 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
             break
         name, rev, params, glob = new_keyframe(len(keyframes), current.gesture)
         # time the transition for a target peak joint speed (mm/frame)
-        speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+        if speed_mm is None:
+            speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+        else:
+            speed = rng.uniform(*speed_mm)
         probe = 60
         p_probe, g_probe = _segment(current, params, glob, probe)
         p_probe = np.concatenate([current.params[None], p_probe])
         g_probe = np.concatenate([current.glob[None], g_probe])
         step = _max_step_mm(model, p_probe, g_probe)
-        n = max(6, int(np.ceil(probe * step / speed)))
+        n = max(6 if speed_mm is None else 3, int(np.ceil(probe * step / speed)))
         current.transition = n
         p_seg, g_seg = _segment(current, params, glob, n)
         params_parts.append(p_seg)
@@ -1119,7 +1201,9 @@ __all__ = [
     "gesture_library",
     "hand_primitives",
     "local_pose",
+    "build_hand_model",
     "make_hand_model",
+    "make_varied_hand_model",
     "render_depth",
     "render_frame",
     "rotation_matrices",

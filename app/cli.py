@@ -122,6 +122,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed of the motion and hand shape")
     p.add_argument("--workers", type=int, default=2, help="processes rendering frames")
 
+    p = add("suite", "write the benchmark suite (tune and report parts) with suite.json")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="folder to write the suite to")
+    p.add_argument("--seed", type=int, default=0, help="random seed of every generated sequence")
+    p.add_argument(
+        "--part", choices=["tune", "report", "all"], default="all", help="which part to write"
+    )
+    p.add_argument(
+        "--frames-scale", type=float, default=1.0, help="scale every sequence's length (0.5: half)"
+    )
+    p.add_argument("--workers", type=int, default=2, help="processes rendering frames")
+
     p = add("new", "create a session for a depth dataset")
     session_arg(p)
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (or file list)")
@@ -193,7 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
 
     p = add("bench", "whole pipeline with the simulated annotator; JSON report")
-    p.add_argument("dataset", metavar="DATASET", help="dataset folder with ground truth")
+    p.add_argument(
+        "dataset", metavar="DATASET", nargs="+", help="datasets and/or suite folders (suite.json)"
+    )
+    p.add_argument(
+        "--part",
+        choices=["tune", "report", "all"],
+        help="which part of a suite folder to run (required for a suite folder)",
+    )
     p.add_argument("--format", choices=FORMATS, help="dataset layout (default: detected)")
     p.add_argument(
         "--ref-fraction",
@@ -309,6 +327,19 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             args.out_dir, frames=args.frames, seed=args.seed, workers=args.workers
         )
         print(open_sequence(out).describe())
+    elif cmd == "suite":
+        from handanno_core.suite import generate_suite
+
+        manifest = generate_suite(
+            args.out_dir,
+            seed=args.seed,
+            part=args.part,
+            frames_scale=args.frames_scale,
+            workers=args.workers,
+        )
+        for e in manifest["sequences"]:
+            print(f"{e['part']:>6} {e['name']:<28} {e['frames']:5d} frames  {e['motion']}")
+        print(manifest["split"])
     elif cmd == "new":
         from handanno_core.session import resolve_session
 
@@ -375,10 +406,16 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         n = import_json(_open(args, write=True), args.json_file)
         print(f"imported joints for {n} frames")
     elif cmd == "bench":
-        from handanno_core.bench import run_bench
+        from handanno_core.bench import expand_datasets, run_bench_datasets
 
-        run_bench(
+        try:
+            expand_datasets(args.dataset, args.part)  # fail fast on a suite without --part
+        except ValueError as exc:
+            print(f"handanno bench: error: {exc}", file=sys.stderr)
+            return 2
+        run_bench_datasets(
             args.dataset,
+            part=args.part,
             format=args.format,
             fractions=args.ref_fraction,
             strategies=args.strategy,

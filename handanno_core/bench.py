@@ -202,3 +202,135 @@ def plot_error_vs_fraction(doc: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+# ---------------------------------------------------------------------------- several datasets
+def expand_datasets(paths: list[str | Path], part: str | None = None) -> list[dict]:
+    """The datasets a bench call names: each path is a dataset, or a suite folder (``suite.json``,
+    see :mod:`handanno_core.suite`) that stands for its ``part`` (tune, report or all; required for
+    a suite folder, so nobody reports on the tune part or tunes on the report part by default).
+
+    Returns ``[{"name", "part", "path"}]`` (``part`` None for a plain dataset), names unique.
+    """
+    from .suite import is_suite, read_suite
+
+    out: list[dict] = []
+    for path in paths:
+        if is_suite(path):
+            if part is None:
+                raise ValueError(f"{path}: a suite folder needs --part tune, report or all")
+            out += [{"name": n, "part": p, "path": str(f)} for n, p, f in read_suite(path, part)]
+        else:
+            out.append({"name": Path(path).name, "part": None, "path": str(path)})
+    seen: dict[str, int] = {}
+    for d in out:
+        seen[d["name"]] = seen.get(d["name"], 0) + 1
+        if seen[d["name"]] > 1:
+            d["name"] = f"{d['name']}-{seen[d['name']]}"
+    return out
+
+
+def summarize_datasets(docs: list[dict]) -> list[dict]:
+    """Per (strategy, fraction, noise, bones): the mean over datasets of each dataset's mean error
+    and the worst max (mm), for lift, init, final and final_non_reference; ``datasets`` counts
+    the datasets that ran that configuration; ``refine_worse`` lists those where final > init."""
+    groups: dict[tuple, list[tuple[str, dict]]] = {}
+    for doc in docs:
+        for run in doc["runs"]:
+            key = (run["strategy"], run["ref_fraction_target"], run["noise_px"], run["bones"])
+            groups.setdefault(key, []).append((doc.get("name", doc["dataset"]), run))
+    rows = []
+    for (strategy, fraction, noise, bones), runs in groups.items():
+        row = {
+            "strategy": strategy,
+            "ref_fraction_target": fraction,
+            "noise_px": noise,
+            "bones": bones,
+            "datasets": len(runs),
+        }
+        for stage in ("lift", "init", "final", "final_non_reference"):
+            row[stage] = {
+                "mean_of_means_mm": round(
+                    float(np.mean([r[stage]["mean_mm"] for _, r in runs])), 3
+                ),
+                "worst_mean_mm": round(float(max(r[stage]["mean_mm"] for _, r in runs)), 3),
+                "worst_max_mm": round(float(max(r[stage]["max_mm"] for _, r in runs)), 3),
+            }
+        row["refine_worse"] = [
+            name for name, r in runs if r["final"]["mean_mm"] > r["init"]["mean_mm"]
+        ]
+        row["timings_s"] = {
+            k: round(float(sum(r["timings_s"].get(k, 0.0) for _, r in runs)), 3)
+            for k in runs[0][1]["timings_s"]
+        }
+        rows.append(row)
+    return rows
+
+
+def format_summary(doc: dict) -> str:
+    """The suite summary table of :func:`run_bench_datasets`' JSON."""
+    head = (
+        f"{'strategy':>10} {'refs':>6} {'n':>3} | {'lift':>5} | {'init':>6} | {'final: mean':>11} "
+        f"{'worst':>6} {'max':>7} | {'nonref':>6} | refine worse on"
+    )
+    lines = [
+        f"suite summary over {len(doc['datasets'])} datasets ({doc['frames']} frames): "
+        "mean of per-dataset means, worst per-dataset mean, worst max (mm)",
+        head,
+    ]
+    for r in doc["summary"]:
+        lines.append(
+            f"{r['strategy']:>10} {r['ref_fraction_target'] * 100:5.1f}% {r['datasets']:3d} "
+            f"| {r['lift']['mean_of_means_mm']:5.2f} | {r['init']['mean_of_means_mm']:6.2f} "
+            f"| {r['final']['mean_of_means_mm']:11.2f} {r['final']['worst_mean_mm']:6.2f} "
+            f"{r['final']['worst_max_mm']:7.1f} | {r['final_non_reference']['mean_of_means_mm']:6.2f} "
+            f"| {', '.join(r['refine_worse']) or '-'}"
+        )
+    return "\n".join(lines)
+
+
+def run_bench_datasets(
+    paths: list[str | Path],
+    *,
+    part: str | None = None,
+    json_out: str | Path = "bench.json",
+    quiet: bool = False,
+    **kwargs,
+) -> dict:
+    """``handanno bench`` over several datasets or suite folders (:func:`expand_datasets`).
+
+    One dataset: exactly :func:`run_bench` (today's JSON). Several: :func:`run_bench` per dataset
+    (its JSON and plot under ``<json_out stem>.datasets/<name>.json``, its table printed), then a
+    suite summary (:func:`summarize_datasets`); ``json_out`` gets ``{"datasets": [each dataset's
+    JSON plus name, part, 1-minute load average before and after], "summary": [...], "frames",
+    "machine", "part"}``, rewritten after every dataset. ``kwargs`` go to :func:`run_bench`.
+    """
+    import os
+
+    datasets = expand_datasets(paths, part)
+    if len(datasets) == 1 and datasets[0]["part"] is None:
+        return run_bench(datasets[0]["path"], json_out=json_out, quiet=quiet, **kwargs)
+    json_out = Path(json_out)
+    json_out.parent.mkdir(parents=True, exist_ok=True)
+    folder = json_out.with_name(json_out.stem + ".datasets")
+    folder.mkdir(parents=True, exist_ok=True)
+    suite = {
+        "part": part,
+        "machine": machine_description(),
+        "frames": 0,
+        "datasets": [],
+        "summary": [],
+    }
+    for d in datasets:
+        load_before = os.getloadavg()[0]
+        doc = run_bench(d["path"], json_out=folder / f"{d['name']}.json", quiet=quiet, **kwargs)
+        entry = {"name": d["name"], "part": d["part"], **doc}
+        entry["load_avg_1m"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
+        suite["datasets"].append(entry)
+        suite["frames"] += doc["frames"]
+        suite["summary"] = summarize_datasets(suite["datasets"])
+        json_out.write_text(json.dumps(suite, indent=2))
+    if not quiet:
+        print()
+        print(format_summary(suite))
+    return suite

@@ -72,6 +72,15 @@ _PALM_HALF_THICKNESS = 12.5
 _FOREARM_RADIUS = 22.0
 _FOREARM_SPREAD = 8.0
 _FOREARM_LENGTH = 150.0
+#: an arm that points at the camera is cut this far (mm, z) in front of it (a real one leaves the
+#: sensor's field of view or its minimum range there)
+NEAR_CLIP_MM = 60.0
+#: a sleeve: one round capsule from this far up the forearm, wider than the arm by this much
+_SLEEVE_START_MM = 70.0
+_SLEEVE_EXTRA_MM = 6.0
+#: forearm length (mm, wrist towards elbow) used when the arm is drawn at an angle of its own;
+#: long enough to leave a 320x240 image at hand distance, like a real arm
+ARM_LENGTH_MM = 260.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +91,10 @@ class HandModel:
     local_base: np.ndarray  # (21, 3) wrist, the 4 MCPs and the thumb CMC (other rows unused)
     palm_centre: np.ndarray  # (3,) rotation centre of the global motion
     palm_normal: np.ndarray  # (3,) unit, = skeleton palm normal in the local frame (+z)
+    #: (5, 3) surface radii (mm) of the proximal, middle, distal bone of index..little, thumb
+    finger_radii: np.ndarray = field(default_factory=lambda: _FINGER_RADII.copy())
+    palm_half_thickness_mm: float = _PALM_HALF_THICKNESS
+    forearm_radius_mm: float = _FOREARM_RADIUS
 
 
 def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
@@ -90,11 +103,67 @@ def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
     template = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
     scale = rng.uniform(0.92, 1.08)
     jitter = np.clip(rng.normal(1.0, 0.025, len(template)), 0.95, 1.05)
-    lengths = template * scale * jitter
+    return build_hand_model(template * scale * jitter, scale)
+
+
+# Hand-shape variation (make_varied_hand_model), from published hand measurements:
+# * overall size: hand length of adults is about 180 mm (women) to 194 mm (men) with SDs of about
+#   9 mm (ANSUR II: Gordon et al., "2012 Anthropometric Survey of U.S. Army Personnel", NATICK
+#   TR-15/007, 2014), so 0.8-1.2x of the template spans small women's to large men's hands;
+# * per-finger proportions: phalanx and metacarpal lengths vary with coefficients of variation of
+#   about 6-9 % (Buryanov & Kotiuk, "Proportions of hand segments", Int. J. Morphol. 28(3):755-758,
+#   2010); most of that is overall size, so after the global scale each finger gets a factor of
+#   SD 3.5 % and each bone one of SD 3 %;
+# * finger thickness: finger breadths at the PIP and DIP joints (e.g. index PIP about 21 mm in men,
+#   18.5 mm in women, SDs about 1.1-1.3 mm, i.e. 6 %: Greiner, "Hand Anthropometry of U.S. Army
+#   Personnel", NATICK TR-92/011, 1991): radii scale with size, times a per-hand factor of SD 6 %
+#   (slender or stubby fingers) and a per-finger factor of SD 3 %;
+# * hand breadth relative to length: SD about 5 % (same surveys): the MCP spread gets its own factor.
+SHAPE_FINGER_SD = 0.035
+SHAPE_BONE_SD = 0.03
+SHAPE_RADIUS_SD = 0.06
+SHAPE_RADIUS_FINGER_SD = 0.03
+SHAPE_BREADTH_SD = 0.05
+
+
+def make_varied_hand_model(
+    seed: int, scale: float | None = None, skeleton: Skeleton = MSRA21
+) -> HandModel:
+    """A hand drawn from adult hand measurements (see the comment above): overall ``scale``
+    (None: uniform 0.8-1.2), per-finger and per-bone proportions, finger radii and palm breadth.
+    Factors are normal with the SDs above, clipped at 2.5 SD."""
+    rng = np.random.default_rng([seed, 102])
+    template = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    size = rng.uniform(0.8, 1.2) if scale is None else float(scale)
+
+    def factor(sd: float, n: int) -> np.ndarray:
+        return 1.0 + np.clip(rng.normal(0.0, sd, n), -2.5 * sd, 2.5 * sd)
+
+    per_finger = np.repeat(factor(SHAPE_FINGER_SD, 5), 4)  # bones are 4 per finger (MSRA21)
+    lengths = template * size * per_finger * factor(SHAPE_BONE_SD, len(template))
+    radii = (
+        _FINGER_RADII
+        * size
+        * factor(SHAPE_RADIUS_SD, 1)
+        * factor(SHAPE_RADIUS_FINGER_SD, 5)[:, None]
+    )
+    breadth = float(factor(SHAPE_BREADTH_SD, 1)[0])
+    return build_hand_model(lengths, size * breadth, radii, thickness_scale=size)
+
+
+def build_hand_model(
+    lengths: np.ndarray,
+    spread_scale: float = 1.0,
+    finger_radii: np.ndarray | None = None,
+    thickness_scale: float = 1.0,
+) -> HandModel:
+    """A :class:`HandModel` from bone lengths ``(20,)`` mm (MSRA21 order), the MCP spread's scale,
+    finger radii ``(5, 3)`` mm (None: the template's) and a palm/forearm thickness scale."""
+    lengths = np.asarray(lengths, dtype=np.float64)
     base = np.zeros((21, 3))
     # MCPs spread across ~52 mm (scaled), slight transverse arch (middle/ring dorsal, -z).
-    xs = np.array([26.0, 8.0, -10.0, -26.0]) * scale
-    zs = np.array([0.0, -3.0, -2.0, 0.0]) * scale
+    xs = np.array([26.0, 8.0, -10.0, -26.0]) * spread_scale
+    zs = np.array([0.0, -3.0, -2.0, 0.0]) * spread_scale
     for f, (mcp, bone) in enumerate(zip((1, 5, 9, 13), (0, 4, 8, 12), strict=True)):
         length = lengths[bone]
         y = np.sqrt(length**2 - xs[f] ** 2 - zs[f] ** 2)
@@ -104,7 +173,16 @@ def make_hand_model(seed: int = 0, skeleton: Skeleton = MSRA21) -> HandModel:
     n = np.cross(base[1], base[13])
     n /= np.linalg.norm(n)
     palm_centre = np.array([0.0, 0.5 * base[[1, 5, 9, 13], 1].mean(), 0.0])
-    return HandModel(lengths, base, palm_centre, n)
+    radii = _FINGER_RADII.copy() if finger_radii is None else np.asarray(finger_radii, float)
+    return HandModel(
+        lengths,
+        base,
+        palm_centre,
+        n,
+        radii,
+        _PALM_HALF_THICKNESS * thickness_scale,
+        _FOREARM_RADIUS * thickness_scale,
+    )
 
 
 # ---------------------------------------------------------------------------- kinematics
@@ -311,7 +389,14 @@ def _max_step_mm(model: HandModel, params: np.ndarray, glob: np.ndarray) -> floa
     return float(np.linalg.norm(np.diff(joints, axis=0), axis=-1).max())
 
 
-def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
+def synthesize_motion(
+    frames: int,
+    seed: int = 0,
+    *,
+    model: HandModel | None = None,
+    speed_mm: tuple[float, float] | None = None,
+    hold_frames: tuple[int, int] = (0, 40),
+) -> SynthMotion:
     """Generate the motion (articulation + global pose) of a ``frames``-long sequence.
 
     Keyframes pick a gesture (random, never the same twice in a row) with a few degrees of
@@ -320,11 +405,15 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
     transition to the next one is timed so that the fastest joint moves at a target peak speed of
     2.5-6 mm/frame (about 1 in 8 transitions is fast: 9-10 mm/frame). A small smooth tremor
     (about 1 degree, 1 mm) runs throughout.
+
+    ``model`` replaces the per-seed hand of :func:`make_hand_model`; ``speed_mm`` (low, high)
+    replaces the peak-speed mix with one uniform range (fast motion: transitions of 3 or more
+    frames); ``hold_frames`` (low, high) bounds the holds after the first keyframe.
     """
     if frames < 1:
         raise ValueError("frames must be >= 1")
     rng = np.random.default_rng([seed, 202])
-    model = make_hand_model(seed)
+    model = make_hand_model(seed) if model is None else model
     lib = gesture_library(model)
     names = sorted(lib)
     keyframes: list[Keyframe] = []
@@ -350,7 +439,10 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
     name, rev, params, glob = new_keyframe(0, None)
     current = Keyframe(0, name, rev, 0, 0, params, glob)
     while True:
-        hold = int(rng.integers(0, 8)) if not keyframes else int(rng.integers(0, 41))
+        if keyframes:
+            hold = int(rng.integers(hold_frames[0], hold_frames[1] + 1))
+        else:
+            hold = int(rng.integers(0, min(8, hold_frames[1] + 1)))
         current.hold = hold
         current.frame = total
         keyframes.append(current)
@@ -361,13 +453,16 @@ def synthesize_motion(frames: int, seed: int = 0) -> SynthMotion:
             break
         name, rev, params, glob = new_keyframe(len(keyframes), current.gesture)
         # time the transition for a target peak joint speed (mm/frame)
-        speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+        if speed_mm is None:
+            speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+        else:
+            speed = rng.uniform(*speed_mm)
         probe = 60
         p_probe, g_probe = _segment(current, params, glob, probe)
         p_probe = np.concatenate([current.params[None], p_probe])
         g_probe = np.concatenate([current.glob[None], g_probe])
         step = _max_step_mm(model, p_probe, g_probe)
-        n = max(6, int(np.ceil(probe * step / speed)))
+        n = max(6 if speed_mm is None else 3, int(np.ceil(probe * step / speed)))
         current.transition = n
         p_seg, g_seg = _segment(current, params, glob, n)
         params_parts.append(p_seg)
@@ -415,20 +510,33 @@ class Primitives:
     ell_s: np.ndarray  # (E, 3) semi-axes
 
 
-def hand_primitives(model: HandModel, joints_mm: np.ndarray, rotation: np.ndarray) -> Primitives:
+def hand_primitives(
+    model: HandModel,
+    joints_mm: np.ndarray,
+    rotation: np.ndarray,
+    forearm_dir: np.ndarray | None = None,
+    *,
+    forearm_length_mm: float = _FOREARM_LENGTH,
+    sleeve: bool = False,
+) -> Primitives:
     """Capsules and ellipsoids of the hand, palm and forearm for one frame.
 
     ``joints_mm`` ``(21, 3)`` camera frame, ``rotation`` ``(3, 3)`` local-to-camera.
+    ``forearm_dir`` ``(3,)``: unit direction from the wrist towards the elbow in the camera frame;
+    None = along the hand's own axis (local ``-y``, a straight wrist). The forearm runs
+    ``forearm_length_mm`` from the wrist but stops before it reaches :data:`NEAR_CLIP_MM` of the
+    camera (an arm pointing at the camera); ``sleeve`` adds a wider round sleeve over its upper part.
     """
     j = np.asarray(joints_mm, dtype=np.float64)
     r_mat = np.asarray(rotation, dtype=np.float64)
     wrist = j[0]
     x_ax, y_ax, z_ax = r_mat[:, 0], r_mat[:, 1], r_mat[:, 2]
+    thick = model.palm_half_thickness_mm
     a, b, r = [], [], []
     for f, chain in enumerate(_CHAINS):
         for k in range(3):
             p0, p1 = j[chain[k]], j[chain[k + 1]]
-            rad = _FINGER_RADII[f, k]
+            rad = model.finger_radii[f, k]
             if k == 2:  # distal bone: cap reaches the tip
                 d = p1 - p0
                 length = np.linalg.norm(d)
@@ -437,7 +545,7 @@ def hand_primitives(model: HandModel, joints_mm: np.ndarray, rotation: np.ndarra
             b.append(p1)
             r.append(rad)
     mcps = j[[1, 5, 9, 13]]
-    palm_r = _PALM_HALF_THICKNESS - 1.5
+    palm_r = thick - 1.5
     # metacarpals (palm body), knuckle line, heel of the hand, thenar (wrist to thumb CMC/MCP)
     for m in mcps:
         a.append(wrist + 0.25 * (m - wrist))
@@ -448,16 +556,24 @@ def hand_primitives(model: HandModel, joints_mm: np.ndarray, rotation: np.ndarra
     r += [palm_r + 0.5] * 3
     a.append(wrist + 14.0 * x_ax + 6.0 * y_ax)
     b.append(wrist - 14.0 * x_ax + 6.0 * y_ax)
-    r.append(_PALM_HALF_THICKNESS + 1.0)
+    r.append(thick + 1.0)
     a.append(wrist + 8.0 * x_ax + 8.0 * y_ax)
     b.append(j[17])
-    r.append(_PALM_HALF_THICKNESS + 1.5)
-    # forearm along the local -y axis: two side-by-side capsules give the flattened cross-section
-    # of a real distal forearm (about 60 mm wide, 44 mm thick) instead of a round 52 mm tube
-    for side in (-1.0, 1.0):
-        a.append(wrist - 18.0 * y_ax + side * _FOREARM_SPREAD * x_ax)
-        b.append(wrist - _FOREARM_LENGTH * y_ax + side * _FOREARM_SPREAD * x_ax)
-        r.append(_FOREARM_RADIUS)
+    r.append(thick + 1.5)
+    # forearm: two side-by-side capsules give the flattened cross-section of a real distal forearm
+    # (about 60 mm wide, 44 mm thick) instead of a round 52 mm tube
+    arm = -y_ax if forearm_dir is None else _unit(np.asarray(forearm_dir, dtype=np.float64))
+    side_ax = _unit(x_ax - (x_ax @ arm) * arm)
+    start, end = 18.0, _clipped_length(wrist, arm, forearm_length_mm, model.forearm_radius_mm)
+    if end > start:
+        for side in (-1.0, 1.0):
+            a.append(wrist + start * arm + side * _FOREARM_SPREAD * side_ax)
+            b.append(wrist + end * arm + side * _FOREARM_SPREAD * side_ax)
+            r.append(model.forearm_radius_mm)
+    if sleeve and end > _SLEEVE_START_MM:
+        a.append(wrist + _SLEEVE_START_MM * arm)
+        b.append(wrist + end * arm)
+        r.append(model.forearm_radius_mm + _FOREARM_SPREAD + _SLEEVE_EXTRA_MM)
     # palm slab: ellipsoid over wrist..MCPs
     centre_local = np.array([0.0, 0.55 * model.local_base[[1, 5, 9, 13], 1].mean(), 0.0])
     half_width = 0.5 * (model.local_base[1, 0] - model.local_base[13, 0]) + 8.0
@@ -470,8 +586,19 @@ def hand_primitives(model: HandModel, joints_mm: np.ndarray, rotation: np.ndarra
         cap_r=np.asarray(r),
         ell_c=centre[None],
         ell_axes=np.stack([x_ax, y_ax, z_ax], axis=1)[None],
-        ell_s=np.array([[half_width, half_len, _PALM_HALF_THICKNESS]]),
+        ell_s=np.array([[half_width, half_len, thick]]),
     )
+
+
+def _clipped_length(
+    origin: np.ndarray, direction: np.ndarray, length: float, radius: float
+) -> float:
+    """``length`` shortened so the capsule ``origin + t * direction`` (t <= length) stays
+    :data:`NEAR_CLIP_MM` plus ``radius`` in front of the camera (z)."""
+    if direction[2] >= 0:
+        return length
+    room = (origin[2] - NEAR_CLIP_MM - radius) / -direction[2]
+    return float(min(length, max(room, 0.0)))
 
 
 _RAY_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
@@ -583,12 +710,13 @@ def add_sensor_noise(
     edge_jump_mm: float = 20.0,
     edge_dropout: float = 0.45,
     holes: float = 2.0,
+    hole_radius_px: tuple[float, float] = (1.0, 3.0),
 ) -> np.ndarray:
     """Sensor-like corruption of a clean depth map ``(H, W)`` float32 mm (0 = background).
 
     Gaussian noise (``sigma_mm``); a random ``edge_dropout`` fraction of the pixels whose depth
     differs by more than ``edge_jump_mm`` from a 4-neighbour (silhouette and self-occlusion edges)
-    set to 0; a Poisson(``holes``) number of small round holes (radius 1-3 px) on the hand.
+    set to 0; a Poisson(``holes``) number of small round holes (radius ``hole_radius_px``) on the hand.
     """
     full = np.asarray(depth, dtype=np.float32)
     result = np.zeros_like(full)
@@ -597,6 +725,7 @@ def add_sensor_noise(
         return result
     cols_any = np.flatnonzero(full.any(axis=0))
     # work on the hand's bounding box (plus a margin for the holes), not the whole image
+    reach = int(np.ceil(hole_radius_px[1]))
     r0, r1 = max(rows_any[0] - 1, 0), min(rows_any[-1] + 2, full.shape[0])
     c0, c1 = max(cols_any[0] - 1, 0), min(cols_any[-1] + 2, full.shape[1])
     clean = full[r0:r1, c0:c1]
@@ -613,8 +742,8 @@ def add_sensor_noise(
     n_holes = int(rng.poisson(holes))
     if n_holes:
         picks = rng.integers(0, rows.size, n_holes)
-        radii = rng.uniform(1.0, 3.0, n_holes)
-        vv, uu = np.mgrid[-3:4, -3:4]
+        radii = rng.uniform(hole_radius_px[0], hole_radius_px[1], n_holes)
+        vv, uu = np.mgrid[-reach : reach + 1, -reach : reach + 1]
         for p, rad in zip(picks, radii, strict=True):
             disk = vv**2 + uu**2 <= rad**2
             rr = np.clip(rows[p] + vv[disk], 0, clean.shape[0] - 1)
@@ -624,6 +753,108 @@ def add_sensor_noise(
     return result
 
 
+@dataclass(frozen=True)
+class SensorModel:
+    """How a depth sensor corrupts the exact depth (all lengths mm, all fractions 0-1).
+
+    Applied in this order to the clean ray-cast map: :func:`add_sensor_noise` (Gaussian noise
+    ``sigma_mm``, dropout at depth discontinuities, round holes), depth-dependent noise
+    ``sigma_z2 * z**2``, quantization of the disparity ``disparity_fb / z`` (focal length x baseline,
+    px mm) in steps of ``disparity_step_px``, extra noise ``edge_noise_mm`` on pixels within one pixel
+    of a discontinuity, flying pixels (a ``flying`` fraction of the pixels just outside the silhouette
+    get a depth ``flying_behind_mm`` behind their neighbour; the same fraction of the pixels on the far
+    side of an inner discontinuity get a depth between the two surfaces), and no measurement closer
+    than ``min_range_mm``. The default is the corruption of ``handanno synth`` (MSRA-like).
+    """
+
+    name: str = "msra"
+    sigma_mm: float = 1.0
+    edge_jump_mm: float = 20.0
+    edge_dropout: float = 0.45
+    holes: float = 2.0
+    hole_radius_px: tuple[float, float] = (1.0, 3.0)
+    sigma_z2: float = 0.0
+    disparity_fb: float = 0.0
+    disparity_step_px: float = 0.125
+    edge_noise_mm: float = 0.0
+    flying: float = 0.0
+    flying_behind_mm: tuple[float, float] = (10.0, 150.0)
+    min_range_mm: float = 0.0
+
+    def apply(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Corrupt a clean depth map ``(H, W)`` float32 mm (0 = no hit); returns a new map."""
+        out = add_sensor_noise(
+            depth,
+            rng,
+            sigma_mm=self.sigma_mm,
+            edge_jump_mm=self.edge_jump_mm,
+            edge_dropout=self.edge_dropout,
+            holes=self.holes,
+            hole_radius_px=self.hole_radius_px,
+        )
+        if self == SensorModel(name=self.name):
+            return out
+        clean = np.asarray(depth, dtype=np.float32)
+        valid = out > 0
+        if self.sigma_z2 > 0:
+            out = out + valid * rng.normal(0.0, 1.0, out.shape) * self.sigma_z2 * out**2
+        pad = np.pad(clean, 1)
+        neighbours = (pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:])
+        jump = np.zeros(clean.shape, dtype=bool)
+        for nb in neighbours:
+            jump |= np.abs(clean - nb) > self.edge_jump_mm
+        if self.edge_noise_mm > 0:
+            out = out + (valid & jump) * rng.normal(0.0, self.edge_noise_mm, out.shape)
+        if self.flying > 0:
+            near = np.zeros_like(clean)  # the nearest 4-neighbour's depth (0 where none)
+            for nb in neighbours:
+                near = np.where((nb > 0) & ((near == 0) | (nb < near)), nb, near)
+            outside = (clean == 0) & (near > 0) & (rng.random(clean.shape) < self.flying)
+            lo, hi = self.flying_behind_mm
+            out = np.where(outside, near + rng.uniform(lo, hi, clean.shape), out)
+            inner = valid & jump & (near > 0) & (near < clean - self.edge_jump_mm)
+            inner &= rng.random(clean.shape) < self.flying
+            mix = rng.uniform(0.2, 0.8, clean.shape)
+            out = np.where(inner, clean + mix * (near - clean), out)
+        valid = out > 0
+        if self.disparity_fb > 0:
+            step = self.disparity_step_px
+            disparity = np.round(self.disparity_fb / np.where(valid, out, 1.0) / step) * step
+            out = np.where(valid, self.disparity_fb / np.maximum(disparity, step), 0.0)
+        out = np.where(out >= max(self.min_range_mm, 1.0), out, 0.0)
+        return out.astype(np.float32)
+
+
+#: today's ``handanno synth`` corruption (MSRA-like, 320x240)
+MSRA_SENSOR = SensorModel()
+#: Kinect v1 (structured light): disparity quantized to 1/8 px with f x b = 580 px x 75 mm, noise
+#: growing with z**2 (Khoshelham & Elberink, Sensors 2012, 12(2):1437-1454: sigma ~1.4 mm at 1 m),
+#: flying pixels at silhouettes and inner edges, a 400 mm minimum range
+KINECT_SENSOR = SensorModel(
+    name="kinect",
+    sigma_mm=0.5,
+    edge_dropout=0.25,
+    holes=1.0,
+    sigma_z2=1.4e-6,
+    disparity_fb=580.0 * 75.0,
+    flying=0.5,
+    min_range_mm=400.0,
+)
+#: Intel SR300 (coded light, short range): larger and more frequent holes, ragged noisy edges
+SR300_SENSOR = SensorModel(
+    name="sr300",
+    sigma_mm=1.2,
+    edge_dropout=0.65,
+    holes=6.0,
+    hole_radius_px=(2.0, 6.0),
+    edge_noise_mm=6.0,
+    flying=0.15,
+    flying_behind_mm=(5.0, 40.0),
+    min_range_mm=150.0,
+)
+SENSORS: dict[str, SensorModel] = {s.name: s for s in (MSRA_SENSOR, KINECT_SENSOR, SR300_SENSOR)}
+
+
 def render_frame(
     model: HandModel,
     joints_mm: np.ndarray,
@@ -631,12 +862,74 @@ def render_frame(
     camera: CameraIntrinsics = MSRA_CAMERA,
     *,
     noise_seed: tuple[int, int] | None = None,
+    forearm_dir: np.ndarray | None = None,
+    sleeve: bool = False,
+    sensor: SensorModel = MSRA_SENSOR,
 ) -> np.ndarray:
-    """Depth ``(H, W)`` float32 mm of one hand pose; ``noise_seed=(seed, frame)`` adds sensor noise."""
-    depth = render_depth(hand_primitives(model, joints_mm, rotation), camera)
+    """Depth ``(H, W)`` float32 mm of one hand pose; ``noise_seed=(seed, frame)`` adds ``sensor``'s
+    corruption. ``forearm_dir`` ``(3,)`` (wrist towards elbow, camera frame; None = straight wrist)
+    draws an :data:`ARM_LENGTH_MM` arm at that angle; ``sleeve`` covers its upper part."""
+    length = _FOREARM_LENGTH if forearm_dir is None else ARM_LENGTH_MM
+    prims = hand_primitives(
+        model, joints_mm, rotation, forearm_dir, forearm_length_mm=length, sleeve=sleeve
+    )
+    depth = render_depth(prims, camera)
     if noise_seed is not None:
-        depth = add_sensor_noise(depth, np.random.default_rng([noise_seed[0], noise_seed[1], 303]))
+        depth = sensor.apply(depth, np.random.default_rng([noise_seed[0], noise_seed[1], 303]))
     return depth
+
+
+#: how the forearm is posed: ``hand`` = along the hand (straight wrist, today's sequences),
+#: ``wrist`` = wrist flexion/extension and deviation over their range of motion, ``top-down`` = the
+#: arm in the image plane turning through every direction (a camera above a table),
+#: ``egocentric`` = the elbow nearer to the camera than the hand and below it (head-mounted camera)
+ARM_MODES = ("hand", "wrist", "top-down", "egocentric")
+
+
+def _smooth_wave(n: int, rng: np.random.Generator, count: int) -> np.ndarray:
+    """``(n, count)`` smooth signals in [-1, 1]: two slow sinusoids each (periods 60-240 frames)."""
+    t = np.arange(n)[:, None]
+    out = np.zeros((n, count))
+    for _ in range(2):
+        period = rng.uniform(60, 240, count)
+        out += 0.5 * np.sin(2 * np.pi * t / period + rng.uniform(0, 2 * np.pi, count))
+    return out
+
+
+def forearm_directions(
+    joints_mm: np.ndarray, rotation: np.ndarray, mode: str, seed: int = 0
+) -> np.ndarray | None:
+    """Unit wrist-to-elbow directions ``(N, 3)`` in the camera frame for an :data:`ARM_MODES` mode.
+
+    ``joints_mm`` ``(N, 21, 3)``, ``rotation`` ``(N, 3, 3)`` local-to-camera. ``hand`` returns None.
+    ``wrist``: flexion -60..+70 deg and deviation -25..+30 deg of the wrist (its range of motion,
+    about 70/80 and 20/30 deg), so with the hand's own rotation the arm takes every direction,
+    towards the camera included. ``top-down``: one full in-plane turn every 240 frames, the elbow
+    5-25 deg farther than the wrist. ``egocentric``: the elbow 100-200 mm nearer than the wrist and
+    60-180 mm below it in the image.
+    """
+    if mode not in ARM_MODES:
+        raise ValueError(f"unknown arm mode {mode!r}; known: {', '.join(ARM_MODES)}")
+    if mode == "hand":
+        return None
+    n = len(joints_mm)
+    rng = np.random.default_rng([seed, 505])
+    w = _smooth_wave(n, rng, 3)
+    if mode == "wrist":
+        flex = np.radians(5.0 + 65.0 * w[:, 0])
+        dev = np.radians(2.5 + 27.5 * w[:, 1])
+        local = np.stack(
+            [np.sin(dev), -np.cos(dev) * np.cos(flex), np.cos(dev) * np.sin(flex)], axis=-1
+        )
+        return np.einsum("nij,nj->ni", rotation, local)
+    if mode == "top-down":
+        theta = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / 240.0 + 0.3 * w[:, 0]
+        tilt = np.radians(15.0 + 10.0 * w[:, 1])
+        return np.stack(
+            [np.cos(theta) * np.cos(tilt), np.sin(theta) * np.cos(tilt), np.sin(tilt)], axis=-1
+        )
+    offset = np.stack([60.0 * w[:, 0], 120.0 + 60.0 * w[:, 1], -(150.0 + 50.0 * w[:, 2])], -1)
+    return _unit(offset)
 
 
 # ---------------------------------------------------------------------------- sequence writer
@@ -648,59 +941,79 @@ def _render_chunk(
     model: HandModel,
     seed: int,
     camera_json: str,
+    forearm: np.ndarray | None = None,
+    sleeve: bool = False,
+    sensor: SensorModel = MSRA_SENSOR,
 ) -> int:
     from .datasets.msra import write_msra_frame
 
     camera = CameraIntrinsics.model_validate_json(camera_json)
     for i, f in enumerate(frames):
-        depth = render_frame(model, joints[i], rotation[i], camera, noise_seed=(seed, int(f)))
+        depth = render_frame(
+            model,
+            joints[i],
+            rotation[i],
+            camera,
+            noise_seed=(seed, int(f)),
+            forearm_dir=None if forearm is None else forearm[i],
+            sleeve=sleeve,
+            sensor=sensor,
+        )
         write_msra_frame(os.path.join(out_dir, f"{int(f):06d}_depth.bin"), depth)
     return len(frames)
 
 
-def generate_sequence(
+def write_sequence(
     out_dir: str | Path,
-    frames: int = 3040,
+    model: HandModel,
+    joints_mm: np.ndarray,
+    rotation: np.ndarray,
+    *,
     seed: int = 0,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    sensor: SensorModel = MSRA_SENSOR,
+    forearm: np.ndarray | None = None,
+    sleeve: bool = False,
+    info: dict | None = None,
     progress: bool = True,
     workers: int = 2,
 ) -> Path:
-    """Render a synthetic sequence into ``out_dir`` (MSRA layout + ``camera.json`` + ``synth.json``).
+    """Render given joints into ``out_dir``: MSRA layout, ``camera.json`` and ``synth.json`` (``info``).
 
-    Deterministic for a given ``seed`` whatever ``workers`` (every frame's noise has its own RNG),
-    and a shorter sequence is a prefix of a longer one with the same seed. Frame files numbered
-    ``>= frames`` left in ``out_dir`` by an earlier run are deleted.
-    ``workers`` processes render chunks of frames; ``progress`` shows a one-line tqdm bar.
-    Returns ``out_dir`` as a Path.
+    ``joints_mm`` ``(N, 21, 3)`` camera frame, ``rotation`` ``(N, 3, 3)`` local-to-camera (palm and
+    wrist orientation), ``forearm`` ``(N, 3)`` wrist-to-elbow directions or None (straight wrist).
+    Every frame's noise has its own RNG (``seed``, frame), so the output does not depend on
+    ``workers``. Frame files numbered ``>= N`` left by an earlier run are deleted.
     """
     from .datasets.msra import write_msra_joints
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    frames = len(joints_mm)
     # frames left over from an earlier, longer sequence in the same folder would be read back
     for stale in out.glob("*_depth.bin"):
         stem = stale.name[: -len("_depth.bin")]
         if stem.isdigit() and int(stem) >= frames:
             stale.unlink()
-    motion = synthesize_motion(frames, seed)
-    camera = MSRA_CAMERA
     camera.to_json(out / "camera.json")
-    write_msra_joints(out / "joint.txt", motion.joints_mm)
-    (out / "synth.json").write_text(json.dumps(describe_motion(motion, seed), indent=1))
+    write_msra_joints(out / "joint.txt", joints_mm)
+    (out / "synth.json").write_text(json.dumps(info or {}, indent=1))
 
     chunk = 40
-    starts = range(0, frames, chunk)
     jobs = [
         (
             str(out),
             np.arange(s, min(s + chunk, frames)),
-            motion.joints_mm[s : s + chunk],
-            motion.rotation[s : s + chunk],
-            motion.model,
+            joints_mm[s : s + chunk],
+            rotation[s : s + chunk],
+            model,
             seed,
             camera.model_dump_json(),
+            None if forearm is None else forearm[s : s + chunk],
+            sleeve,
+            sensor,
         )
-        for s in starts
+        for s in range(0, frames, chunk)
     ]
     bar = None
     if progress:
@@ -724,6 +1037,45 @@ def generate_sequence(
         if bar is not None:
             bar.close()
     return out
+
+
+def generate_sequence(
+    out_dir: str | Path,
+    frames: int = 3040,
+    seed: int = 0,
+    progress: bool = True,
+    workers: int = 2,
+    *,
+    arm: str = "hand",
+    sleeve: bool = False,
+) -> Path:
+    """Render a synthetic sequence into ``out_dir`` (MSRA layout + ``camera.json`` + ``synth.json``).
+
+    Deterministic for a given ``seed`` whatever ``workers`` (every frame's noise has its own RNG),
+    and a shorter sequence is a prefix of a longer one with the same seed. Frame files numbered
+    ``>= frames`` left in ``out_dir`` by an earlier run are deleted.
+    ``arm`` (one of :data:`ARM_MODES`) poses the forearm (default: along the hand, today's
+    sequences); ``sleeve`` adds a sleeve over it.
+    ``workers`` processes render chunks of frames; ``progress`` shows a one-line tqdm bar.
+    Returns ``out_dir`` as a Path.
+    """
+    motion = synthesize_motion(frames, seed)
+    forearm = forearm_directions(motion.joints_mm, motion.rotation, arm, seed)
+    info = describe_motion(motion, seed)
+    if arm != "hand" or sleeve:
+        info["arm"] = {"mode": arm, "sleeve": sleeve}
+    return write_sequence(
+        out_dir,
+        motion.model,
+        motion.joints_mm,
+        motion.rotation,
+        seed=seed,
+        forearm=forearm,
+        sleeve=sleeve,
+        info=info,
+        progress=progress,
+        workers=workers,
+    )
 
 
 def describe_motion(motion: SynthMotion, seed: int) -> dict:
@@ -830,7 +1182,15 @@ def simulate_annotations(
 
 
 __all__ = [
+    "ARM_MODES",
     "GESTURES",
+    "KINECT_SENSOR",
+    "MSRA_SENSOR",
+    "SENSORS",
+    "SR300_SENSOR",
+    "SensorModel",
+    "forearm_directions",
+    "write_sequence",
     "PARAM_NAMES",
     "HandModel",
     "Primitives",
@@ -841,7 +1201,9 @@ __all__ = [
     "gesture_library",
     "hand_primitives",
     "local_pose",
+    "build_hand_model",
     "make_hand_model",
+    "make_varied_hand_model",
     "render_depth",
     "render_frame",
     "rotation_matrices",

@@ -274,3 +274,110 @@ def test_simulate_annotations_on_sequence(sequence_dir):
     assert np.array_equal(anns[50].uv_px, again[50].uv_px)  # independent of the frame set
     vis = np.mean([a.visible.mean() for a in anns.values()])
     assert 0.3 < vis <= 1.0
+
+
+# ---------------------------------------------------------------------------- arm and sensors
+
+
+def test_egocentric_arm_is_nearer_to_the_camera_than_the_hand(motion):
+    frames = np.arange(0, 600, 50)
+    dirs = synth.forearm_directions(
+        motion.joints_mm[:600], motion.rotation[:600], "egocentric", seed=0
+    )
+    assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    assert np.all(dirs[:, 2] < -0.5) and np.all(dirs[:, 1] > 0.0)  # towards the camera, below
+    for f in frames[:4]:
+        depth = synth.render_frame(
+            motion.model, motion.joints_mm[f], motion.rotation[f], forearm_dir=dirs[f]
+        )
+        valid = depth[depth > 0]
+        # the arm is cut before the camera but comes far nearer than the wrist
+        assert valid.min() >= synth.NEAR_CLIP_MM
+        assert valid.min() < motion.joints_mm[f, 0, 2] - 80.0
+
+
+def test_arm_modes_cover_directions(motion):
+    n = 480
+    top = synth.forearm_directions(motion.joints_mm[:n], motion.rotation[:n], "top-down", seed=2)
+    angle = np.degrees(np.arctan2(top[:, 1], top[:, 0])) % 360
+    assert np.histogram(angle, bins=8, range=(0, 360))[0].min() > 0  # every in-plane direction
+    assert np.all(top[:, 2] > 0)  # the elbow is farther than the wrist
+    wrist = synth.forearm_directions(motion.joints_mm[:n], motion.rotation[:n], "wrist", seed=2)
+    local = np.einsum("nji,nj->ni", motion.rotation[:n], wrist)  # back to the hand frame
+    flex = np.degrees(np.arctan2(local[:, 2], -local[:, 1]))
+    assert flex.min() < -40 and flex.max() > 50 and np.all(np.abs(flex) <= 71)
+    assert synth.forearm_directions(motion.joints_mm, motion.rotation, "hand") is None
+    with pytest.raises(ValueError, match="arm mode"):
+        synth.forearm_directions(motion.joints_mm, motion.rotation, "sideways")
+
+
+def test_sleeve_widens_the_arm(motion):
+    f = 100
+    down = -motion.rotation[f][:, 1]
+    bare = synth.render_frame(
+        motion.model, motion.joints_mm[f], motion.rotation[f], forearm_dir=down
+    )
+    sleeve = synth.render_frame(
+        motion.model, motion.joints_mm[f], motion.rotation[f], forearm_dir=down, sleeve=True
+    )
+    assert (sleeve > 0).sum() > (bare > 0).sum() * 1.05
+    assert np.all(sleeve[bare > 0] > 0)
+
+
+def test_generate_sequence_with_arm(tmp_path):
+    out = synth.generate_sequence(
+        tmp_path / "arm", frames=6, seed=1, progress=False, workers=1, arm="egocentric", sleeve=True
+    )
+    seq = open_sequence(out)
+    assert len(seq) == 6
+    info = __import__("json").loads((out / "synth.json").read_text())
+    assert info["arm"] == {"mode": "egocentric", "sleeve": True}
+    depth = seq.depth(0)
+    assert depth[depth > 0].min() < seq.ground_truth.joints_mm[0, 0, 2] - 80.0
+
+
+def test_kinect_sensor_quantizes_disparity_and_flies_pixels(motion):
+    f = 30
+    joints = motion.joints_mm[f] + np.array([0.0, 0.0, 300.0])  # Kinect range
+    clean = synth.render_frame(motion.model, joints, motion.rotation[f])
+    depth = synth.render_frame(
+        motion.model, joints, motion.rotation[f], noise_seed=(0, f), sensor=synth.KINECT_SENSOR
+    )
+    s = synth.KINECT_SENSOR
+    valid = depth > 0
+    disparity = s.disparity_fb / depth[valid].astype(np.float64)
+    steps = disparity / s.disparity_step_px
+    assert np.allclose(steps, np.round(steps), atol=1e-3)  # only quantized depths
+    assert np.unique(np.round(depth[valid])).size < 0.5 * valid.sum()
+    flying = valid & (clean == 0)  # measurements where there is no surface
+    assert flying.sum() > 20
+    assert np.all(depth[flying] > 600.0)  # behind the hand's edge, not in front
+    near = synth.render_frame(
+        motion.model,
+        motion.joints_mm[f] - np.array([0.0, 0.0, 100.0]),
+        motion.rotation[f],
+        noise_seed=(0, f),
+        sensor=synth.KINECT_SENSOR,
+    )
+    assert not np.any((near > 0) & (near < s.min_range_mm))
+
+
+def test_sr300_sensor_has_more_holes_and_ragged_edges(motion):
+    f = 30
+    clean = synth.render_frame(motion.model, motion.joints_mm[f], motion.rotation[f])
+    msra = synth.render_frame(
+        motion.model, motion.joints_mm[f], motion.rotation[f], noise_seed=(0, f)
+    )
+    sr = synth.render_frame(
+        motion.model,
+        motion.joints_mm[f],
+        motion.rotation[f],
+        noise_seed=(0, f),
+        sensor=synth.SR300_SENSOR,
+    )
+    lost = lambda d: ((clean > 0) & (d == 0)).sum()  # noqa: E731
+    assert lost(sr) > 1.5 * lost(msra)
+    both = (clean > 0) & (sr > 0)
+    err = np.abs(sr[both] - clean[both])
+    assert np.percentile(err, 99.5) > 8.0  # noisy edges (MSRA-like: 1 mm Gaussian)
+    assert synth.SensorModel() == synth.MSRA_SENSOR

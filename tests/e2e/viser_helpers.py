@@ -383,7 +383,7 @@ def drag_gesture(
     *,
     settle: Callable[[], None] | None = None,
     attempts: int = 4,
-    steps: int = 12,
+    steps: int = 6,
 ) -> tuple[float, float]:
     """Drag a scene node by ``delta`` page pixels from the point ``grab()`` returns.
 

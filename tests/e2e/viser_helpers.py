@@ -117,7 +117,7 @@ def browser() -> Iterator[object]:
         try:
             yield b
         except BaseException:
-            test = os.environ.get("PYTEST_CURRENT_TEST", "browser").split(" ")[0]
+            test = os.environ.get("PYTEST_CURRENT_TEST", "browser").split(" ")[0].split("::")[-1]
             save_failure_artifacts("".join(c if c.isalnum() or c in "-_." else "_" for c in test))
             raise
         finally:

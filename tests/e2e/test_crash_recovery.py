@@ -111,9 +111,5 @@ def test_sigkill_loses_no_acknowledged_edit(session_folder: Path, tmp_path: Path
             assert page.get_by_text("Depth vs parent: closer (D)").is_visible()
     finally:
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            proc.kill()  # nothing is asserted on the shutdown: do not wait for a graceful one
+            proc.wait()

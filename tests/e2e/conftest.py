@@ -8,7 +8,8 @@ Options (``pytest tests/e2e ...``; README.md in this folder):
 * ``--e2e-trace``: record a Playwright trace per page, saved next to the failure screenshot.
 
 On a failure every open page is screenshotted (and its browser console saved) into
-``<pytest basetemp>/e2e-failures/``; the report names the files.
+``<pytest temp root>/e2e-failures/<pytest-N>/`` (e.g. /tmp/pytest-of-root/e2e-failures/pytest-7/);
+the report names the files.
 """
 
 from __future__ import annotations
@@ -51,7 +52,10 @@ def pytest_configure(config):
 
 @pytest.fixture(scope="session", autouse=True)
 def _failure_artifacts_dir(tmp_path_factory):
-    viser_helpers.ARTIFACTS = tmp_path_factory.getbasetemp() / "e2e-failures"
+    # next to the pytest-N folders, not in one: pytest deletes all but the last three of those,
+    # which concurrent runs on a shared machine reach within minutes
+    base = tmp_path_factory.getbasetemp()
+    viser_helpers.ARTIFACTS = base.parent / "e2e-failures" / base.name
 
 
 @pytest.fixture(scope="session")

@@ -221,6 +221,7 @@ def test_annotate_flow(ctx: Ctx):
     assert not reopen(folder).annotation(frame).visible[0]
 
     # 5. Next frame by hotkey N: the view moves to the next reference frame.
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("n")
     wait_until(lambda: view.frame == 10, what="next reference frame")
     wait_until(

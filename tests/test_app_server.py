@@ -59,7 +59,7 @@ def test_serve_prints_url_and_relifts_edits(tmp_path, capsys):
         entry = app.session.execute(
             SetJoint2D(frame=5, joint=0, uv_px=(150.0, 130.0)), client="test"
         )
-        assert app.worker.wait_idle(10)
+        assert app.worker.wait_idle(60)
         outcome = app.worker.latest[5]
         assert outcome.error is None and outcome.journal_seq == entry.seq
         np.testing.assert_allclose(

@@ -1,16 +1,61 @@
 """Fixtures of the end-to-end tests: a small synthetic session (made once per test run and copied
-per module), and a screenshot in test-artifacts/ for every failed test that has a page."""
+per module), failure artifacts under the pytest temp dir, and the opt-in README screenshots.
+
+Options (``pytest tests/e2e ...``; README.md in this folder):
+
+* ``--screenshots DIR``: also write the README screenshots into DIR (same as
+  ``HANDANNO_SCREENSHOTS=DIR``). Without it no test writes outside the pytest temp dir.
+* ``--e2e-trace``: record a Playwright trace per page, saved next to the failure screenshot.
+
+On a failure every open page is screenshotted (and its browser console saved) into
+``<pytest temp root>/e2e-failures/<pytest-N>/`` (e.g. /tmp/pytest-of-root/e2e-failures/pytest-7/);
+the report names the files.
+"""
 
 from __future__ import annotations
 
-import shutil
+import os
 from pathlib import Path
 
 import pytest
-from viser_helpers import save_screenshot
+import viser_helpers
 
 FRAMES = 40
 REFERENCE_STEP = 10
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("handanno e2e")
+    group.addoption(
+        "--screenshots",
+        metavar="DIR",
+        default=None,
+        help="also write the README screenshots of the e2e tests into DIR",
+    )
+    group.addoption(
+        "--e2e-trace",
+        action="store_true",
+        default=False,
+        help="record a Playwright trace per page; saved with the screenshot on failure",
+    )
+
+
+def pytest_configure(config):
+    # Only reached when this conftest is loaded at start-up (``pytest tests/e2e``); a plain
+    # ``pytest`` from the root loads it later and uses the environment variables instead.
+    out = config.getoption("--screenshots", default=None)
+    if out:
+        os.environ["HANDANNO_SCREENSHOTS"] = str(Path(out).resolve())
+    if config.getoption("--e2e-trace", default=False):
+        viser_helpers.TRACE = True
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _failure_artifacts_dir(tmp_path_factory):
+    # next to the pytest-N folders, not in one: pytest deletes all but the last three of those,
+    # which concurrent runs on a shared machine reach within minutes
+    base = tmp_path_factory.getbasetemp()
+    viser_helpers.ARTIFACTS = base.parent / "e2e-failures" / base.name
 
 
 @pytest.fixture(scope="session")
@@ -44,26 +89,20 @@ def session_folder(synthetic_data, tmp_path_factory) -> Path:
 def pytest_runtest_makereport(item, call):
     outcome = yield
     report = outcome.get_result()
-    if report.when == "call" and report.failed:
-        for value in item.funcargs.values():
-            page = getattr(value, "page", None)
-            if page is not None:
-                try:
-                    path = save_screenshot(page, f"{item.name}.png")
-                    report.sections.append(("screenshot", str(path)))
-                except Exception:
-                    pass
+    if report.failed and report.when in ("setup", "call"):
+        # pages of module fixtures are still open here; pages of a test's own ``with browser()``
+        # were saved by browser() as the exception left it
+        saved = viser_helpers.save_failure_artifacts(f"{item.name}-{report.when}")
+        if saved or viser_helpers.ARTIFACTS.exists():
+            report.sections.append(
+                (
+                    "e2e failure artifacts",
+                    "\n".join(map(str, saved)) or str(viser_helpers.ARTIFACTS),
+                )
+            )
 
 
 def pytest_collection_modifyitems(items):
     for item in items:
         if "tests/e2e/" in str(item.fspath).replace("\\", "/"):
             item.add_marker(pytest.mark.e2e)
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _clean_artifacts():
-    yield
-    art = Path(__file__).resolve().parents[2] / "test-artifacts"
-    if art.exists() and not any(art.iterdir()):
-        shutil.rmtree(art, ignore_errors=True)

@@ -2,7 +2,11 @@
 
 One in-process server per module (on a free port) over a 40-frame 320x240 synthetic session.
 The browser camera is set by the server to the depth sensor's pose ("Sensor view"), and click
-targets are projected through the browser's own camera (viser_helpers.screen_of).
+targets are projected through the browser's own camera (viser_helpers.screen_of). Before a
+gesture the scene is settled (:meth:`Ctx.settle`: every edit's lift drawn, the browser showing
+what the server has); every wait is on a state (journal on disk, server view, page text).
+
+``pytest tests/e2e --screenshots static/screenshots`` also writes the README screenshot.
 """
 
 from __future__ import annotations
@@ -15,21 +19,27 @@ import numpy as np
 import pytest
 from viser_helpers import (
     browser,
+    click_gesture,
+    close_notifications,
     dismiss_webgl_toast,
-    drag,
+    drag_gesture,
+    drawn,
     free_port,
     journal,
+    notifications_seen,
     open_app,
+    readme_screenshot,
     screen_of,
+    sync_browser,
     wait_camera_still,
+    wait_drawn,
     wait_for_node,
+    wait_notification,
     wait_until,
 )
 
 from app.server import AnnoServer, serve
 from handanno_core.session import Session
-
-SCREENSHOT = Path(__file__).resolve().parents[2] / "static" / "screenshots" / "annotate.png"
 
 
 def reopen(folder: Path) -> Session:
@@ -49,13 +59,33 @@ class Ctx:
         assert len(views) == 1, f"expected one connected browser, got {len(views)}"
         return views[0]
 
+    def settle(self) -> None:
+        """Wait until the scene holds still: every journaled edit's listeners have run (they run
+        under the session lock), its lift has landed and been drawn by the view, and the browser
+        has applied all of it (joints, 2D rings, image, camera)."""
+        with self.app.session.lock:
+            pass
+        assert self.app.worker.wait_idle(120), "the lift worker did not finish"
+        view = self.view
+        view.flush()
+        sync_browser(self.page, view.client)
+        for handle in (view.joints, view.handles2d, view.image):
+            wait_drawn(self.page, handle)
+        wait_camera_still(self.page)
+
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""
         geo = self.view._frame_data.geometry
         return screen_of(self.page, "/annotate", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def joint_point(self, k: int) -> tuple[float, float]:
-        return screen_of(self.page, "/annotate/joints", self.view._joint_positions_scene()[k])
+        """Page position of joint ``k``'s sphere where the browser draws it."""
+        return screen_of(
+            self.page, "/annotate/joints", drawn(self.page, "/annotate/joints")["instances"][k]
+        )
+
+    def click_image(self, uv) -> None:
+        click_gesture(self.page, lambda: self.image_point(uv), settle=self.settle)
 
 
 @pytest.fixture(scope="module")
@@ -65,9 +95,9 @@ def ctx(session_folder):
         with browser() as b:
             page = open_app(b, app.url)
             wait_until(lambda: app.annotate_views(), what="the view of the browser")
-            app.annotate_views()[0].flush()
-            wait_camera_still(page)
-            yield Ctx(app, page, session_folder)
+            ctx = Ctx(app, page, session_folder)
+            ctx.settle()
+            yield ctx
     finally:
         app.stop()
 
@@ -94,7 +124,7 @@ def test_annotate_flow(ctx: Ctx):
 
     # 1. Click on the depth image: the selected joint (wrist) gets that 2D position, joint 1 is next.
     uv0, uv1 = hand_pixels(ctx)
-    page.mouse.click(*ctx.image_point(uv0))
+    ctx.click_image(uv0)
     entries = wait_until(
         lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_2d"],
         what="a 2D edit in the journal",
@@ -103,7 +133,7 @@ def test_annotate_flow(ctx: Ctx):
     assert (cmd["frame"], cmd["joint"]) == (frame, 0)
     assert np.allclose(cmd["uv_px"], uv0, atol=1.5), (cmd["uv_px"], uv0)
     wait_until(lambda: view.state.joint == 1, what="auto-advance to joint 1")
-    page.mouse.click(*ctx.image_point(uv1))
+    ctx.click_image(uv1)
     wait_until(
         lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 2,
         what="second 2D edit",
@@ -116,19 +146,19 @@ def test_annotate_flow(ctx: Ctx):
     # 1b. Drag joint 1's 2D ring by its band, on the side away from the joint sphere in front of
     # it (these two clicks are no hand, so the lift does not reproject exactly onto them), 25 px
     # to the right: the 2D position moves by the drag, not to the point where the ring was grabbed.
-    assert ctx.app.worker.wait_idle(120)  # let the lift land first: it moves the joint spheres
-    view.flush()
-    wait_camera_still(page)
-    geo = view._frame_data.geometry
-    centre_scene = geo.pixel_to_scene(uv1, offset_mm=2.0)
-    centre = np.asarray(screen_of(page, "/annotate", centre_scene))
-    outer_m = float(view.handles2d.batched_scales[1])
-    outer = np.linalg.norm(screen_of(page, "/annotate", centre_scene + [outer_m, 0, 0]) - centre)
-    away = centre - np.asarray(ctx.joint_point(1))
-    away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
-    grab = centre + 0.85 * outer * away
+    def ring_band() -> tuple[float, float]:
+        ring = drawn(page, "/annotate/handles2d")["instances"][1]
+        centre = np.asarray(screen_of(page, "/annotate/handles2d", ring))
+        outer_m = float(view.handles2d.batched_scales[1])
+        edge = screen_of(page, "/annotate/handles2d", ring + [outer_m, 0, 0])
+        outer = np.linalg.norm(np.asarray(edge) - centre)
+        away = centre - np.asarray(ctx.joint_point(1))
+        away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
+        return tuple(centre + 0.85 * outer * away)
+
+    ctx.settle()  # the lift moves the joint spheres in front of the rings
     screen_per_px = ctx.image_point(uv1 + (10.0, 0.0))[0] - ctx.image_point(uv1)[0]
-    drag(page, tuple(grab), (grab[0] + 25, grab[1]))
+    drag_gesture(page, ring_band, (25, 0), settle=ctx.settle)
     wait_until(
         lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 3,
         what="a 2D ring drag edit",
@@ -139,18 +169,20 @@ def test_annotate_flow(ctx: Ctx):
     assert np.allclose(cmd["uv_px"], expected, atol=1.5), (cmd["uv_px"], expected)
 
     # 2. Drag the wrist's 3D handle 60 px to the right: a 3D placement of joint 0 to the right.
-    assert ctx.app.worker.wait_idle(120)  # let the lift land first: it moves the joint spheres
-    view.flush()
-    before = view._joint_positions_mm()[0].copy()
-    start = ctx.joint_point(0)
-    drag(page, start, (start[0] + 60, start[1]))
+    before = {}
+
+    def settle_and_remember() -> None:
+        ctx.settle()  # the lift moves the joint spheres
+        before["xyz"] = view._joint_positions_mm()[0].copy()
+
+    drag_gesture(page, lambda: ctx.joint_point(0), (60, 0), settle=settle_and_remember)
     entries = wait_until(
         lambda: [e for e in journal(folder) if e["command"]["kind"] == "set_3d"],
         what="a 3D drag edit",
     )
     cmd = entries[-1]["command"]
     assert (cmd["frame"], cmd["joint"]) == (frame, 0)
-    moved = np.asarray(cmd["xyz_mm"]) - before
+    moved = np.asarray(cmd["xyz_mm"]) - before["xyz"]
     assert moved[0] > 10.0, f"dragged right but x moved {moved}"
     ann = reopen(folder).annotation(frame)
     assert np.allclose(ann.xyz_mm[0], cmd["xyz_mm"], atol=0.01)
@@ -174,6 +206,7 @@ def test_annotate_flow(ctx: Ctx):
     )
 
     # 4. Undo with Ctrl+Z (hotkey through viser's command layer): visibility is back, journaled as undo.
+    ctx.settle()
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     n = len(journal(folder))
     page.keyboard.press("Control+z")
@@ -188,17 +221,19 @@ def test_annotate_flow(ctx: Ctx):
     assert not reopen(folder).annotation(frame).visible[0]
 
     # 5. Next frame by hotkey N: the view moves to the next reference frame.
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("n")
     wait_until(lambda: view.frame == 10, what="next reference frame")
     wait_until(
         lambda: page.get_by_text("Frame 10", exact=True).is_visible(),
         what="the panel showing frame 10",
     )
-    wait_camera_still(page)
+    ctx.settle()
 
 
-def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
-    """An edit by another client on the frame shown is drawn (and lifted); README screenshot."""
+def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx, tmp_path):
+    """An edit by another client on the frame shown is drawn (and lifted); README screenshot
+    (into tmp_path; into static/screenshots only with ``--screenshots``)."""
     from handanno_core.synth import simulate_annotation
 
     app, view = ctx.app, ctx.view
@@ -210,29 +245,29 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx):
     )
     from handanno_core.session import SetFrameAnnotation
 
+    shown = len(notifications_seen(ctx.page))
     entry = session.execute(
         SetFrameAnnotation(frame=frame, annotation=ann.to_json()), client="another-annotator"
     )
-    wait_until(
-        lambda: ctx.page.get_by_text("Frame edited elsewhere").is_visible(), what="the notification"
+    wait_notification(
+        ctx.page,
+        "Frame edited elsewhere",
+        f"another annotator (another-annotator) changed frame {frame}",
+        since=shown,
     )
     wait_until(
         lambda: view.last_skeleton_update is not None and view.last_skeleton_update[0] >= entry.seq,
-        timeout_s=30,
         what="the lifted skeleton",
     )
     assert np.allclose(view._annotation.uv_px, ann.uv_px, atol=1e-3, equal_nan=True)
     gt = seq.ground_truth.joints_mm[frame]
     err = np.linalg.norm(view._lifted.joints_mm - gt, axis=1)
     assert np.median(err) < 15.0, f"lifted skeleton far from ground truth: {err}"
-    ctx.page.wait_for_timeout(1500)
-    ctx.page.get_by_role("button", name="Sensor view").click()
-    wait_camera_still(ctx.page)
-    dismiss_webgl_toast(ctx.page)
-    ctx.page.wait_for_timeout(500)
-    SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-    ctx.page.screenshot(path=str(SCREENSHOT))
-    assert SCREENSHOT.stat().st_size > 10_000
+    view.reset_camera()  # as the "Sensor view" button does
+    ctx.settle()
+    close_notifications(ctx.page)
+    shot = readme_screenshot(ctx.page, "annotate.png", tmp_path)
+    assert shot.stat().st_size > 10_000
 
 
 def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
@@ -269,7 +304,7 @@ def test_undo_survives_a_page_reload(ctx: Ctx):
     the edit made before it (the session rebuilds undo stacks per name from the journal)."""
     page, folder = ctx.page, ctx.folder
     old = ctx.view
-    old.flush()
+    ctx.settle()
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     n = len(journal(folder))
     page.keyboard.press("v")
@@ -285,7 +320,7 @@ def test_undo_survives_a_page_reload(ctx: Ctx):
     )
     new = ctx.view
     assert new.state.client == edit["client"]
-    new.flush()
+    ctx.settle()  # the page has the new view's hotkey bindings
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("Control+z")
     wait_until(lambda: journal(folder)[-1]["action"] == "undo", what="an undo after the reload")

@@ -252,9 +252,11 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx, tmp_path):
     wait_notification(
         ctx.page,
         "Frame edited elsewhere",
-        f"another annotator (another-annotator) changed frame {frame}",
+        f"another annotator changed frame {frame}",
         since=shown,
     )
+    # issue 16: the notice never shows the other browser's journal id
+    assert all("another-annotator" not in n["message"] for n in notifications_seen(ctx.page))
     wait_until(
         lambda: view.last_skeleton_update is not None and view.last_skeleton_update[0] >= entry.seq,
         what="the lifted skeleton",

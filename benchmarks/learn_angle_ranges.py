@@ -53,7 +53,9 @@ DEFAULT_DATA = next(
 NYU_LABEL_CAMERA = CameraIntrinsics(
     fx=588.036865, fy=587.075073, cx=320.0, cy=240.0, width=640, height=480
 )
-ICVL_LABEL_CAMERA = CameraIntrinsics(fx=240.99, fy=240.96, cx=160.0, cy=120.0, width=320, height=240)
+ICVL_LABEL_CAMERA = CameraIntrinsics(
+    fx=240.99, fy=240.96, cx=160.0, cy=120.0, width=320, height=240
+)
 
 
 def load_fpha(folder: Path) -> np.ndarray:
@@ -104,7 +106,9 @@ def learn(skeleton: Skeleton, poses: np.ndarray, low: float, high: float, source
     fingers = [i for i, k in enumerate(sk.angle_joints) if "thumb" not in sk.joint_names[k]]
     mirrored = bool(np.median(flex[:, fingers]) < 0)
     if mirrored:
+        # a mirror keeps flexion measured with the mirrored palm normal, and negates abduction
         flex, abd = sk.joint_angles(poses, right_hand=False)
+        abd = -abd
     joints = {}
     for i, k in enumerate(sk.angle_joints):
         joints[sk.joint_names[k]] = {

@@ -76,6 +76,7 @@ the mirrored mode of a hidden finger).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from collections.abc import Callable
@@ -97,6 +98,7 @@ __all__ = [
     "lift_frame",
     "lift_references",
     "observed_depth",
+    "surface_correction",
     "AnnotationError",
 ]
 
@@ -135,6 +137,7 @@ class LiftResult:
     message: str = ""
     time_s: float = 0.0
     objective: float = float("nan")
+    stretched: bool = False
 
 
 @dataclass
@@ -146,6 +149,10 @@ class LiftSet:
     bone_lengths_mm: np.ndarray
     results: dict[int, LiftResult] = field(default_factory=dict)
     bone_history_mm: list[np.ndarray] = field(default_factory=list)
+    #: ``(J,)`` mm: the surface offsets the references were lifted with (self-calibrated)
+    surface_offsets_mm: np.ndarray | None = None
+    #: ``(B,)`` number of references in which both ends of each bone are annotated
+    bone_votes: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------- depth
@@ -387,6 +394,7 @@ class _Problem:
         w_free: float,
         soft_bones: float | None,
         right_hand: bool,
+        w_angle: float = 1.0,
     ):
         self.cam = camera
         self.sk = skeleton
@@ -435,14 +443,18 @@ class _Problem:
             self.ak = k
             self.ap = par[k]
             self.ac = skeleton.angle_children
-            fl, ab = skeleton.angle_limits()
+            fl, ab = skeleton.angle_ranges(right_hand)
+            # a flexion range of 170 deg or more is no limit (the two half-plane rows can only
+            # express ranges under 180 deg): its rows are switched off
+            on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
             fl, ab = np.radians(fl), np.radians(ab)
-            self.cfmin, self.sfmin = np.cos(fl[:, 0]), np.sin(fl[:, 0])
-            self.cfmax, self.sfmax = np.cos(fl[:, 1]), np.sin(fl[:, 1])
+            self.cfmin, self.sfmin = on * np.cos(fl[:, 0]), on * np.sin(fl[:, 0])
+            self.cfmax, self.sfmax = on * np.cos(fl[:, 1]), on * np.sin(fl[:, 1])
             self.samin, self.samax = np.sin(ab[:, 0]), np.sin(ab[:, 1])
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
             self._setup_angle_levels()
+        self.w_angle = w_angle
         self.nfev = 0
         self.sc3 = np.array([_SCALE_XY, _SCALE_XY, _SCALE_Z])
         self._cache: dict = {}
@@ -540,6 +552,11 @@ class _Problem:
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
+        if self.use_angles and self.w_angle > 0:
+            v, jac = self._angles(X)
+            short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
+            f += 0.5 * self.w_angle * float(np.sum(short**2))
+            g += self.w_angle * np.einsum("r,rjk->jk", short, jac)
         grad = (self.sc3 * g).ravel()
         if self.elastic:
             sl = x[3 * self.j :]
@@ -589,10 +606,6 @@ class _Problem:
             jac[rows, self.ord_k, 2] = self.ord_s
             jac[rows, self.ord_p, 2] -= self.ord_s
             vals.append(val)
-            jacs.append(jac)
-        if self.use_angles:
-            v, jac = self._angles(X)
-            vals.append(v)
             jacs.append(jac)
         if not vals:
             return np.zeros(0), np.zeros((0, self.j, 3))
@@ -732,7 +745,7 @@ class _Problem:
         return jac
 
     def num_ineq(self) -> int:
-        n = len(self.ord_k) + (4 * len(self.ak) if self.use_angles else 0)
+        n = len(self.ord_k)
         if self.elastic:
             n += len(self.el_lo) + len(self.el_hi)
         return n
@@ -768,6 +781,7 @@ def lift_frame(
     w_surface: float = 0.1,
     surface_depth_mm: float = 3.0,
     w_flat: float = 0.01,
+    w_angle: float = 1.0,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
@@ -821,6 +835,7 @@ def lift_frame(
         w_surface=w_surface,
         surface_depth_mm=surface_depth_mm,
         w_flat=w_flat,
+        w_angle=w_angle,
         w_free=1e-3,
         soft_bones=soft_bones,
         right_hand=right_hand,
@@ -1073,6 +1088,42 @@ def initial_bone_lengths(
     return tmpl * float(np.clip(scale, 0.5, 2.0))
 
 
+def surface_correction(
+    annotations: dict[int, FrameAnnotation],
+    results: dict[int, LiftResult],
+    skeleton: Skeleton,
+    surface_depth_mm: float,
+    min_samples: int = 8,
+) -> np.ndarray:
+    """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
+
+    For every annotated visible joint with an observed depth (and no elastic slack) the residual
+    ``z_lifted - (D + o + surface_depth_mm)`` is how much deeper below the observed surface the
+    lift put the joint centre than the offset assumed; the correction of a joint group
+    (:meth:`Skeleton.surface_groups`: same level along the chains) is the median over its samples
+    (0 with fewer than ``min_samples``). Fingertips are the anchor (their offset is defined: the
+    tip lies on the surface) and are never corrected: a uniform change of every offset is
+    otherwise indistinguishable from a change of the hand's scale.
+    """
+    groups = skeleton.surface_groups()
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    res_by_group: dict[int, list[np.ndarray]] = {}
+    for f, r in results.items():
+        ann = annotations[f]
+        d = r.observed_depth_mm
+        ok = ann.has_2d & ann.visible & np.isfinite(d)
+        ok[r.slack_joints] = False
+        resid = r.joints_mm[:, 2] - d - offsets - surface_depth_mm
+        for g in np.unique(groups[ok]):
+            res_by_group.setdefault(int(g), []).append(resid[ok & (groups == g)])
+    corr = np.zeros(skeleton.num_joints)
+    for g, parts in res_by_group.items():
+        vals = np.concatenate(parts)
+        if g >= 0 and len(vals) >= min_samples:
+            corr[groups == g] = float(np.median(vals))
+    return corr
+
+
 def lift_references(
     annotations: dict[int, FrameAnnotation],
     depth_of: Callable[[int], np.ndarray],
@@ -1088,17 +1139,32 @@ def lift_references(
     max_rounds: int = 10,
     bone_tol_mm: float = 0.1,
     soft_bone_weight: float = 0.05,
+    min_bone_votes: int = 3,
+    calibrate_surface: bool = True,
+    offset_tol_mm: float = 0.5,
+    max_calibrations: int = 3,
+    stretch_tolerance: float = 0.2,
     **lift_kwargs,
 ) -> LiftSet:
-    """Lift every annotated reference frame and estimate the bone lengths jointly.
+    """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
 
     annotations: frame -> :class:`FrameAnnotation`. depth_of(frame) -> ``(H, W)`` mm.
-    bone_lengths_mm: ``(B,)`` starting lengths (default: template scaled to the annotations).
+    bone_lengths_mm: ``(B,)`` starting lengths (default: the template times the hand scale
+    measured on the annotations, :func:`initial_bone_lengths`).
     pin_bone_lengths: keep ``bone_lengths_mm`` fixed (no re-estimation; requires the lengths).
     Re-estimation rounds (see module docstring) run until no bone changes by more than
-    ``bone_tol_mm`` or ``max_rounds``. workers > 1 lifts frames in processes.
-    progress(done, total) is called after every frame of every round.
-    Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per round).
+    ``bone_tol_mm`` (and no surface offset by more than ``offset_tol_mm``) or ``max_rounds``.
+    A bone is re-estimated only where both its joints are annotated in at least
+    ``min_bone_votes`` references; the others keep the template times the global scale of the
+    re-estimated ones (median ratio to the template). calibrate_surface: re-estimate the depth of
+    joint centres below the observed surface per joint group in every round
+    (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
+    A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
+    ``stretch_tolerance`` (fraction, and > 3 mm) longer or shorter than the final estimate is
+    reported ``stretched`` (and not ``converged``): the template could only be fitted by
+    stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
+    every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
+    round).
     """
     frames = sorted(int(f) for f in annotations)
     for f in frames:
@@ -1108,23 +1174,40 @@ def lift_references(
     if pin_bone_lengths and bone_lengths_mm is None:
         raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
     depths = {f: np.asarray(depth_of(f)) for f in frames}
+    anns = {f: annotations[f] for f in frames}
     if bone_lengths_mm is not None:
         bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
     elif frames:
-        bones = initial_bone_lengths({f: annotations[f] for f in frames}, depths, camera, skeleton)
+        bones = initial_bone_lengths(anns, depths, camera, skeleton)
     else:
         bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
     history = [bones.copy()]
+    sk = skeleton
+    surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
     kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
     inits: dict[int, np.ndarray] = {}
+    soft_lengths = None
+    votes = (
+        np.stack([anns[f].annotated for f in frames])
+        if frames
+        else np.zeros((0, sk.num_joints), dtype=bool)
+    )
+    bmask = votes[:, sk.bones[:, 0]] & votes[:, sk.bones[:, 1]]  # (F, B) both ends annotated
+    voted = bmask.sum(axis=0) >= min_bone_votes
+    tmpl = (
+        np.asarray(sk.template_bone_lengths_mm, dtype=np.float64)
+        if sk.template_bone_lengths_mm is not None
+        else None
+    )
+    calibrations = 0
     if not pin_bone_lengths and len(frames) > 0:
-        for _ in range(max_rounds):
+        for _ in range(max_rounds + max_calibrations):
             jobs = [
                 (
-                    annotations[f],
+                    anns[f],
                     depths[f],
                     camera,
-                    skeleton,
+                    sk,
                     bones,
                     dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
                 )
@@ -1132,36 +1215,67 @@ def lift_references(
             ]
             res = _run_all(jobs, workers, progress, "bones")
             poses = np.stack([r.joints_mm for r in res])
-            lengths = skeleton.bone_lengths(poses)  # (F, B)
-            # only bones whose both joints carry evidence (2D or 3D) vote
-            votes = np.stack([annotations[f].annotated for f in frames])
-            bmask = votes[:, skeleton.bones[:, 0]] & votes[:, skeleton.bones[:, 1]]
-            lengths = np.where(bmask, lengths, np.nan)
-            new = np.nanmedian(lengths, axis=0)
-            new = np.where(np.isfinite(new), new, bones)
+            soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
+            new = bones.copy()
+            if np.any(voted):
+                new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+                if tmpl is not None and not np.all(voted):
+                    # bones without enough evidence: template times the global scale
+                    scale = float(np.median(new[voted] / tmpl[voted]))
+                    new[~voted] = tmpl[~voted] * scale
             change = float(np.max(np.abs(new - bones)))
             bones = new
             history.append(bones.copy())
             inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
-            if change < bone_tol_mm:
+            if change >= bone_tol_mm:
+                continue
+            # bones converged: calibrate the surface offsets only now (while the bones are still
+            # off, the residuals measure the bones' error, and offsets would absorb it)
+            if not calibrate_surface or calibrations >= max_calibrations:
                 break
-    jobs = [
-        (annotations[f], depths[f], camera, skeleton, bones, dict(kw, init_mm=inits.get(f)))
-        for f in frames
-    ]
+            corr = surface_correction(anns, dict(zip(frames, res, strict=True)), sk, surface_depth)
+            calibrations += 1
+            if float(np.max(np.abs(corr))) < offset_tol_mm:
+                break
+            offsets = np.asarray(sk.surface_offsets_mm) + corr
+            sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
+    jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
     res = _run_all(jobs, workers, progress, "final")
     if inits:
         # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
         # from the cold start and keep the better objective (measured: worst joint 20 -> 10 mm
         # on the synthetic sequence, at the cost of one more lift per reference)
-        cold_jobs = [(a, dp, cm, sk, b, dict(kw)) for a, dp, cm, sk, b, _ in jobs]
+        cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
         cold = _run_all(cold_jobs, workers, None, "final-cold")
         res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+    if soft_lengths is not None:
+        rel = np.abs(soft_lengths - bones) / bones
+        wants = (rel > stretch_tolerance) & (np.abs(soft_lengths - bones) > 3.0)
+        for i, r in enumerate(res):
+            if np.any(wants[i]):
+                b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
+                r.stretched = True
+                r.converged = False
+                r.confidence = r.confidence * 0.5
+                r.message = (
+                    f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
+                    f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
+                    f"frame against {bones[b]:.1f} mm estimated; {r.message}"
+                )
     results = dict(zip(frames, res, strict=True))
+    n_stretched = sum(r.stretched for r in res)
+    if n_stretched:
+        warnings.warn(
+            f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
+            "lengths (LiftResult.stretched); check their 2D annotations",
+            stacklevel=2,
+        )
     return LiftSet(
         joints_mm={f: r.joints_mm for f, r in results.items()},
         confidence={f: r.confidence for f, r in results.items()},
         bone_lengths_mm=bones,
         results=results,
         bone_history_mm=history,
+        surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
+        bone_votes=bmask.sum(axis=0),
     )

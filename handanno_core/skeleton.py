@@ -190,21 +190,24 @@ class Skeleton:
                 fl[i], ab[i] = row["flexion"], row["abduction"]
         return fl, ab
 
-    def angle_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+    def angle_ranges(self, right_hand: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(A, 2)`` flexion and abduction ranges (degrees) used as *soft* limits by the lift:
         the union of :meth:`angle_limits` (anatomical, hand-set) and :meth:`learned_angle_ranges`
         (what real hands were recorded doing). A pose inside is free; beyond it the lift's
-        penalty grows quadratically."""
+        penalty grows quadratically. The table is for a right hand; a left hand, measured with
+        ``right_hand=False``, has the same flexion and negated abduction ranges."""
         fl, ab = self.angle_limits()
         learned = self.learned_angle_ranges()
-        if learned is None:
-            return fl, ab
-        out = []
-        for lim, obs in zip((fl, ab), learned, strict=True):
-            lo = np.fmin(lim[:, 0], obs[:, 0])
-            hi = np.fmax(lim[:, 1], obs[:, 1])
-            out.append(np.stack([lo, hi], axis=1))
-        return out[0], out[1]
+        if learned is not None:
+            out = []
+            for lim, obs in zip((fl, ab), learned, strict=True):
+                lo = np.fmin(lim[:, 0], obs[:, 0])
+                hi = np.fmax(lim[:, 1], obs[:, 1])
+                out.append(np.stack([lo, hi], axis=1))
+            fl, ab = out
+        if not right_hand:
+            ab = -ab[:, ::-1]
+        return fl, ab
 
     def angle_range_violation_deg(
         self, poses_mm: np.ndarray, right_hand: bool = True
@@ -212,7 +215,7 @@ class Skeleton:
         """``(..., A)`` degrees by which each joint's flexion or abduction (whichever is worse)
         lies outside :meth:`angle_ranges`; 0 inside."""
         flex, abd = self.joint_angles(poses_mm, right_hand)
-        fl, ab = self.angle_ranges()
+        fl, ab = self.angle_ranges(right_hand)
         v_f = np.maximum(np.maximum(fl[:, 0] - flex, flex - fl[:, 1]), 0.0)
         v_a = np.maximum(np.maximum(ab[:, 0] - abd, abd - ab[:, 1]), 0.0)
         return np.maximum(v_f, v_a)

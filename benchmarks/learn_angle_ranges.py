@@ -7,7 +7,8 @@ Usage::
 
 Reads the joint trajectories in ``real-motion/`` (README there; never copied into the repository):
 
-* ``msra21`` from FPHA (21 joints, both subjects, ~40k frames): FPHA's joint order is mapped onto
+* ``msra21`` from FPHA ``Subject_1`` (21 joints, ~20k frames; ``Subject_2`` is held out for
+  benchmarks/bench_lift.py): FPHA's joint order is mapped onto
   MSRA-21 (:data:`FPHA_TO_MSRA21`; FPHA's thumb "MCP" is the CMC-side joint, as MSRA's first thumb
   joint);
 * ``nyu14`` from the NYU test labels (u, v, d back-projected with the NYU Kinect intrinsics);
@@ -58,10 +59,11 @@ ICVL_LABEL_CAMERA = CameraIntrinsics(
 )
 
 
-def load_fpha(folder: Path) -> np.ndarray:
-    """All FPHA frames ``(N, 21, 3)`` mm in MSRA-21 order (empty files skipped)."""
+def load_fpha(folder: Path, subjects: tuple[str, ...] = ("Subject_1",)) -> np.ndarray:
+    """FPHA frames ``(N, 21, 3)`` mm of ``subjects`` in MSRA-21 order (empty files skipped)."""
     poses = []
-    for f in sorted(folder.glob("*/*/*/skeleton.txt")):
+    files = [f for s in subjects for f in sorted((folder / s).glob("*/*/skeleton.txt"))]
+    for f in files:
         if f.stat().st_size == 0:
             continue
         a = np.loadtxt(f, ndmin=2)
@@ -142,7 +144,7 @@ def main() -> None:
         "percentiles": [args.low, args.high],
         "layouts": {
             "msra21": learn(
-                MSRA21, load_fpha(data / "fpha"), args.low, args.high, "FPHA Subject_1+2"
+                MSRA21, load_fpha(data / "fpha"), args.low, args.high, "FPHA Subject_1"
             ),
             "nyu14": learn(NYU14, load_nyu(data / "nyu"), args.low, args.high, "NYU test labels"),
             "icvl16": learn(

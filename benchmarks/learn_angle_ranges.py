@@ -100,6 +100,11 @@ def measurable(skeleton: Skeleton) -> Skeleton:
     return dataclasses.replace(skeleton, flexion_limits_deg=lim, abduction_limits_deg=lim)
 
 
+def _outward(lo_hi: np.ndarray) -> list[float]:
+    """Round a range to 0.01 degrees outwards (never excluding a value it contained)."""
+    return [float(np.floor(lo_hi[0] * 100) / 100), float(np.ceil(lo_hi[1] * 100) / 100)]
+
+
 def learn(skeleton: Skeleton, poses: np.ndarray, low: float, high: float, source: str) -> dict:
     sk = measurable(skeleton)
     flex, abd = sk.joint_angles(poses)
@@ -114,8 +119,8 @@ def learn(skeleton: Skeleton, poses: np.ndarray, low: float, high: float, source
     joints = {}
     for i, k in enumerate(sk.angle_joints):
         joints[sk.joint_names[k]] = {
-            "flexion": [round(float(np.percentile(flex[:, i], q)), 2) for q in (low, high)],
-            "abduction": [round(float(np.percentile(abd[:, i], q)), 2) for q in (low, high)],
+            "flexion": _outward(np.percentile(flex[:, i], [low, high])),
+            "abduction": _outward(np.percentile(abd[:, i], [low, high])),
         }
     bones = np.median(sk.bone_lengths(poses), axis=0)
     return {

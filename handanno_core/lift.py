@@ -7,11 +7,11 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
          + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
          + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
          + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
+         + 1/2 w_angle sum_r min(g_r(X), 0)^2                  (angle-range rows, mm; soft)
     s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
            D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
-           flexion/abduction within the skeleton's limits      (thesis Eq. 5, optional)
 
 ``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
 and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
@@ -33,21 +33,25 @@ surface behind it, or the finger in front of it (see :func:`initial_pose`).
 
 Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame: lateral axis
 from the palm normal at a finger's first joint, transported along the chain after that). The
-limits are written as smooth constraints that are linear in the outgoing bone ``b`` for a fixed
-local frame (``a_hat``, ``n_perp``, ``lateral``):
+ranges are ``skeleton.angle_ranges()``: the anatomical limits widened to what real hands were
+recorded doing (robust percentiles over FPHA / NYU / ICVL motion, ``data/angle_ranges.json``).
+They are *soft*: a row ``g_r >= 0`` holds inside the range, and beyond it the penalty
+``w_angle/2 g_r^2`` (``g_r`` ~ bone length x sin(excess angle), mm) grows quadratically instead of a
+hard wall (real hands exceed any fixed limits now and then; a wall turns that into a wrong pose
+elsewhere). A flexion range of 170 degrees or more has no rows (no limit). The rows are linear in
+the outgoing bone ``b`` for a fixed local frame (``a_hat``, ``n_perp``, ``lateral``):
 
 * flexion >= fmin:  cos(fmin) b.n_perp - sin(fmin) b.a_hat >= 0   (a half-plane; range < 180 deg)
 * flexion <= fmax:  sin(fmax) b.a_hat - cos(fmax) b.n_perp >= 0
 * abduction in [amin, amax]:  |b| sin(amin) <= b.lateral <= |b| sin(amax)
 
 The frame depends on the incoming bones of the chain and on the palm normal; all are
-differentiated exactly (no lagged frame), so one SLSQP run converges to a point where every
-constraint holds.
+differentiated exactly (no lagged frame).
 
 If the hard problem is infeasible or SLSQP fails (typically a 2D point on the wrong surface, so
 its observed depth is wrong), the frame is re-solved in *elastic mode*: each depth interval gets a
-slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone,
-order or angle constraints are still violated by more than 0.5 mm is returned with
+slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone or
+order constraints are still violated by more than 0.5 mm is returned with
 ``converged=False`` and halved confidence. An infeasible hard solve is recognised early: its
 constraint violation stays stuck at its first value, and a callback stops it once the violation
 (> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit
@@ -68,10 +72,26 @@ Bone lengths (:func:`lift_references`) are unknown in advance. They start from t
 template scaled to the annotated frames and are re-estimated from all lifted references: each
 round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
 hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
-stretches or shrinks the bone; the new estimate is the median over frames. Rounds stop when no
-bone moves by more than 0.1 mm; a final lift uses the estimate as hard constraints, from both the
-last soft solution and the cold start, keeping the lower objective (the soft rounds can drift into
-the mirrored mode of a hidden finger).
+stretches or shrinks the bone; the new estimate is the median over frames where both of the
+bone's joints are annotated (at least ``min_bone_votes`` references; a bone with fewer keeps the
+template times the global scale of the re-estimated bones, so a partially annotated hand of any
+size gets all its bones). Rounds stop when no bone moves by more than 0.1 mm; a final lift uses
+the estimate as hard constraints, from both the last soft solution and the cold start, keeping
+the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
+
+Surface offsets are self-calibrated per session (:func:`surface_correction`): once the bones have
+converged, the median over annotated visible joints of ``z_lifted - (D + o + s)`` per joint group
+(same level along the chains) corrects that group's offset, and the rounds continue with the
+corrected offsets (at most ``max_calibrations`` times). Fingertips are the anchor and are not
+corrected: from 2D and depth alone, moving every joint deeper below the surface is the same as a
+larger hand farther away (an exact scale ambiguity of the projection), so only the *relative*
+depth of joint groups (a wrist or palm joint deeper inside the hand than the default, as on NYU)
+is recoverable this way. The offsets used are returned in ``LiftSet.surface_offsets_mm``.
+
+A reference whose own soft-bone lift wants an annotated bone more than 20 % (and 3 mm, and 4 robust
+standard deviations of the bone's spread over the references) longer or shorter than the final
+estimate is reported ``stretched`` and not ``converged`` (with a warning):
+the template could only be fitted to its clicks by stretching it.
 """
 
 from __future__ import annotations
@@ -123,6 +143,8 @@ class LiftResult:
     ``| |X_c - X_p| - d_b |`` at the solution. elastic: the frame was solved with L1-penalised
     interval violations and some depth interval is violated by more than 0.5 mm (its observed
     depth is probably wrong: a 2D point off the finger); slack_joints: those joints ``(S,)``.
+    stretched: set by :func:`lift_references` when the frame's clicks only fit with some bone
+    more than 20 % off the estimated length (then ``converged`` is False).
     """
 
     joints_mm: np.ndarray
@@ -799,6 +821,7 @@ def lift_frame(
     init_mm: ``(J, 3)`` warm start (e.g. the previous solution while a joint is dragged).
     order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
+    w_angle: weight (px^2/mm^2) of the soft angle-range rows (``angle_limits``).
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). start_elastic: solve the elastic problem first instead of
     only after the hard one failed (live re-lifts of a frame whose previous lift needed slack: the
@@ -1160,9 +1183,9 @@ def lift_references(
     joint centres below the observed surface per joint group in every round
     (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
-    ``stretch_tolerance`` (fraction, and > 3 mm) longer or shorter than the final estimate is
-    reported ``stretched`` (and not ``converged``): the template could only be fitted by
-    stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
+    ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
+    bone's spread over the references) longer or shorter than the final estimate is reported
+    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
     every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
     round).
     """
@@ -1249,8 +1272,13 @@ def lift_references(
         cold = _run_all(cold_jobs, workers, None, "final-cold")
         res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
     if soft_lengths is not None:
-        rel = np.abs(soft_lengths - bones) / bones
-        wants = (rel > stretch_tolerance) & (np.abs(soft_lengths - bones) > 3.0)
+        dev = np.abs(soft_lengths - bones)
+        rel = dev / bones
+        # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
+        # the references (noisy clicks spread every bone; only an outlier frame is stretched)
+        spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
+        with np.errstate(invalid="ignore"):
+            wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
         for i, r in enumerate(res):
             if np.any(wants[i]):
                 b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))

@@ -417,6 +417,7 @@ class _Problem:
         soft_bones: float | None,
         right_hand: bool,
         w_angle: float = 1.0,
+        w_angle_inner: float = 1.0,
     ):
         self.cam = camera
         self.sk = skeleton
@@ -465,18 +466,39 @@ class _Problem:
             self.ak = k
             self.ap = par[k]
             self.ac = skeleton.angle_children
-            fl, ab = skeleton.angle_ranges(right_hand)
-            # a flexion range of 170 deg or more is no limit (the two half-plane rows can only
-            # express ranges under 180 deg): its rows are switched off
-            on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
-            fl, ab = np.radians(fl), np.radians(ab)
-            self.cfmin, self.sfmin = on * np.cos(fl[:, 0]), on * np.sin(fl[:, 0])
-            self.cfmax, self.sfmax = on * np.cos(fl[:, 1]), on * np.sin(fl[:, 1])
-            self.samin, self.samax = np.sin(ab[:, 0]), np.sin(ab[:, 1])
+            # two tiers of soft rows: the anatomical limits (weight w_angle_inner) and the wider
+            # range real hands were recorded in (weight w_angle): free inside the limits, a
+            # gentle pull in the recorded tail, steep beyond anything recorded
+            tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
+            lim = skeleton.angle_limits()
+            if not right_hand:
+                lim = (lim[0], -lim[1][:, ::-1])
+            if not all(np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)):
+                tiers.append((lim, w_angle_inner))
+            coef, weights = [], []
+            for (fl, ab), w in tiers:
+                # a flexion range of 170 deg or more is no limit (the two half-plane rows can
+                # only express ranges under 180 deg): its rows are switched off
+                on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
+                fl, ab = np.radians(fl), np.radians(ab)
+                coef.append(
+                    np.stack(
+                        [
+                            on * np.cos(fl[:, 0]),
+                            on * np.sin(fl[:, 0]),
+                            on * np.cos(fl[:, 1]),
+                            on * np.sin(fl[:, 1]),
+                            np.sin(ab[:, 0]),
+                            np.sin(ab[:, 1]),
+                        ]
+                    )
+                )
+                weights.append(np.full(4 * len(k), w))
+            self.angle_coef = coef  # per tier (6, A): cos/sin fmin, cos/sin fmax, sin amin/amax
+            self.angle_row_w = np.concatenate(weights)
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
             self._setup_angle_levels()
-        self.w_angle = w_angle
         self.nfev = 0
         self.sc3 = np.array([_SCALE_XY, _SCALE_XY, _SCALE_Z])
         self._cache: dict = {}
@@ -574,11 +596,11 @@ class _Problem:
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
-        if self.use_angles and self.w_angle > 0:
+        if self.use_angles:
             v, jac = self._angles(X)
             short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
-            f += 0.5 * self.w_angle * float(np.sum(short**2))
-            g += self.w_angle * np.einsum("r,rjk->jk", short, jac)
+            f += 0.5 * float(np.sum(self.angle_row_w * short**2))
+            g += np.einsum("r,rjk->jk", self.angle_row_w * short, jac)
         grad = (self.sc3 * g).ravel()
         if self.elastic:
             sl = x[3 * self.j :]
@@ -728,18 +750,22 @@ class _Problem:
         )
         g3 = np.einsum("mi,mix->mx", B, DL) + np.einsum("mi,mix->mx", LAT, D)
         gb = np.einsum("mi,mix->mx", B / bn[:, None], D)
-        cf0, sf0, cf1, sf1 = self.cfmin, self.sfmin, self.cfmax, self.sfmax
-        sa0, sa1 = self.samin, self.samax
-        vals = np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
-        jac = np.stack(
-            [
-                cf0[:, None] * g2 - sf0[:, None] * g1,
-                sf1[:, None] * g1 - cf1[:, None] * g2,
-                g3 - sa0[:, None] * gb,
-                sa1[:, None] * gb - g3,
-            ]
-        )
-        return vals.ravel(), jac.reshape(4 * a_n, j, 3)
+        vals, jacs = [], []
+        for cf0, sf0, cf1, sf1, sa0, sa1 in self.angle_coef:
+            vals.append(
+                np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
+            )
+            jacs.append(
+                np.stack(
+                    [
+                        cf0[:, None] * g2 - sf0[:, None] * g1,
+                        sf1[:, None] * g1 - cf1[:, None] * g2,
+                        g3 - sa0[:, None] * gb,
+                        sa1[:, None] * gb - g3,
+                    ]
+                ).reshape(4 * a_n, j, 3)
+            )
+        return np.concatenate([v.ravel() for v in vals]), np.concatenate(jacs)
 
     def ineq(self, x: np.ndarray) -> np.ndarray:
         val = self._cached("ineq", x)[0]
@@ -804,6 +830,7 @@ def lift_frame(
     surface_depth_mm: float = 3.0,
     w_flat: float = 0.01,
     w_angle: float = 1.0,
+    w_angle_inner: float = 1.0,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
@@ -821,7 +848,8 @@ def lift_frame(
     init_mm: ``(J, 3)`` warm start (e.g. the previous solution while a joint is dragged).
     order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
-    w_angle: weight (px^2/mm^2) of the soft angle-range rows (``angle_limits``).
+    w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
+    w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). start_elastic: solve the elastic problem first instead of
     only after the hard one failed (live re-lifts of a frame whose previous lift needed slack: the
@@ -859,6 +887,7 @@ def lift_frame(
         surface_depth_mm=surface_depth_mm,
         w_flat=w_flat,
         w_angle=w_angle,
+        w_angle_inner=w_angle_inner,
         w_free=1e-3,
         soft_bones=soft_bones,
         right_hand=right_hand,

@@ -376,16 +376,16 @@ def test_vectorized_angle_rows_match_skeleton_angles(frames):
         right_hand=True,
     )
     vals, _ = prob._angles(X)
-    vals = vals.reshape(4, -1)
+    vals = vals.reshape(2, 4, -1)  # two tiers: the learned ranges, then the anatomical limits
     fl, ab = SK.joint_angles(X)
-    fl_lim, ab_lim = SK.angle_ranges()
-    on = np.ptp(fl_lim, axis=1) < 170.0  # wider flexion ranges are no limit (rows off)
-    assert np.all(vals[:2, ~on] == 0.0)
-    # sign of each row equals the sign of the margin to its limit
-    assert np.all(np.sign(vals[0, on]) == np.sign(fl - fl_lim[:, 0])[on])
-    assert np.all(np.sign(vals[1, on]) == np.sign(fl_lim[:, 1] - fl)[on])
-    assert np.all(np.sign(vals[2]) == np.sign(ab - ab_lim[:, 0]))
-    assert np.all(np.sign(vals[3]) == np.sign(ab_lim[:, 1] - ab))
+    for tier, (fl_lim, ab_lim) in zip(vals, (SK.angle_ranges(), SK.angle_limits()), strict=True):
+        on = np.ptp(fl_lim, axis=1) < 170.0  # wider flexion ranges are no limit (rows off)
+        assert np.all(tier[:2, ~on] == 0.0)
+        # sign of each row equals the sign of the margin to its limit
+        assert np.all(np.sign(tier[0, on]) == np.sign(fl - fl_lim[:, 0])[on])
+        assert np.all(np.sign(tier[1, on]) == np.sign(fl_lim[:, 1] - fl)[on])
+        assert np.all(np.sign(tier[2]) == np.sign(ab - ab_lim[:, 0]))
+        assert np.all(np.sign(tier[3]) == np.sign(ab_lim[:, 1] - ab))
 
 
 def test_inconsistent_depth_rules():

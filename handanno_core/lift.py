@@ -1307,8 +1307,9 @@ def lift_references(
         rel = dev / bones
         # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
         # the references (noisy clicks spread every bone; only an outlier frame is stretched)
-        spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
-        with np.errstate(invalid="ignore"):
+        with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
+            spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
             wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
         for i, r in enumerate(res):
             if np.any(wants[i]):

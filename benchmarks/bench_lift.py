@@ -1,11 +1,20 @@
-"""Lift benchmark: speed per frame and accuracy on the synthetic sequence's reference frames.
+"""Lift benchmark: speed per frame and accuracy on the reference frames of one or more sequences.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_lift.py [--seq /tmp/synth3040] [--step 20] [--noise 0,2]
-        [--gt-bones] [--workers 1] [--json benchmarks/results/lift.json]
+    .venv/bin/python benchmarks/bench_lift.py [--seq /tmp/synth3040[,fpha:Subject_2:/tmp/fpha2]]
+        [--step 20] [--noise 0,2] [--gt-bones] [--workers 1] [--lift-kw w_angle=1.0]
+        [--json benchmarks/results/lift.json]
 
-The sequence is generated (``synth.generate_sequence(seq, frames=3040, seed=0)``) if missing.
+A plain ``--seq`` folder is generated (``synth.generate_sequence(seq, frames=3040, seed=0)``) if
+missing. ``fpha:<subject>:<folder>`` renders real recorded hand motion instead (FPHA, the
+``real-motion`` README in shared/data): the first ``--fpha-sequences`` sequences of ``<subject>``
+(sorted by action and number), every ``--fpha-every``-th frame, with the synthetic renderer
+(:func:`render_fpha_sequence`: per-sequence bone lengths, palm frame from the wrist and MCPs, each
+sequence centred 380 mm in front of the MSRA camera), written in the MSRA layout. The lift's angle
+ranges are learned on FPHA ``Subject_1`` only (benchmarks/learn_angle_ranges.py), so
+``Subject_2`` is motion the lift was not tuned on. Run the script with ``PYTHONPATH`` set to an
+older checkout to measure that version on the same sequences ("before").
 References are every ``step``-th frame (5 % at step 20), annotated by the simulated annotator
 (exact or noisy 2D, visibility, depth order). Bone lengths are estimated jointly by
 ``lift_references``; ``--gt-bones`` additionally runs with the ground-truth bone lengths, for
@@ -21,6 +30,7 @@ import argparse
 import json
 import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -28,22 +38,94 @@ import numpy as np
 from handanno_core.datasets import open_sequence
 from handanno_core.evaluate import error_summary
 from handanno_core.lift import lift_frame, lift_references
-from handanno_core.synth import generate_sequence, simulate_annotations
+from handanno_core.synth import (
+    HandModel,
+    generate_sequence,
+    render_frame,
+    simulate_annotations,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+FPHA = next(
+    (
+        p
+        for p in (
+            REPO.parent / "shared/data/real-motion/fpha",
+            Path("/work/shared/data/real-motion/fpha"),
+        )
+        if p.is_dir()
+    ),
+    REPO.parent / "shared/data/real-motion/fpha",
+)
+#: FPHA joint order -> MSRA-21 (as handanno_core.skeleton.FPHA_TO_MSRA21; repeated here so the
+#: script also runs against older checkouts)
+_FPHA_TO_MSRA21 = (0, 2, 9, 10, 11, 3, 12, 13, 14, 4, 15, 16, 17, 5, 18, 19, 20, 1, 6, 7, 8)
 
 
-def _run(seq, frames, noise, bones, workers, label):
+def _unit(v):
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def render_fpha_sequence(
+    out: Path, subject: str, sequences: int, every: int, seed: int = 0
+) -> Path:
+    """Render FPHA joint trajectories (MSRA-21 order) as an MSRA-layout sequence in ``out``."""
+    from handanno_core.camera import MSRA_CAMERA
+    from handanno_core.datasets.msra import write_msra_frame, write_msra_joints
+    from handanno_core.skeleton import MSRA21
+
+    files = [f for f in sorted((FPHA / subject).glob("*/*/skeleton.txt")) if f.stat().st_size]
+    step = max(1, len(files) // sequences)
+    chosen = files[::step][:sequences]
+    out.mkdir(parents=True, exist_ok=True)
+    all_joints, k = [], 0
+    for f in chosen:
+        a = np.loadtxt(f, ndmin=2)[::every, 1:].reshape(-1, 21, 3)[:, _FPHA_TO_MSRA21]
+        lengths = np.median(MSRA21.bone_lengths(a), axis=0)
+        y = _unit(a[:, 5] - a[:, 0])
+        x = _unit(a[:, 1] - a[:, 13])
+        x = _unit(x - np.sum(x * y, axis=-1, keepdims=True) * y)
+        z = np.cross(x, y)
+        rot = np.stack([x, y, z], axis=-1)  # (N, 3, 3) local -> camera
+        local = np.einsum("nji,nkj->nki", rot, a - a[:, :1])
+        base = np.median(local, axis=0)
+        centre = np.median(a[:, [0, 5]].mean(axis=1), axis=0)
+        joints = a - centre + np.array([0.0, 0.0, 380.0])
+        model = HandModel(
+            bone_lengths_mm=lengths,
+            local_base=base,
+            palm_centre=np.array([0.0, 0.5 * base[[1, 5, 9, 13], 1].mean(), 0.0]),
+            palm_normal=np.array([0.0, 0.0, 1.0]),
+        )
+        for i in range(len(joints)):
+            depth = render_frame(model, joints[i], rot[i], MSRA_CAMERA, noise_seed=(seed, k))
+            write_msra_frame(str(out / f"{k:06d}_depth.bin"), depth)
+            k += 1
+        all_joints.append(joints)
+    MSRA_CAMERA.to_json(out / "camera.json")
+    write_msra_joints(out / "joint.txt", np.concatenate(all_joints))
+    (out / "fpha.json").write_text(
+        json.dumps({"subject": subject, "every": every, "files": [str(f) for f in chosen]})
+    )
+    return out
+
+
+def _run(seq, frames, noise, bones, workers, label, lift_kw):
     gt = seq.ground_truth.joints_mm
     anns = simulate_annotations(seq, frames, noise_px=noise, seed=0)
     t0 = time.perf_counter()
-    lifted = lift_references(
-        anns,
-        seq.depth,
-        seq.camera,
-        seq.skeleton,
-        bone_lengths_mm=bones,
-        pin_bone_lengths=bones is not None,
-        workers=workers,
-    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lifted = lift_references(
+            anns,
+            seq.depth,
+            seq.camera,
+            seq.skeleton,
+            bone_lengths_mm=bones,
+            pin_bone_lengths=bones is not None,
+            workers=workers,
+            **lift_kw,
+        )
     elapsed = time.perf_counter() - t0
     pred = np.stack([lifted.joints_mm[f] for f in frames])
     summ = error_summary(pred, gt[frames])
@@ -58,6 +140,7 @@ def _run(seq, frames, noise, bones, workers, label):
         "bone_abs_error_mm": {"mean": float(bone_err.mean()), "max": float(bone_err.max())},
         "bone_rounds": len(lifted.bone_history_mm) - 1,
         "converged_fraction": float(np.mean([r.converged for r in res])),
+        "stretched_fraction": float(np.mean([getattr(r, "stretched", False) for r in res])),
         "max_bone_violation_mm": float(max(r.bone_error_mm for r in res)),
         "wall_s": elapsed,
         "workers": workers,
@@ -97,48 +180,78 @@ def _speed(seq, frames, anns, bones):
     }
 
 
+def _open(spec: str, frames: int, args) -> tuple[str, object]:
+    """``spec`` -> (label, sequence): a synthetic folder or ``fpha:<subject>:<folder>``."""
+    if spec.startswith("fpha:"):
+        _, subject, folder = spec.split(":", 2)
+        if not (Path(folder) / "joint.txt").exists():
+            render_fpha_sequence(Path(folder), subject, args.fpha_sequences, args.fpha_every)
+        return f"fpha-{subject}", open_sequence(folder)
+    if not (Path(spec) / "joint.txt").exists():
+        generate_sequence(spec, frames=frames, seed=0)
+    return Path(spec).name, open_sequence(spec)
+
+
+def _parse_kw(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, value = item.split("=", 1)
+        out[key] = {"true": True, "false": False}.get(value.lower(), None)
+        if out[key] is None:
+            out[key] = float(value)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seq", default="/tmp/synth3040")
+    ap.add_argument("--seq", default="/tmp/synth3040", help="comma-separated sequences")
     ap.add_argument("--frames", type=int, default=3040)
     ap.add_argument("--step", type=int, default=20)
     ap.add_argument("--noise", default="0,2")
     ap.add_argument("--gt-bones", action="store_true", help="also run with ground-truth bones")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--speed-frames", type=int, default=60)
+    ap.add_argument("--fpha-sequences", type=int, default=8)
+    ap.add_argument("--fpha-every", type=int, default=3)
+    ap.add_argument("--lift-kw", nargs="*", default=[], help="key=value lift_references options")
     ap.add_argument("--json", default=str(Path(__file__).parent / "results" / "lift.json"))
     args = ap.parse_args()
+    lift_kw = _parse_kw(args.lift_kw)
 
-    if not (Path(args.seq) / "joint.txt").exists():
-        generate_sequence(args.seq, frames=args.frames, seed=0)
-    seq = open_sequence(args.seq)
-    frames = np.arange(0, len(seq), args.step)
-    gt = seq.ground_truth.joints_mm
-    gt_bones = seq.skeleton.estimate_bone_lengths(gt)
-    runs = []
-    lifted0 = anns0 = None
-    for noise in [float(x) for x in args.noise.split(",")]:
-        out, lifted, anns = _run(seq, frames, noise, None, args.workers, "estimated")
-        runs.append(out)
-        if lifted0 is None:
-            lifted0, anns0 = lifted, anns
-        if args.gt_bones:
-            runs.append(_run(seq, frames, noise, gt_bones, args.workers, "gt_bones")[0])
-    speed_frames = frames[:: max(1, len(frames) // args.speed_frames)][: args.speed_frames]
-    speed = _speed(seq, speed_frames, anns0, lifted0.bone_lengths_mm)
-    print(
-        f"speed (1 process, load avg {speed['load_average_1min']:.1f} on {speed['cpu_count']} cores): "
-        f"cold median {speed['cold_median_ms']:.1f} ms (p90 {speed['cold_p90_ms']:.1f}), "
-        f"warm median {speed['warm_median_ms']:.1f} ms (p90 {speed['warm_p90_ms']:.1f}), "
-        f"{speed['median_iterations']:.0f} SLSQP iterations"
-    )
-    result = {
-        "dataset": str(args.seq),
-        "frames": len(seq),
-        "step": args.step,
-        "runs": runs,
-        "speed": speed,
-    }
+    datasets = []
+    for spec in args.seq.split(","):
+        label, seq = _open(spec, args.frames, args)
+        frames = np.arange(0, len(seq), args.step)
+        gt = seq.ground_truth.joints_mm
+        gt_bones = seq.skeleton.estimate_bone_lengths(gt)
+        print(f"== {label}: {len(seq)} frames, {len(frames)} references")
+        runs = []
+        lifted0 = anns0 = None
+        for noise in [float(x) for x in args.noise.split(",")]:
+            out, lifted, anns = _run(seq, frames, noise, None, args.workers, "estimated", lift_kw)
+            runs.append(out)
+            if lifted0 is None:
+                lifted0, anns0 = lifted, anns
+            if args.gt_bones:
+                runs.append(
+                    _run(seq, frames, noise, gt_bones, args.workers, "gt_bones", lift_kw)[0]
+                )
+        entry = {"dataset": spec, "label": label, "frames": len(seq), "step": args.step}
+        entry["runs"] = runs
+        if args.speed_frames > 0:
+            speed_frames = frames[:: max(1, len(frames) // args.speed_frames)][: args.speed_frames]
+            speed = _speed(seq, speed_frames, anns0, lifted0.bone_lengths_mm)
+            print(
+                f"speed (1 process, load avg {speed['load_average_1min']:.1f} on "
+                f"{speed['cpu_count']} cores): cold median {speed['cold_median_ms']:.1f} ms "
+                f"(p90 {speed['cold_p90_ms']:.1f}), warm median {speed['warm_median_ms']:.1f} ms "
+                f"(p90 {speed['warm_p90_ms']:.1f}), {speed['median_iterations']:.0f} SLSQP "
+                "iterations"
+            )
+            entry["speed"] = speed
+        datasets.append(entry)
+    result = datasets[0] if len(datasets) == 1 else {"datasets": datasets}
+    result["lift_kw"] = lift_kw
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.json}")

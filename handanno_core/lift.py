@@ -7,11 +7,11 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
          + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
          + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
          + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
+         + 1/2 w_angle sum_r min(g_r(X), 0)^2                  (angle-range rows, mm; soft)
     s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
            D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
-           flexion/abduction within the skeleton's limits      (thesis Eq. 5, optional)
 
 ``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
 and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
@@ -33,21 +33,25 @@ surface behind it, or the finger in front of it (see :func:`initial_pose`).
 
 Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame: lateral axis
 from the palm normal at a finger's first joint, transported along the chain after that). The
-limits are written as smooth constraints that are linear in the outgoing bone ``b`` for a fixed
-local frame (``a_hat``, ``n_perp``, ``lateral``):
+ranges are ``skeleton.angle_ranges()``: the anatomical limits widened to what real hands were
+recorded doing (robust percentiles over FPHA / NYU / ICVL motion, ``data/angle_ranges.json``).
+They are *soft*: a row ``g_r >= 0`` holds inside the range, and beyond it the penalty
+``w_angle/2 g_r^2`` (``g_r`` ~ bone length x sin(excess angle), mm) grows quadratically instead of a
+hard wall (real hands exceed any fixed limits now and then; a wall turns that into a wrong pose
+elsewhere). A flexion range of 170 degrees or more has no rows (no limit). The rows are linear in
+the outgoing bone ``b`` for a fixed local frame (``a_hat``, ``n_perp``, ``lateral``):
 
 * flexion >= fmin:  cos(fmin) b.n_perp - sin(fmin) b.a_hat >= 0   (a half-plane; range < 180 deg)
 * flexion <= fmax:  sin(fmax) b.a_hat - cos(fmax) b.n_perp >= 0
 * abduction in [amin, amax]:  |b| sin(amin) <= b.lateral <= |b| sin(amax)
 
 The frame depends on the incoming bones of the chain and on the palm normal; all are
-differentiated exactly (no lagged frame), so one SLSQP run converges to a point where every
-constraint holds.
+differentiated exactly (no lagged frame).
 
 If the hard problem is infeasible or SLSQP fails (typically a 2D point on the wrong surface, so
 its observed depth is wrong), the frame is re-solved in *elastic mode*: each depth interval gets a
-slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone,
-order or angle constraints are still violated by more than 0.5 mm is returned with
+slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone or
+order constraints are still violated by more than 0.5 mm is returned with
 ``converged=False`` and halved confidence. An infeasible hard solve is recognised early: its
 constraint violation stays stuck at its first value, and a callback stops it once the violation
 (> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit
@@ -68,14 +72,31 @@ Bone lengths (:func:`lift_references`) are unknown in advance. They start from t
 template scaled to the annotated frames and are re-estimated from all lifted references: each
 round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
 hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
-stretches or shrinks the bone; the new estimate is the median over frames. Rounds stop when no
-bone moves by more than 0.1 mm; a final lift uses the estimate as hard constraints, from both the
-last soft solution and the cold start, keeping the lower objective (the soft rounds can drift into
-the mirrored mode of a hidden finger).
+stretches or shrinks the bone; the new estimate is the median over frames where both of the
+bone's joints are annotated (at least ``min_bone_votes`` references; a bone with fewer keeps the
+template times the global scale of the re-estimated bones, so a partially annotated hand of any
+size gets all its bones). Rounds stop when no bone moves by more than 0.1 mm; a final lift uses
+the estimate as hard constraints, from both the last soft solution and the cold start, keeping
+the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
+
+Surface offsets are self-calibrated per session (:func:`surface_correction`): once the bones have
+converged, the median over annotated visible joints of ``z_lifted - (D + o + s)`` per joint group
+(same level along the chains) corrects that group's offset, and the rounds continue with the
+corrected offsets (at most ``max_calibrations`` times). Fingertips are the anchor and are not
+corrected: from 2D and depth alone, moving every joint deeper below the surface is the same as a
+larger hand farther away (an exact scale ambiguity of the projection), so only the *relative*
+depth of joint groups (a wrist or palm joint deeper inside the hand than the default, as on NYU)
+is recoverable this way. The offsets used are returned in ``LiftSet.surface_offsets_mm``.
+
+A reference whose own soft-bone lift wants an annotated bone more than 20 % (and 3 mm, and 4 robust
+standard deviations of the bone's spread over the references) longer or shorter than the final
+estimate is reported ``stretched`` and not ``converged`` (with a warning):
+the template could only be fitted to its clicks by stretching it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from collections.abc import Callable
@@ -97,6 +118,7 @@ __all__ = [
     "lift_frame",
     "lift_references",
     "observed_depth",
+    "surface_correction",
     "AnnotationError",
 ]
 
@@ -121,6 +143,8 @@ class LiftResult:
     ``| |X_c - X_p| - d_b |`` at the solution. elastic: the frame was solved with L1-penalised
     interval violations and some depth interval is violated by more than 0.5 mm (its observed
     depth is probably wrong: a 2D point off the finger); slack_joints: those joints ``(S,)``.
+    stretched: set by :func:`lift_references` when the frame's clicks only fit with some bone
+    more than 20 % off the estimated length (then ``converged`` is False).
     """
 
     joints_mm: np.ndarray
@@ -135,6 +159,7 @@ class LiftResult:
     message: str = ""
     time_s: float = 0.0
     objective: float = float("nan")
+    stretched: bool = False
 
 
 @dataclass
@@ -146,6 +171,10 @@ class LiftSet:
     bone_lengths_mm: np.ndarray
     results: dict[int, LiftResult] = field(default_factory=dict)
     bone_history_mm: list[np.ndarray] = field(default_factory=list)
+    #: ``(J,)`` mm: the surface offsets the references were lifted with (self-calibrated)
+    surface_offsets_mm: np.ndarray | None = None
+    #: ``(B,)`` number of references in which both ends of each bone are annotated
+    bone_votes: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------- depth
@@ -387,6 +416,8 @@ class _Problem:
         w_free: float,
         soft_bones: float | None,
         right_hand: bool,
+        w_angle: float = 1.0,
+        w_angle_inner: float = 0.0,
     ):
         self.cam = camera
         self.sk = skeleton
@@ -435,11 +466,38 @@ class _Problem:
             self.ak = k
             self.ap = par[k]
             self.ac = skeleton.angle_children
-            fl, ab = skeleton.angle_limits()
-            fl, ab = np.radians(fl), np.radians(ab)
-            self.cfmin, self.sfmin = np.cos(fl[:, 0]), np.sin(fl[:, 0])
-            self.cfmax, self.sfmax = np.cos(fl[:, 1]), np.sin(fl[:, 1])
-            self.samin, self.samax = np.sin(ab[:, 0]), np.sin(ab[:, 1])
+            # soft rows beyond the range real hands were recorded in (weight w_angle) and,
+            # optionally, a second tier beyond the narrower anatomical limits (w_angle_inner;
+            # default 0: chosen on the tune set, synthetic seed 1 + FPHA Subject_1 mean)
+            tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
+            lim = skeleton.angle_limits()
+            if not right_hand:
+                lim = (lim[0], -lim[1][:, ::-1])
+            if w_angle_inner > 0 and not all(
+                np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)
+            ):
+                tiers.append((lim, w_angle_inner))
+            coef, weights = [], []
+            for (fl, ab), w in tiers:
+                # a flexion range of 170 deg or more is no limit (the two half-plane rows can
+                # only express ranges under 180 deg): its rows are switched off
+                on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
+                fl, ab = np.radians(fl), np.radians(ab)
+                coef.append(
+                    np.stack(
+                        [
+                            on * np.cos(fl[:, 0]),
+                            on * np.sin(fl[:, 0]),
+                            on * np.cos(fl[:, 1]),
+                            on * np.sin(fl[:, 1]),
+                            np.sin(ab[:, 0]),
+                            np.sin(ab[:, 1]),
+                        ]
+                    )
+                )
+                weights.append(np.full(4 * len(k), w))
+            self.angle_coef = coef  # per tier (6, A): cos/sin fmin, cos/sin fmax, sin amin/amax
+            self.angle_row_w = np.concatenate(weights)
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
             self._setup_angle_levels()
@@ -540,6 +598,11 @@ class _Problem:
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
+        if self.use_angles:
+            v, jac = self._angles(X)
+            short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
+            f += 0.5 * float(np.sum(self.angle_row_w * short**2))
+            g += np.einsum("r,rjk->jk", self.angle_row_w * short, jac)
         grad = (self.sc3 * g).ravel()
         if self.elastic:
             sl = x[3 * self.j :]
@@ -589,10 +652,6 @@ class _Problem:
             jac[rows, self.ord_k, 2] = self.ord_s
             jac[rows, self.ord_p, 2] -= self.ord_s
             vals.append(val)
-            jacs.append(jac)
-        if self.use_angles:
-            v, jac = self._angles(X)
-            vals.append(v)
             jacs.append(jac)
         if not vals:
             return np.zeros(0), np.zeros((0, self.j, 3))
@@ -693,18 +752,22 @@ class _Problem:
         )
         g3 = np.einsum("mi,mix->mx", B, DL) + np.einsum("mi,mix->mx", LAT, D)
         gb = np.einsum("mi,mix->mx", B / bn[:, None], D)
-        cf0, sf0, cf1, sf1 = self.cfmin, self.sfmin, self.cfmax, self.sfmax
-        sa0, sa1 = self.samin, self.samax
-        vals = np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
-        jac = np.stack(
-            [
-                cf0[:, None] * g2 - sf0[:, None] * g1,
-                sf1[:, None] * g1 - cf1[:, None] * g2,
-                g3 - sa0[:, None] * gb,
-                sa1[:, None] * gb - g3,
-            ]
-        )
-        return vals.ravel(), jac.reshape(4 * a_n, j, 3)
+        vals, jacs = [], []
+        for cf0, sf0, cf1, sf1, sa0, sa1 in self.angle_coef:
+            vals.append(
+                np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
+            )
+            jacs.append(
+                np.stack(
+                    [
+                        cf0[:, None] * g2 - sf0[:, None] * g1,
+                        sf1[:, None] * g1 - cf1[:, None] * g2,
+                        g3 - sa0[:, None] * gb,
+                        sa1[:, None] * gb - g3,
+                    ]
+                ).reshape(4 * a_n, j, 3)
+            )
+        return np.concatenate([v.ravel() for v in vals]), np.concatenate(jacs)
 
     def ineq(self, x: np.ndarray) -> np.ndarray:
         val = self._cached("ineq", x)[0]
@@ -732,7 +795,7 @@ class _Problem:
         return jac
 
     def num_ineq(self) -> int:
-        n = len(self.ord_k) + (4 * len(self.ak) if self.use_angles else 0)
+        n = len(self.ord_k)
         if self.elastic:
             n += len(self.el_lo) + len(self.el_hi)
         return n
@@ -768,6 +831,8 @@ def lift_frame(
     w_surface: float = 0.1,
     surface_depth_mm: float = 3.0,
     w_flat: float = 0.01,
+    w_angle: float = 1.0,
+    w_angle_inner: float = 0.0,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
@@ -785,6 +850,8 @@ def lift_frame(
     init_mm: ``(J, 3)`` warm start (e.g. the previous solution while a joint is dragged).
     order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
+    w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
+    w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). start_elastic: solve the elastic problem first instead of
     only after the hard one failed (live re-lifts of a frame whose previous lift needed slack: the
@@ -821,6 +888,8 @@ def lift_frame(
         w_surface=w_surface,
         surface_depth_mm=surface_depth_mm,
         w_flat=w_flat,
+        w_angle=w_angle,
+        w_angle_inner=w_angle_inner,
         w_free=1e-3,
         soft_bones=soft_bones,
         right_hand=right_hand,
@@ -1073,6 +1142,42 @@ def initial_bone_lengths(
     return tmpl * float(np.clip(scale, 0.5, 2.0))
 
 
+def surface_correction(
+    annotations: dict[int, FrameAnnotation],
+    results: dict[int, LiftResult],
+    skeleton: Skeleton,
+    surface_depth_mm: float,
+    min_samples: int = 8,
+) -> np.ndarray:
+    """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
+
+    For every annotated visible joint with an observed depth (and no elastic slack) the residual
+    ``z_lifted - (D + o + surface_depth_mm)`` is how much deeper below the observed surface the
+    lift put the joint centre than the offset assumed; the correction of a joint group
+    (:meth:`Skeleton.surface_groups`: same level along the chains) is the median over its samples
+    (0 with fewer than ``min_samples``). Fingertips are the anchor (their offset is defined: the
+    tip lies on the surface) and are never corrected: a uniform change of every offset is
+    otherwise indistinguishable from a change of the hand's scale.
+    """
+    groups = skeleton.surface_groups()
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    res_by_group: dict[int, list[np.ndarray]] = {}
+    for f, r in results.items():
+        ann = annotations[f]
+        d = r.observed_depth_mm
+        ok = ann.has_2d & ann.visible & np.isfinite(d)
+        ok[r.slack_joints] = False
+        resid = r.joints_mm[:, 2] - d - offsets - surface_depth_mm
+        for g in np.unique(groups[ok]):
+            res_by_group.setdefault(int(g), []).append(resid[ok & (groups == g)])
+    corr = np.zeros(skeleton.num_joints)
+    for g, parts in res_by_group.items():
+        vals = np.concatenate(parts)
+        if g >= 0 and len(vals) >= min_samples:
+            corr[groups == g] = float(np.median(vals))
+    return corr
+
+
 def lift_references(
     annotations: dict[int, FrameAnnotation],
     depth_of: Callable[[int], np.ndarray],
@@ -1088,17 +1193,32 @@ def lift_references(
     max_rounds: int = 10,
     bone_tol_mm: float = 0.1,
     soft_bone_weight: float = 0.05,
+    min_bone_votes: int = 3,
+    calibrate_surface: bool = True,
+    offset_tol_mm: float = 0.5,
+    max_calibrations: int = 3,
+    stretch_tolerance: float = 0.2,
     **lift_kwargs,
 ) -> LiftSet:
-    """Lift every annotated reference frame and estimate the bone lengths jointly.
+    """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
 
     annotations: frame -> :class:`FrameAnnotation`. depth_of(frame) -> ``(H, W)`` mm.
-    bone_lengths_mm: ``(B,)`` starting lengths (default: template scaled to the annotations).
+    bone_lengths_mm: ``(B,)`` starting lengths (default: the template times the hand scale
+    measured on the annotations, :func:`initial_bone_lengths`).
     pin_bone_lengths: keep ``bone_lengths_mm`` fixed (no re-estimation; requires the lengths).
     Re-estimation rounds (see module docstring) run until no bone changes by more than
-    ``bone_tol_mm`` or ``max_rounds``. workers > 1 lifts frames in processes.
-    progress(done, total) is called after every frame of every round.
-    Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per round).
+    ``bone_tol_mm`` (and no surface offset by more than ``offset_tol_mm``) or ``max_rounds``.
+    A bone is re-estimated only where both its joints are annotated in at least
+    ``min_bone_votes`` references; the others keep the template times the global scale of the
+    re-estimated ones (median ratio to the template). calibrate_surface: re-estimate the depth of
+    joint centres below the observed surface per joint group in every round
+    (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
+    A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
+    ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
+    bone's spread over the references) longer or shorter than the final estimate is reported
+    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
+    every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
+    round).
     """
     frames = sorted(int(f) for f in annotations)
     for f in frames:
@@ -1108,23 +1228,40 @@ def lift_references(
     if pin_bone_lengths and bone_lengths_mm is None:
         raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
     depths = {f: np.asarray(depth_of(f)) for f in frames}
+    anns = {f: annotations[f] for f in frames}
     if bone_lengths_mm is not None:
         bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
     elif frames:
-        bones = initial_bone_lengths({f: annotations[f] for f in frames}, depths, camera, skeleton)
+        bones = initial_bone_lengths(anns, depths, camera, skeleton)
     else:
         bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
     history = [bones.copy()]
+    sk = skeleton
+    surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
     kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
     inits: dict[int, np.ndarray] = {}
+    soft_lengths = None
+    votes = (
+        np.stack([anns[f].annotated for f in frames])
+        if frames
+        else np.zeros((0, sk.num_joints), dtype=bool)
+    )
+    bmask = votes[:, sk.bones[:, 0]] & votes[:, sk.bones[:, 1]]  # (F, B) both ends annotated
+    voted = bmask.sum(axis=0) >= min_bone_votes
+    tmpl = (
+        np.asarray(sk.template_bone_lengths_mm, dtype=np.float64)
+        if sk.template_bone_lengths_mm is not None
+        else None
+    )
+    calibrations = 0
     if not pin_bone_lengths and len(frames) > 0:
-        for _ in range(max_rounds):
+        for _ in range(max_rounds + max_calibrations):
             jobs = [
                 (
-                    annotations[f],
+                    anns[f],
                     depths[f],
                     camera,
-                    skeleton,
+                    sk,
                     bones,
                     dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
                 )
@@ -1132,36 +1269,73 @@ def lift_references(
             ]
             res = _run_all(jobs, workers, progress, "bones")
             poses = np.stack([r.joints_mm for r in res])
-            lengths = skeleton.bone_lengths(poses)  # (F, B)
-            # only bones whose both joints carry evidence (2D or 3D) vote
-            votes = np.stack([annotations[f].annotated for f in frames])
-            bmask = votes[:, skeleton.bones[:, 0]] & votes[:, skeleton.bones[:, 1]]
-            lengths = np.where(bmask, lengths, np.nan)
-            new = np.nanmedian(lengths, axis=0)
-            new = np.where(np.isfinite(new), new, bones)
+            soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
+            new = bones.copy()
+            if np.any(voted):
+                new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+                if tmpl is not None and not np.all(voted):
+                    # bones without enough evidence: template times the global scale
+                    scale = float(np.median(new[voted] / tmpl[voted]))
+                    new[~voted] = tmpl[~voted] * scale
             change = float(np.max(np.abs(new - bones)))
             bones = new
             history.append(bones.copy())
             inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
-            if change < bone_tol_mm:
+            if change >= bone_tol_mm:
+                continue
+            # bones converged: calibrate the surface offsets only now (while the bones are still
+            # off, the residuals measure the bones' error, and offsets would absorb it)
+            if not calibrate_surface or calibrations >= max_calibrations:
                 break
-    jobs = [
-        (annotations[f], depths[f], camera, skeleton, bones, dict(kw, init_mm=inits.get(f)))
-        for f in frames
-    ]
+            corr = surface_correction(anns, dict(zip(frames, res, strict=True)), sk, surface_depth)
+            calibrations += 1
+            if float(np.max(np.abs(corr))) < offset_tol_mm:
+                break
+            offsets = np.asarray(sk.surface_offsets_mm) + corr
+            sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
+    jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
     res = _run_all(jobs, workers, progress, "final")
     if inits:
         # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
         # from the cold start and keep the better objective (measured: worst joint 20 -> 10 mm
         # on the synthetic sequence, at the cost of one more lift per reference)
-        cold_jobs = [(a, dp, cm, sk, b, dict(kw)) for a, dp, cm, sk, b, _ in jobs]
+        cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
         cold = _run_all(cold_jobs, workers, None, "final-cold")
         res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+    if soft_lengths is not None:
+        dev = np.abs(soft_lengths - bones)
+        rel = dev / bones
+        # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
+        # the references (noisy clicks spread every bone; only an outlier frame is stretched)
+        with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
+            spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
+            wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
+        for i, r in enumerate(res):
+            if np.any(wants[i]):
+                b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
+                r.stretched = True
+                r.converged = False
+                r.confidence = r.confidence * 0.5
+                r.message = (
+                    f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
+                    f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
+                    f"frame against {bones[b]:.1f} mm estimated; {r.message}"
+                )
     results = dict(zip(frames, res, strict=True))
+    n_stretched = sum(r.stretched for r in res)
+    if n_stretched:
+        warnings.warn(
+            f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
+            "lengths (LiftResult.stretched); check their 2D annotations",
+            stacklevel=2,
+        )
     return LiftSet(
         joints_mm={f: r.joints_mm for f, r in results.items()},
         confidence={f: r.confidence for f, r in results.items()},
         bone_lengths_mm=bones,
         results=results,
         bone_history_mm=history,
+        surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
+        bone_votes=bmask.sum(axis=0),
     )

@@ -20,7 +20,10 @@ OpenCV camera frame and points out of the palm; it is negated for a left hand.
 
 from __future__ import annotations
 
+import functools
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -172,9 +175,109 @@ class Skeleton:
         k = self.angle_joints
         return np.asarray(self.flexion_limits_deg)[k], np.asarray(self.abduction_limits_deg)[k]
 
+    def learned_angle_ranges(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(A, 2)`` flexion and abduction ranges (degrees) observed on real recorded motion
+        (``data/angle_ranges.json``, robust percentiles), or None if the layout has none. Joints
+        the table does not list get NaN rows."""
+        table = _angle_table().get(self.name)
+        if table is None:
+            return None
+        fl = np.full((len(self.angle_joints), 2), np.nan)
+        ab = np.full((len(self.angle_joints), 2), np.nan)
+        for i, k in enumerate(self.angle_joints):
+            row = table["joints"].get(self.joint_names[k])
+            if row is not None:
+                fl[i], ab[i] = row["flexion"], row["abduction"]
+        return fl, ab
+
+    def angle_ranges(self, right_hand: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, 2)`` flexion and abduction ranges (degrees) used as *soft* limits by the lift:
+        the union of :meth:`angle_limits` (anatomical, hand-set) and :meth:`learned_angle_ranges`
+        (what real hands were recorded doing). A pose inside is free; beyond it the lift's
+        penalty grows quadratically. The table is for a right hand; a left hand, measured with
+        ``right_hand=False``, has the same flexion and negated abduction ranges."""
+        fl, ab = self.angle_limits()
+        learned = self.learned_angle_ranges()
+        if learned is not None:
+            out = []
+            for lim, obs in zip((fl, ab), learned, strict=True):
+                lo = np.fmin(lim[:, 0], obs[:, 0])
+                hi = np.fmax(lim[:, 1], obs[:, 1])
+                out.append(np.stack([lo, hi], axis=1))
+            fl, ab = out
+        if not right_hand:
+            ab = -ab[:, ::-1]
+        return fl, ab
+
+    def angle_range_violation_deg(
+        self, poses_mm: np.ndarray, right_hand: bool = True
+    ) -> np.ndarray:
+        """``(..., A)`` degrees by which each joint's flexion or abduction (whichever is worse)
+        lies outside :meth:`angle_ranges`; 0 inside."""
+        flex, abd = self.joint_angles(poses_mm, right_hand)
+        fl, ab = self.angle_ranges(right_hand)
+        v_f = np.maximum(np.maximum(fl[:, 0] - flex, flex - fl[:, 1]), 0.0)
+        v_a = np.maximum(np.maximum(ab[:, 0] - abd, abd - ab[:, 1]), 0.0)
+        return np.maximum(v_f, v_a)
+
+    def surface_groups(self) -> np.ndarray:
+        """``(J,)`` int group per joint for surface-offset calibration: joints of the same kind
+        (same position along their chain: 0 = root/palm, 1 = first joint off the root, 2, 3 ...,
+        tips their own group) share an offset correction."""
+        par = self.parent_array
+        level = np.zeros(self.num_joints, dtype=np.int64)
+        for j in range(self.num_joints):
+            k = j
+            while par[k] >= 0:
+                level[j] += 1
+                k = par[k]
+        tips = np.asarray(self.fingertips, dtype=np.int64)
+        groups = level.copy()
+        groups[tips] = -1
+        return groups
+
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def default_angle_ranges_path() -> Path:
+    """The packaged table of learned angle ranges and bone lengths per layout."""
+    return Path(__file__).resolve().parent / "data" / "angle_ranges.json"
+
+
+@functools.cache
+def _angle_table() -> dict:
+    """``layout -> {"joints": {name: {"flexion": [lo, hi], "abduction": [lo, hi]}},
+    "bone_lengths_mm": [...]}`` from :func:`default_angle_ranges_path` ({} if absent)."""
+    path = default_angle_ranges_path()
+    if not path.is_file():
+        return {}
+    return json.loads(path.read_text())["layouts"]
+
+
+def _learned_limits(
+    name: str, joint_names: tuple[str, ...]
+) -> tuple[tuple[tuple[float, float], ...] | None, tuple[tuple[float, float], ...] | None]:
+    """Per-joint learned (flexion, abduction) limits of a layout that has no hand-set ones."""
+    table = _angle_table().get(name)
+    if table is None:
+        return None, None
+    rows = [table["joints"].get(n) for n in joint_names]
+    fl = tuple(tuple(r["flexion"]) if r else _NAN for r in rows)
+    ab = tuple(tuple(r["abduction"]) if r else _NAN for r in rows)
+    return fl, ab  # type: ignore[return-value]
+
+
+def _learned_bones(name: str) -> tuple[float, ...] | None:
+    table = _angle_table().get(name)
+    return None if table is None else tuple(float(b) for b in table["bone_lengths_mm"])
+
+
+#: FPHA joint order (wrist, TMCP, IMCP, MMCP, RMCP, PMCP, then (PIP, DIP, TIP) of thumb, index,
+#: middle, ring, pinky) -> MSRA-21: ``msra = fpha[:, FPHA_TO_MSRA21]``. FPHA's thumb "MCP" is the
+#: CMC-side joint, MSRA's ``thumb_cmc``; FPHA's thumb PIP/DIP are MSRA's ``thumb_mcp``/``thumb_ip``.
+FPHA_TO_MSRA21 = (0, 2, 9, 10, 11, 3, 12, 13, 14, 4, 15, 16, 17, 5, 18, 19, 20, 1, 6, 7, 8)
 
 
 _NAN = (float("nan"), float("nan"))
@@ -360,51 +463,65 @@ BLENDER24 = Skeleton(
     fingertips=(3, 8, 13, 18, 23),
 )
 
+_ICVL_NAMES = (
+    "palm",
+    "thumb_root",
+    "thumb_mid",
+    "thumb_tip",
+    "index_root",
+    "index_mid",
+    "index_tip",
+    "middle_root",
+    "middle_mid",
+    "middle_tip",
+    "ring_root",
+    "ring_mid",
+    "ring_tip",
+    "little_root",
+    "little_mid",
+    "little_tip",
+)
+_NYU_NAMES = (
+    "little_tip",
+    "little_mid",
+    "ring_tip",
+    "ring_mid",
+    "middle_tip",
+    "middle_mid",
+    "index_tip",
+    "index_mid",
+    "thumb_tip",
+    "thumb_mid",
+    "thumb_root",
+    "wrist1",
+    "wrist2",
+    "palm",
+)
+
 ICVL16 = Skeleton(
     name="icvl16",
-    joint_names=(
-        "palm",
-        "thumb_root",
-        "thumb_mid",
-        "thumb_tip",
-        "index_root",
-        "index_mid",
-        "index_tip",
-        "middle_root",
-        "middle_mid",
-        "middle_tip",
-        "ring_root",
-        "ring_mid",
-        "ring_tip",
-        "little_root",
-        "little_mid",
-        "little_tip",
-    ),
+    joint_names=_ICVL_NAMES,
     parents=(-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 0, 10, 11, 0, 13, 14),
     surface_offsets_mm=(15.0,) + (9.0, 8.0, 0.0) * 5,
+    template_bone_lengths_mm=_learned_bones("icvl16"),
+    palm_joints=(0, 4, 13),
+    flexion_limits_deg=_learned_limits("icvl16", _ICVL_NAMES)[0],
+    abduction_limits_deg=_learned_limits("icvl16", _ICVL_NAMES)[1],
     fingertips=(3, 6, 9, 12, 15),
 )
 
 NYU14 = Skeleton(
     name="nyu14",
-    joint_names=(
-        "little_tip",
-        "little_mid",
-        "ring_tip",
-        "ring_mid",
-        "middle_tip",
-        "middle_mid",
-        "index_tip",
-        "index_mid",
-        "thumb_tip",
-        "thumb_mid",
-        "thumb_root",
-        "wrist1",
-        "wrist2",
-        "palm",
-    ),
+    joint_names=_NYU_NAMES,
     parents=(1, 13, 3, 13, 5, 13, 7, 13, 9, 10, 13, 13, 13, -1),
     surface_offsets_mm=(0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 0.0, 8.0, 10.0, 15.0, 15.0, 15.0),
+    template_bone_lengths_mm=_learned_bones("nyu14"),
+    # wrist2 (thumb side), palm, wrist1 (little side): the palm-fixed triangle, oriented like
+    # MSRA's (wrist, index_mcp, little_mcp) (measured on the NYU labels: wrist2 is 15 mm nearer
+    # the thumb root than wrist1)
+    palm_joints=(12, 13, 11),
+    flexion_limits_deg=_learned_limits("nyu14", _NYU_NAMES)[0],
+    abduction_limits_deg=_learned_limits("nyu14", _NYU_NAMES)[1],
     fingertips=(0, 2, 4, 6, 8),
 )
 

@@ -166,48 +166,49 @@ def test_exact_annotations_recovered_and_constraints_hold(frames):
     assert np.median(errs.max(axis=1)) < 8.0
 
 
-def test_angle_limits_respected_when_on():
+def test_angle_ranges_are_soft_penalties():
+    """Noisy 2D pushes towards impossible angles: the lift stays near the angle ranges (soft:
+    a few degrees beyond at most) and much nearer than without them; bones stay hard."""
     rng = np.random.default_rng(3)
-    fl_lim, ab_lim = SK.angle_limits()
+    worst_on, total_on, total_off = 0.0, 0.0, 0.0
     for _ in range(4):
         X = random_pose(rng)
         depth = render(X)
-        ann = annotate(X, depth, noise_px=4.0, rng=rng)  # noisy 2D pushes towards violations
+        ann = annotate(X, depth, noise_px=4.0, rng=rng)
         bones = SK.bone_lengths(X)
-        r = lift_frame(ann, depth, CAM, SK, bones, angle_limits=True)
-        fl, ab = SK.joint_angles(r.joints_mm)
-        assert np.all(fl >= fl_lim[:, 0] - 0.5) and np.all(fl <= fl_lim[:, 1] + 0.5)
-        assert np.all(ab >= ab_lim[:, 0] - 0.5) and np.all(ab <= ab_lim[:, 1] + 0.5)
-        assert np.max(np.abs(SK.bone_lengths(r.joints_mm) - bones)) < 0.5
+        on = lift_frame(ann, depth, CAM, SK, bones, angle_limits=True)
+        off = lift_frame(ann, depth, CAM, SK, bones, angle_limits=False)
+        v_on = SK.angle_range_violation_deg(on.joints_mm)
+        v_off = SK.angle_range_violation_deg(off.joints_mm)
+        worst_on = max(worst_on, float(v_on.max()))
+        total_on += float(v_on.sum())
+        total_off += float(v_off.sum())
+        assert np.max(np.abs(SK.bone_lengths(on.joints_mm) - bones)) < 0.5
+    assert worst_on < 10.0
+    assert total_on <= total_off
 
 
-@pytest.mark.xfail(
-    reason="known issue: this contrived 2D (a tip mirrored backwards) makes SLSQP stop with "
-    "'positive directional derivative'; the result is flagged converged=False",
-    strict=False,
-)
-def test_angle_limits_change_solution_when_violated():
-    """A 2D annotation of a hyper-extended finger: the limits force a different pose."""
-    rng = np.random.default_rng(11)
-    X = random_pose(rng)
+def test_reversed_finger_in_2d_is_pulled_back_towards_the_ranges(frames):
+    """2D clicks of an index finger bent backwards by 60 degrees at the PIP: without the
+    ranges the lift follows them; with them the PIP flexion is pulled back towards its range."""
+    from handanno_core.synth import gesture_library, local_pose, make_hand_model
+
+    model = make_hand_model(0)
+    params = gesture_library(model)["open"].copy()
+    params[2] = -60.0  # index PIP flexion
+    local = local_pose(model, params)[0]
+    rot = np.diag([1.0, -1.0, -1.0])  # palm to the camera, fingers up
+    X = (local - local.mean(axis=0)) @ rot.T + np.array([0.0, 0.0, 380.0])
     depth = render(X)
     ann = annotate(X, depth)
-    # bend the index DIP->TIP backwards in 2D: mirror the tip about the DIP-PIP line
-    uv = ann.uv_px
-    a = uv[3] - uv[2]
-    b = uv[4] - uv[3]
-    a_hat = a / np.linalg.norm(a)
-    b_ref = 2 * (b @ a_hat) * a_hat - b
-    ann.uv_px[4] = uv[3] + b_ref
-    ann.depth_order[:] = 0
     bones = SK.bone_lengths(X)
+    k = list(SK.angle_joints).index(SK.joint_names.index("index_pip"))
     on = lift_frame(ann, depth, CAM, SK, bones, angle_limits=True)
     off = lift_frame(ann, depth, CAM, SK, bones, angle_limits=False)
-    fl_lim, ab_lim = SK.angle_limits()
-    fl, ab = SK.joint_angles(on.joints_mm)
-    assert np.all(fl >= fl_lim[:, 0] - 0.5) and np.all(fl <= fl_lim[:, 1] + 0.5)
-    assert np.all(np.abs(ab) <= ab_lim[:, 1] + 0.5)
-    assert off.reprojection_px[4] <= on.reprojection_px[4] + 1e-6
+    v_on = SK.angle_range_violation_deg(on.joints_mm)[k]
+    v_off = SK.angle_range_violation_deg(off.joints_mm)[k]
+    assert v_off > 30.0  # the clicks alone give the impossible pose
+    assert v_on < 0.6 * v_off, (v_on, v_off)
 
 
 def test_analytic_derivatives_match_finite_differences(frames):
@@ -334,7 +335,9 @@ def test_bone_lengths_estimated_from_exact_data():
     )
     np.testing.assert_array_equal(pinned.bone_lengths_mm, true)
     e = np.mean([np.linalg.norm(pinned.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
-    assert e < 2.0
+    # measured 2.04 mm with the soft learned ranges (the poses are drawn inside the narrower
+    # anatomical limits, which hard walls enforced exactly: < 2.0 mm)
+    assert e < 2.2
 
 
 def test_impossible_depth_reading_is_dropped(frames):
@@ -373,16 +376,19 @@ def test_vectorized_angle_rows_match_skeleton_angles(frames):
         w_free=1e-3,
         soft_bones=None,
         right_hand=True,
+        w_angle_inner=1.0,
     )
     vals, _ = prob._angles(X)
-    vals = vals.reshape(4, -1)
+    vals = vals.reshape(2, 4, -1)  # two tiers: the learned ranges, then the anatomical limits
     fl, ab = SK.joint_angles(X)
-    fl_lim, ab_lim = SK.angle_limits()
-    # sign of each row equals the sign of the margin to its limit
-    assert np.all(np.sign(vals[0]) == np.sign(fl - fl_lim[:, 0]))
-    assert np.all(np.sign(vals[1]) == np.sign(fl_lim[:, 1] - fl))
-    assert np.all(np.sign(vals[2]) == np.sign(ab - ab_lim[:, 0]))
-    assert np.all(np.sign(vals[3]) == np.sign(ab_lim[:, 1] - ab))
+    for tier, (fl_lim, ab_lim) in zip(vals, (SK.angle_ranges(), SK.angle_limits()), strict=True):
+        on = np.ptp(fl_lim, axis=1) < 170.0  # wider flexion ranges are no limit (rows off)
+        assert np.all(tier[:2, ~on] == 0.0)
+        # sign of each row equals the sign of the margin to its limit
+        assert np.all(np.sign(tier[0, on]) == np.sign(fl - fl_lim[:, 0])[on])
+        assert np.all(np.sign(tier[1, on]) == np.sign(fl_lim[:, 1] - fl)[on])
+        assert np.all(np.sign(tier[2]) == np.sign(ab - ab_lim[:, 0]))
+        assert np.all(np.sign(tier[3]) == np.sign(ab_lim[:, 1] - ab))
 
 
 def test_inconsistent_depth_rules():
@@ -495,3 +501,87 @@ def test_stalled_hard_solve_stops_early(frames, monkeypatch):
     X, depth, ann = frames[0]
     r = lift_frame(ann, depth, CAM, SK, SK.bone_lengths(X), max_iter=200)
     assert r.converged and not r.elastic and solves == [(False, r.iterations, True)]
+
+
+# ------------------------------------------------------------------ scale, stretch, calibration
+def _rendered_set(rng, true_bones, n=24, offsets=None):
+    """``n`` random poses with ``true_bones``, rendered with surface ``offsets`` (default: the
+    skeleton's), annotated exactly."""
+    global OFF
+    saved = OFF
+    if offsets is not None:
+        OFF = np.asarray(offsets, dtype=np.float64)
+    try:
+        anns, depths, poses = {}, {}, {}
+        for f in range(n):
+            X = random_pose(rng, true_bones)
+            depths[f] = render(X)
+            anns[f] = annotate(X, depths[f])
+            poses[f] = X
+    finally:
+        OFF = saved
+    return anns, depths, poses
+
+
+def test_bones_from_partial_annotations_of_a_larger_hand():
+    """12 of 21 joints annotated on a hand 1.3x the template (+-3 % per bone): every bone,
+    annotated at both ends or not, is estimated within 5 % (global scale first, then per bone)."""
+    rng = np.random.default_rng(8)
+    true = np.asarray(SK.template_bone_lengths_mm) * 1.3 * rng.uniform(0.97, 1.03, 20)
+    anns, depths, _ = _rendered_set(rng, true, n=16)
+    keep = np.zeros(21, dtype=bool)
+    keep[[0, 1, 2, 3, 4, 5, 6, 9, 13, 17, 18, 19]] = True
+    for a in anns.values():
+        a.uv_px[~keep] = np.nan
+        a.depth_order[~keep] = 0
+    res = lift_references(anns, depths.__getitem__, CAM, SK)
+    rel = np.abs(res.bone_lengths_mm - true) / true
+    assert rel.max() < 0.05, np.round(rel, 3)
+    both = keep[SK.bones[:, 0]] & keep[SK.bones[:, 1]]
+    np.testing.assert_array_equal(res.bone_votes, np.where(both, 16, 0))
+    # the template alone would be 30 % off
+    tmpl_rel = np.abs(np.asarray(SK.template_bone_lengths_mm) - true) / true
+    assert tmpl_rel.min() > 0.2
+
+
+def test_a_reference_that_needs_a_stretched_bone_is_reported():
+    """One reference whose index finger is clicked twice as long as in the others: the lift
+    reports it stretched (not converged, halved confidence); the others are not."""
+    rng = np.random.default_rng(9)
+    true = np.asarray(SK.template_bone_lengths_mm) * rng.uniform(0.97, 1.03, 20)
+    anns, depths, _ = _rendered_set(rng, true, n=8)
+    bad = anns[3]
+    uv = bad.uv_px
+    for k in (2, 3, 4):  # stretch the index finger from its MCP in 2D
+        uv[k] = uv[1] + 2.0 * (uv[k] - uv[1])
+    bad.visible[[2, 3, 4]] = False  # no depth reading can contradict the longer finger
+    with pytest.warns(UserWarning, match="stretching"):
+        res = lift_references(anns, depths.__getitem__, CAM, SK)
+    assert res.results[3].stretched and not res.results[3].converged
+    assert "stretched" in res.results[3].message
+    assert not any(res.results[f].stretched for f in anns if f != 3)
+
+
+def test_surface_offset_self_calibration_recovers_a_deeper_wrist():
+    """The data's wrist centre lies 12 mm deeper below the observed surface than the skeleton's
+    default offset says (as on NYU, where wrist and palm joints sit 26-35 mm deep): the
+    calibrated offset moves towards the truth and the wrist error drops. Measured: 15 -> 19.4 mm
+    against 27 mm true (a frontal wrist's depth is only weakly fixed by its bones, so the median
+    residual recovers about a third of the offset error)."""
+    rng = np.random.default_rng(5)
+    true = np.asarray(SK.template_bone_lengths_mm)
+    offsets = OFF.copy()
+    offsets[0] += 12.0
+    anns, depths, poses = _rendered_set(rng, true, n=24, offsets=offsets)
+    cal = lift_references(anns, depths.__getitem__, CAM, SK)
+    raw = lift_references(anns, depths.__getitem__, CAM, SK, calibrate_surface=False)
+    np.testing.assert_array_equal(raw.surface_offsets_mm, OFF)
+    err_cal = abs(cal.surface_offsets_mm[0] - offsets[0])
+    assert err_cal < 0.75 * 12.0, cal.surface_offsets_mm[0]
+    # the fingers' offsets, right by construction, stay within a millimetre
+    assert np.max(np.abs(cal.surface_offsets_mm[1:] - OFF[1:])) < 1.0
+
+    def wrist_err(res):
+        return np.mean([np.linalg.norm(res.joints_mm[f][0] - poses[f][0]) for f in poses])
+
+    assert wrist_err(cal) < wrist_err(raw)

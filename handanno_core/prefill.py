@@ -1,0 +1,149 @@
+"""Pre-filled references: the best current estimate of a frame's joints, before anyone clicks.
+
+When a reference frame is opened for annotation (in the app, or by the bench's simulated
+annotator), its joints start from :func:`prefill_reference` so that the annotator only moves what
+is wrong. The estimate, best first:
+
+1. the frame's own results: refined (``final_mm``), else propagated (``init_mm``), else lifted
+   (``lifted_mm``);
+2. one propagation step (:func:`handanno_core.propagate.propagate`: flow between the two hand
+   crops, depth read from this frame's own depth map, bone lengths restored) from the nearest frame
+   in time, within the same sequence segment, that has joints (a lifted reference or a frame with
+   results);
+3. without hand crops on disk (the app never computes them on the UI thread): that neighbour's
+   joints moved by the difference of the two hand centres (no translation without crop metadata).
+
+``None`` when no frame of the session has joints yet. No ground truth is read here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .session import CROPS_FILE, CROPS_META_FILE, Session
+
+__all__ = ["known_joints", "prefill_reference", "prefill_uv"]
+
+#: result arrays a frame's own estimate is read from, best first
+STAGES = ("final_mm", "init_mm", "lifted_mm")
+
+
+def _finite_rows(x: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: rows of ``(N, J, 3)`` with every coordinate finite."""
+    return np.all(np.isfinite(x), axis=(1, 2))
+
+
+def known_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``(N, J, 3)`` mm best estimate per frame from ``results`` (:data:`STAGES` order) and
+    ``(N,)`` bool: the frame has one."""
+    joints = None
+    for key in reversed(STAGES):  # worst first, so better stages overwrite
+        arr = results.get(key)
+        if arr is None:
+            continue
+        arr = np.asarray(arr, dtype=np.float64)
+        if joints is None:
+            joints = np.full_like(arr, np.nan)
+        ok = _finite_rows(arr)
+        joints[ok] = arr[ok]
+    if joints is None:
+        raise ValueError(f"results need one of {STAGES}")
+    return joints, _finite_rows(joints)
+
+
+def _segment_ids(n: int, breaks) -> np.ndarray:
+    """``(N,)`` index of the sequence segment of each frame (a break starts a new segment)."""
+    starts = np.zeros(n, dtype=np.int64)
+    for b in breaks:
+        if 0 < int(b) < n:
+            starts[int(b)] = 1
+    return np.cumsum(starts)
+
+
+def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | None:
+    """The frame nearest in time to ``frame`` with joints, same segment first (earlier on ties)."""
+    cand = np.flatnonzero(has)
+    cand = cand[cand != frame]
+    if cand.size == 0:
+        return None
+    same = cand[segment[cand] == segment[frame]]
+    if same.size:
+        cand = same
+    d = np.abs(cand - frame)
+    return int(cand[np.lexsort((cand, d))[0]])
+
+
+def _crop_cache(session: Session):
+    """``(crops memmap, centres (N, 3), boxes (N, 4))`` from the session's cache, or None."""
+    folder = session.folder
+    if not (folder / CROPS_FILE).exists() or not (folder / CROPS_META_FILE).exists():
+        return None
+    with np.load(folder / CROPS_META_FILE) as meta:
+        if int(meta["frames"]) != session.num_frames:
+            return None
+        centres, boxes = np.asarray(meta["centres_mm"]), np.asarray(meta["boxes"])
+    return np.load(folder / CROPS_FILE, mmap_mode="r"), centres, boxes
+
+
+def _propagate_one(session: Session, source: int, frame: int, joints: np.ndarray, crop_data):
+    """One propagation step ``source -> frame``; ``(J, 3)`` mm or None if it was skipped."""
+    from .propagate import propagate
+
+    crops, centres, boxes = crop_data
+    skeleton = session.skeleton
+    bones = session.model.bone_lengths_mm
+    bones = skeleton.bone_lengths(joints) if bones is None else np.asarray(bones, np.float64)
+    parent = np.full(session.num_frames, -1, dtype=np.int64)
+    parent[frame] = source
+    sequence = session.open_sequence()
+    result = propagate(
+        parent,
+        {source: joints},
+        crops,
+        boxes,
+        centres,
+        sequence.depth,
+        session.camera,
+        skeleton,
+        bones,
+        aligner=session.model.settings.aligner,
+        frames=np.array([frame]),
+    )
+    out = result.joints_mm[frame]
+    return out if np.all(np.isfinite(out)) else None
+
+
+def prefill_reference(
+    session: Session, frame: int, results: dict[str, np.ndarray] | None
+) -> np.ndarray | None:
+    """``(J, 3)`` mm best current estimate of ``frame``'s joints (see the module docstring), or
+    None when nothing in the session has joints. ``results`` are the session's result arrays
+    (:meth:`Session.load_results`; read from the session when None); they are not modified."""
+    frame = int(frame)
+    n = session.num_frames
+    if not 0 <= frame < n:
+        raise ValueError(f"{session.folder}: frame {frame} is outside 0..{n - 1}")
+    if results is None:
+        results = session.load_results()
+    joints, has = known_joints(results)
+    if has[frame]:
+        return joints[frame].copy()
+    source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
+    if source is None:
+        return None
+    crop_data = _crop_cache(session)
+    if crop_data is not None:
+        out = _propagate_one(session, source, frame, joints[source], crop_data)
+        if out is not None:
+            return out
+        centres = crop_data[1]
+        shift = np.asarray(centres[frame] - centres[source], dtype=np.float64)
+        if np.all(np.isfinite(shift)):
+            return joints[source] + shift
+    return joints[source].copy()
+
+
+def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:
+    """``(J, 2)`` px: the image positions of pre-filled joints ``(J, 3)`` mm (NaN behind the
+    camera), where the annotate view draws them as guesses."""
+    return session.camera.project(np.asarray(joints_mm, dtype=np.float64))

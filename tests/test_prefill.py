@@ -1,0 +1,96 @@
+"""Pre-filled references: the frame's own results first, else one propagation step from the
+nearest frame with joints, else that neighbour's joints; None when nothing has joints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from review_session import STEP, build_review_session
+
+from handanno_core.prefill import _nearest_known, _segment_ids, prefill_reference, prefill_uv
+from handanno_core.session import Session
+
+FRAMES = 30
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    from handanno_core.synth import generate_sequence
+
+    out = tmp_path_factory.mktemp("prefill-data") / "data"
+    generate_sequence(out, frames=FRAMES, seed=2, progress=False)
+    return out
+
+
+@pytest.fixture()
+def session(data_dir, tmp_path):
+    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
+    yield s
+    s.close()
+
+
+def errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(a - b, axis=-1)
+
+
+def test_the_frames_own_results_come_first(session):
+    results = session.load_results()
+    gt = session.open_sequence().ground_truth.joints_mm
+    results["init_mm"][7] = gt[7] + 2.0
+    results["final_mm"][7] = gt[7] + 1.0
+    before = {k: v.copy() for k, v in results.items()}
+    out = prefill_reference(session, 7, results)
+    np.testing.assert_allclose(out, gt[7] + 1.0)
+    results["final_mm"][7] = np.nan
+    np.testing.assert_allclose(prefill_reference(session, 7, results), gt[7] + 2.0)
+    out[:] = 0.0  # a copy: the caller may edit it
+    assert np.isfinite(results["init_mm"][7]).all()
+    for key in ("lifted_mm", "confidence"):
+        np.testing.assert_array_equal(results[key], before[key])
+
+
+def test_propagates_from_the_nearest_lifted_reference(session):
+    from handanno_core.pipeline import ensure_crops
+
+    ensure_crops(session, quiet=True)
+    gt = session.open_sequence().ground_truth.joints_mm
+    results = session.load_results()
+    results["lifted_mm"][1:] = np.nan  # only frame 0 is lifted: the hand moves ~6 mm until 25
+    frame = 25
+    out = prefill_reference(session, frame, results)
+    assert out.shape == (session.skeleton.num_joints, 3)
+    copied = errors(gt[0], gt[frame]).mean()
+    flowed = errors(out, gt[frame]).mean()
+    assert flowed < 0.5 * copied, (flowed, copied)  # the flow step follows the hand
+    # its bones are the session's
+    np.testing.assert_allclose(
+        session.skeleton.bone_lengths(out), session.model.bone_lengths_mm, rtol=0.02
+    )
+    uv = prefill_uv(session, out)
+    np.testing.assert_allclose(uv, session.camera.project(out))
+    # the results passed in are used (and not read from disk): drop the references -> None
+    results["lifted_mm"][:] = np.nan
+    assert prefill_reference(session, frame, results) is None
+
+
+def test_without_crops_the_neighbours_joints(session):
+    results = session.load_results()
+    out = prefill_reference(session, 2 * STEP - 2, results)  # no crops on disk
+    np.testing.assert_allclose(out, results["lifted_mm"][2 * STEP])
+    with pytest.raises(ValueError, match="outside"):
+        prefill_reference(session, FRAMES, results)
+
+
+def test_nearest_known_stays_in_its_segment():
+    has = np.zeros(20, bool)
+    has[[2, 11, 19]] = True
+    seg = _segment_ids(20, [10])
+    assert _nearest_known(8, has, seg) == 2  # 11 is nearer but across the break
+    assert _nearest_known(12, has, seg) == 11
+    assert _nearest_known(15, has, seg) == 11  # ties -> earlier
+    assert _nearest_known(5, np.zeros(20, bool), seg) is None
+    has2 = np.zeros(20, bool)
+    has2[15] = True
+    assert _nearest_known(3, has2, seg) == 15  # nothing in its segment: across the break

@@ -22,7 +22,7 @@ import numpy as np
 
 from .session import CROPS_FILE, CROPS_META_FILE, Session
 
-__all__ = ["known_joints", "prefill_reference", "prefill_uv"]
+__all__ = ["cached_crops", "known_joints", "prefill_reference", "prefill_uv"]
 
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
@@ -73,8 +73,9 @@ def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | No
     return int(cand[np.lexsort((cand, d))[0]])
 
 
-def _crop_cache(session: Session):
-    """``(crops memmap, centres (N, 3), boxes (N, 4))`` from the session's cache, or None."""
+def cached_crops(session: Session):
+    """``(crops (N, S, S) memmap, centres (N, 3) mm, boxes (N, 4))`` from the session's crop cache
+    (as :func:`handanno_core.pipeline.ensure_crops` wrote it), or None: never computed here."""
     folder = session.folder
     if not (folder / CROPS_FILE).exists() or not (folder / CROPS_META_FILE).exists():
         return None
@@ -131,7 +132,7 @@ def prefill_reference(
     source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
     if source is None:
         return None
-    crop_data = _crop_cache(session)
+    crop_data = cached_crops(session)
     if crop_data is not None:
         out = _propagate_one(session, source, frame, joints[source], crop_data)
         if out is not None:

@@ -336,3 +336,336 @@ def correction_command(
     commands.append(SetFrameAnnotation(frame=int(frame), annotation=seed.to_json()).model_dump())
     commands.append(edit.model_dump())
     return Batch(commands=commands), not is_ref
+
+
+# =============================================================================================
+# review evidence: the ingredients of the ranking, per frame (no ground truth)
+
+
+def angle_violation(joints_mm: np.ndarray, skeleton) -> np.ndarray:
+    """``(N,)`` degrees: the sum over joints of how far flexion and abduction leave the skeleton's
+    limits (0 inside; a mirrored or left/right-swapped hand bends its fingers backwards). NaN
+    without joints; zeros for a skeleton without angle limits."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    out = np.zeros(len(j))
+    if skeleton.palm_joints is None or skeleton.flexion_limits_deg is None:
+        out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
+        return out
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flex, abd = skeleton.joint_angles(j)
+        fl, al = skeleton.angle_limits()
+        over = (
+            np.maximum(fl[:, 0] - flex, 0)
+            + np.maximum(flex - fl[:, 1], 0)
+            + np.maximum(al[:, 0] - abd, 0)
+            + np.maximum(abd - al[:, 1], 0)
+        )
+        out = over.sum(axis=1)
+    out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
+    return out
+
+
+def finger_order_violation(joints_mm: np.ndarray, skeleton, margin_mm: float = 5.0) -> np.ndarray:
+    """``(N,)`` mm: swapped fingers. The fingers whose base lies between the palm's two side joints
+    (``skeleton.palm_joints``: index and little MCP for MSRA-21; the thumb is left out) keep their
+    order across the palm: for each pair of adjacent fingers, how far (beyond ``margin_mm``) their
+    tips cross along the palm's lateral axis, summed. NaN without joints; zeros without palm joints."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    bad = ~np.all(np.isfinite(j), axis=(1, 2))
+    out = np.zeros(n)
+    if skeleton.palm_joints is None:
+        out[bad] = np.nan
+        return out
+    w, a, b = skeleton.palm_joints
+    parents = skeleton.parent_array
+    bases = [int(k) for k in np.flatnonzero(parents == w)]
+    tips = []
+    for k in bases:  # follow the single-child chain to its end
+        t = k
+        while len(skeleton.children(t)) == 1:
+            t = int(skeleton.children(t)[0])
+        tips.append(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = j[:, b] - j[:, a]
+        span = np.linalg.norm(axis, axis=-1, keepdims=True)
+        axis = axis / np.maximum(span, 1e-9)
+        base_pos = np.einsum("nkd,nd->nk", j[:, bases] - j[:, a][:, None], axis)  # (N, F)
+        tip_pos = np.einsum("nkd,nd->nk", j[:, tips] - j[:, a][:, None], axis)
+        inside = (base_pos > -margin_mm) & (base_pos < span + margin_mm)
+        inside = np.median(inside, axis=0) > 0.5  # the same fingers in every frame
+    idx = np.flatnonzero(inside)
+    if idx.size >= 2:
+        order = idx[np.argsort(np.nanmedian(base_pos[:, idx], axis=0))]
+        cross = tip_pos[:, order[:-1]] - tip_pos[:, order[1:]]  # > 0: tips out of order
+        out = np.maximum(cross - margin_mm, 0.0).sum(axis=1)
+    out[bad] = np.nan
+    return out
+
+
+def unexplained_foreground(
+    joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    camera: CameraIntrinsics,
+    bones: np.ndarray,
+    *,
+    radius_px: float = 6.0,
+    stride: int = 4,
+) -> np.ndarray:
+    """``(N,)`` share of the hand's pixels in the crop (normalized depth < 1) farther than
+    ``radius_px`` crop pixels from every projected bone: a finger the skeleton does not cover (a
+    2D model-fit residual). Crop pixels are sampled every ``stride``. NaN without joints or hand.
+
+    ``crops`` (N, S, S), ``boxes`` (N, 4) as :mod:`handanno_core.crops`; ``bones`` (B, 2).
+    """
+    from .crops import image_to_crop
+
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    out = np.full(n, np.nan)
+    size = crops.shape[1]
+    grid = np.arange(stride // 2, size, stride)
+    gy, gx = np.meshgrid(grid, grid, indexing="ij")
+    pix = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)  # (P, 2) crop px
+    b = np.asarray(bones, dtype=np.int64)
+    ok = np.flatnonzero(np.all(np.isfinite(j), axis=(1, 2)))
+    for f in ok:
+        fg = np.asarray(crops[f][gy, gx]).ravel() < 0.999
+        if not fg.any():
+            continue
+        xy = image_to_crop(camera.project(j[f]), np.asarray(boxes[f], dtype=np.float64))
+        p0, p1 = xy[b[:, 0]], xy[b[:, 1]]  # (B, 2)
+        q = pix[fg][:, None, :]  # (P, 1, 2)
+        d = p1 - p0
+        t = np.clip(np.sum((q - p0) * d, axis=-1) / np.maximum(np.sum(d * d, axis=-1), 1e-9), 0, 1)
+        dist = np.linalg.norm(q - (p0 + t[..., None] * d), axis=-1).min(axis=1)
+        out[f] = float(np.mean(dist > radius_px))
+    return out
+
+
+def hops_to_reference(parent: np.ndarray) -> np.ndarray:
+    """``(N,)`` number of propagation steps from each frame's reference (0 at references)."""
+    parent = np.asarray(parent, dtype=np.int64)
+    n = len(parent)
+    p = np.where(parent < 0, np.arange(n), parent)
+    d = (parent >= 0).astype(np.int64)  # invariant: d[i] = steps from i up to p[i]
+    for _ in range(int(np.log2(max(n, 2))) + 2):  # pointer jumping; bounded against cycles
+        d = d + d[p]
+        p = p[p]
+    return d
+
+
+def _max_joint_norm(x: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.max(np.linalg.norm(x, axis=-1), axis=-1)
+
+
+def review_evidence(
+    session: Session,
+    results: dict[str, np.ndarray],
+    crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    *,
+    extra: dict[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """Per-frame evidence ``{name: (N,)}`` that a frame's shown skeleton (refined, else
+    propagated, else lifted) is wrong, larger = worse, NaN = unavailable. No ground truth.
+
+    ``conf`` 1 - propagation confidence (mean and minimum over joints averaged; it contains the
+    forward-backward flow consistency of the step); ``conf_min`` 1 - its minimum;
+    ``depth_mm`` / ``depth_max_mm`` joints in front of the observed surface or off the hand
+    (:func:`depth_residuals`, mean and max over joints; needs ``crop_data``); ``unexplained`` hand
+    pixels no bone covers (:func:`unexplained_foreground`; needs ``crop_data``); ``jump_mm``
+    (:func:`temporal_jump`); ``accel_mm`` largest second difference in time; ``refine_mm`` how far
+    refinement moved a joint from its propagated position; ``angle_deg`` joint-angle limit
+    violation (:func:`angle_violation`, also catches mirrored hands); ``swap_mm`` finger order
+    (:func:`finger_order_violation`); ``bone`` bone-length anomaly of the propagated pose;
+    ``hops`` propagation steps from the reference; ``gap`` frames (in time) to the reference.
+    ``extra``: further terms ``{name: (N,)}`` (e.g. a model-fit residual) passed through.
+    ``crop_data`` = ``(crops, centres_mm, boxes)`` (:func:`handanno_core.prefill.cached_crops`).
+    """
+    from .export import best_joints
+    from .pipeline import root_reference
+
+    skeleton = session.skeleton
+    joints, _ = best_joints(results)
+    init = np.asarray(results["init_mm"], dtype=np.float64)
+    n = len(joints)
+    conf = np.asarray(results["confidence"], dtype=np.float64)
+    conf = np.where(np.isfinite(conf), np.clip(conf, 0.0, 1.0), 0.5)
+    ev: dict[str, np.ndarray] = {
+        "conf": 1.0 - 0.5 * (conf.mean(axis=1) + conf.min(axis=1)),
+        "conf_min": 1.0 - conf.min(axis=1),
+    }
+    if crop_data is not None:
+        crops, centres, boxes = crop_data
+        res = depth_residuals(
+            joints,
+            crops,
+            boxes,
+            centres,
+            session.camera,
+            cube_mm=session.model.settings.cube_mm,
+            surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ev["depth_mm"] = np.nanmean(res, axis=1)
+            ev["depth_max_mm"] = np.nanmax(res, axis=1)
+        ev["unexplained"] = unexplained_foreground(
+            joints, crops, boxes, session.camera, skeleton.bones
+        )
+    ev["jump_mm"] = temporal_jump(joints, session.model.sequence_breaks)
+    accel = np.full(n, np.nan)
+    if n > 2:
+        accel[1:-1] = _max_joint_norm(joints[2:] - 2.0 * joints[1:-1] + joints[:-2])
+    for b in session.model.sequence_breaks:  # no second difference across a break
+        for f in (int(b) - 1, int(b)):
+            if 0 <= f < n:
+                accel[f] = np.nan
+    ev["accel_mm"] = accel
+    ev["refine_mm"] = _max_joint_norm(joints - np.where(np.isfinite(init), init, joints))
+    ev["angle_deg"] = angle_violation(joints, skeleton)
+    ev["swap_mm"] = finger_order_violation(joints, skeleton)
+    if session.model.bone_lengths_mm is not None:
+        ev["bone"] = bone_anomaly(
+            init, skeleton.bones, np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
+        )
+    parent = session.parent
+    ev["hops"] = hops_to_reference(parent).astype(np.float64)
+    ev["gap"] = np.abs(np.arange(n) - root_reference(parent)).astype(np.float64)
+    for name, value in (extra or {}).items():
+        ev[name] = np.asarray(value, dtype=np.float64)
+    return ev
+
+
+# =============================================================================================
+# rankings: which K frames to show
+
+
+#: ``{evidence name: (scale, weight)}`` of the "evidence" ranking: priority = sum of
+#: ``weight * log1p(x / scale)`` (a logit). Chosen by logistic regression on the tune part only
+#: (``benchmarks/bench_review_ranking.py``: synthetic seeds 0-1; reported on other seeds).
+EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
+    "conf": (0.1, 1.0),
+    "depth_mm": (5.0, 1.0),
+    "jump_mm": (10.0, 1.0),
+}
+#: frames within this distance (in time) of a frame already picked in the same round are shown
+#: only when nothing else is left: one bad stretch should not fill the list.
+SUPPRESS_RADIUS = 0
+
+RANKINGS = ("evidence", "score", "uniform")
+
+
+def evidence_priority(
+    evidence: dict[str, np.ndarray], weights: dict[str, tuple[float, float]] | None = None
+) -> np.ndarray:
+    """``(N,)`` priority (larger = show first) from :func:`review_evidence`: the sum over terms of
+    ``weight * log1p(max(x, 0) / scale)``; a term that is missing or NaN contributes nothing (a
+    model-fit residual added to ``evidence`` and ``weights`` joins without other changes)."""
+    w = EVIDENCE_WEIGHTS if weights is None else weights
+    n = len(next(iter(evidence.values())))
+    out = np.zeros(n)
+    for name, (scale, weight) in w.items():
+        x = evidence.get(name)
+        if x is None:
+            continue
+        t = np.log1p(np.maximum(np.asarray(x, dtype=np.float64), 0.0) / scale)
+        out += weight * np.where(np.isfinite(t), t, 0.0)
+    return out
+
+
+def pick_frames(
+    priority: np.ndarray,
+    k: int,
+    *,
+    exclude: Iterable[int] = (),
+    radius: int = SUPPRESS_RADIUS,
+    sequence_breaks: Iterable[int] = (),
+) -> np.ndarray:
+    """The ``k`` frames to show (``(<=k,)`` int64, in the order shown): by decreasing ``priority``
+    (NaN never), ``exclude`` (frames already reviewed, references) left out, and a frame within
+    ``radius`` frames of one already picked (same segment) deferred until nothing else is left."""
+    p = np.asarray(priority, dtype=np.float64)
+    n = len(p)
+    ok = np.isfinite(p)
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    ok[ex[(ex >= 0) & (ex < n)]] = False
+    cand = np.flatnonzero(ok)
+    cand = cand[np.lexsort((cand, -p[cand]))]
+    k = min(int(k), cand.size)
+    if radius <= 0 or k == 0:
+        return cand[:k]
+    segment = np.zeros(n, dtype=np.int64)
+    for b in sequence_breaks:
+        if 0 < int(b) < n:
+            segment[int(b)] = 1
+    segment = np.cumsum(segment)
+    blocked = np.zeros(n, dtype=bool)
+    picked: list[int] = []
+    deferred: list[int] = []
+    for f in cand:
+        if len(picked) == k:
+            break
+        if blocked[f]:
+            deferred.append(int(f))
+            continue
+        picked.append(int(f))
+        lo, hi = max(f - radius, 0), min(f + radius + 1, n)
+        blocked[lo:hi] |= segment[lo:hi] == segment[f]
+    picked += deferred[: k - len(picked)]
+    return np.asarray(picked, dtype=np.int64)
+
+
+def uniform_pick(n: int, k: int, exclude: Iterable[int] = ()) -> np.ndarray:
+    """``k`` frames evenly spread over ``0..n-1`` (the baseline: corrections without a ranking),
+    skipping ``exclude``."""
+    ok = np.ones(n, dtype=bool)
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    ok[ex[(ex >= 0) & (ex < n)]] = False
+    cand = np.flatnonzero(ok)
+    k = min(int(k), cand.size)
+    if k == 0:
+        return cand[:0]
+    return cand[np.unique(np.linspace(0, cand.size - 1, k).round().astype(np.int64))]
+
+
+def rank_priority(
+    ranking: str,
+    session: Session,
+    results: dict[str, np.ndarray],
+    crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    *,
+    extra: dict[str, np.ndarray] | None = None,
+) -> np.ndarray:
+    """``(N,)`` priority of ``ranking`` (larger = show first; NaN = nothing to show): ``"evidence"``
+    (:func:`evidence_priority`), ``"score"`` (the app's ranking until now: ``1 -``
+    :func:`session_scores`), ``"uniform"`` (all equal; use :func:`uniform_pick`)."""
+    from .export import best_joints
+
+    joints, _ = best_joints(results)
+    has = np.all(np.isfinite(joints), axis=(1, 2))
+    if ranking == "evidence":
+        p = evidence_priority(review_evidence(session, results, crop_data, extra=extra))
+    elif ranking == "score":
+        p = 1.0 - session_scores(session, joints, results["confidence"], crop_data).score
+    elif ranking == "uniform":
+        p = np.zeros(len(joints))
+    else:
+        raise ValueError(f"unknown ranking {ranking!r}; choose one of {RANKINGS}")
+    return np.where(has, p, np.nan)
+
+
+def recall_at(
+    priority: np.ndarray, bad: np.ndarray, share: float = 0.10, exclude: Iterable[int] = (), **kw
+) -> float:
+    """Share of the ``bad`` frames ((N,) bool, not excluded) among the ranking's first
+    ``share * N`` picks (:func:`pick_frames`); NaN when no frame is bad. Evaluation only."""
+    bad = np.asarray(bad, dtype=bool).copy()
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    bad[ex] = False
+    if not bad.any():
+        return float("nan")
+    top = pick_frames(priority, int(round(share * len(bad))), exclude=ex, **kw)
+    return float(bad[top].sum() / bad.sum())

@@ -103,7 +103,7 @@ def main() -> None:
     scales = {}
     for k in names:
         v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
-        scales[k] = float(np.median(v)) if v.size else 1.0
+        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
     x = features(ev_all, names, scales)
     y = stack([d["err"][candidates(d)] > args.fit_mm for d in tune]).astype(np.float64)
     w = fit_logistic(x, y)

@@ -366,8 +366,9 @@ def angle_violation(joints_mm: np.ndarray, skeleton) -> np.ndarray:
 
 
 def finger_order_violation(joints_mm: np.ndarray, skeleton, margin_mm: float = 5.0) -> np.ndarray:
-    """``(N,)`` mm: swapped fingers. The fingers whose base lies between the palm's two side joints
-    (``skeleton.palm_joints``: index and little MCP for MSRA-21; the thumb is left out) keep their
+    """``(N,)`` mm: swapped fingers. The fingers whose base lies on the segment between the palm's
+    two side joints (``skeleton.palm_joints``: index and little MCP for MSRA-21; the thumb, whose
+    base is off that line, is left out) keep their
     order across the palm: for each pair of adjacent fingers, how far (beyond ``margin_mm``) their
     tips cross along the palm's lateral axis, summed. NaN without joints; zeros without palm joints."""
     j = np.asarray(joints_mm, dtype=np.float64)
@@ -390,10 +391,12 @@ def finger_order_violation(joints_mm: np.ndarray, skeleton, margin_mm: float = 5
         axis = j[:, b] - j[:, a]
         span = np.linalg.norm(axis, axis=-1, keepdims=True)
         axis = axis / np.maximum(span, 1e-9)
-        base_pos = np.einsum("nkd,nd->nk", j[:, bases] - j[:, a][:, None], axis)  # (N, F)
+        rel = j[:, bases] - j[:, a][:, None]  # (N, F, 3)
+        base_pos = np.einsum("nkd,nd->nk", rel, axis)
+        off_line = np.linalg.norm(rel - base_pos[..., None] * axis[:, None], axis=-1)
         tip_pos = np.einsum("nkd,nd->nk", j[:, tips] - j[:, a][:, None], axis)
-        inside = (base_pos > -margin_mm) & (base_pos < span + margin_mm)
-        inside = np.median(inside, axis=0) > 0.5  # the same fingers in every frame
+        inside = (base_pos > -margin_mm) & (base_pos < span + margin_mm) & (off_line < 0.5 * span)
+        inside = np.nanmean(inside[~bad], axis=0) > 0.5 if (~bad).any() else inside[0] & False
     idx = np.flatnonzero(inside)
     if idx.size >= 2:
         order = idx[np.argsort(np.nanmedian(base_pos[:, idx], axis=0))]

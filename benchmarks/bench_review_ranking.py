@@ -79,6 +79,47 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-2, iters: int = 40
     return w / sd  # weights on the raw (unstandardized) features; the bias does not rank
 
 
+def ceiling(bad: np.ndarray, refs: np.ndarray, share: float = 0.10) -> float:
+    """The best recall@10 % possible: 1, or (10 % of the frames) / (bad frames) when fewer."""
+    b = bad.copy()
+    b[refs] = False
+    return min(1.0, round(share * len(bad)) / max(int(b.sum()), 1))
+
+
+def tune_objective(tune: list[dict], weights: dict, bad_mm: float) -> float:
+    """Mean recall@10 % (relative to its :func:`ceiling`) over the tune sessions at ``bad_mm``,
+    ``bad_mm - 5`` and ``bad_mm - 10`` (the lower thresholds have more frames and steady it)."""
+    out = []
+    for d in tune:
+        p = review.evidence_priority(d["evidence"], weights)
+        for thr in (bad_mm, bad_mm - 5.0, bad_mm - 10.0):
+            bad = np.isfinite(d["err"]) & (d["err"] > thr)
+            r = review.recall_at(p, bad, exclude=d["refs"])
+            if np.isfinite(r):
+                out.append(r / ceiling(bad, d["refs"]))
+    return float(np.mean(out)) if out else 0.0
+
+
+def coordinate_search(tune: list[dict], names: list[str], start: dict, bad_mm: float) -> dict:
+    """Greedy coordinate ascent of :func:`tune_objective` over each weight in a small grid."""
+    weights = dict(start)
+    best = tune_objective(tune, weights, bad_mm)
+    for _ in range(3):
+        improved = False
+        for k in names:
+            scale, w0 = weights[k]
+            for w in (0.0, 0.25 * w0, 0.5 * w0, 2.0 * w0, 4.0 * w0, 0.5, 1.0, 2.0):
+                trial = dict(weights)
+                trial[k] = (scale, round(float(w), 4))
+                v = tune_objective(tune, trial, bad_mm)
+                if v > best + 1e-9:
+                    best, weights, improved = v, trial, True
+        if not improved:
+            break
+    print(f"tune objective {best:.3f}")
+    return weights
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tune", nargs="+", type=Path, required=True)
@@ -86,6 +127,7 @@ def main() -> None:
     ap.add_argument("--bad-mm", type=float, default=20.0)
     ap.add_argument("--fit-mm", type=float, default=10.0)
     ap.add_argument("--radius", type=int, nargs="+", default=[0, 2, 5])
+    ap.add_argument("--search", action="store_true", help="refine the weights on tune recall")
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
 
@@ -108,6 +150,8 @@ def main() -> None:
     y = stack([d["err"][candidates(d)] > args.fit_mm for d in tune]).astype(np.float64)
     w = fit_logistic(x, y)
     weights = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
+    if args.search:
+        weights = coordinate_search(tune, names, weights, args.bad_mm)
     weights = {k: v for k, v in weights.items() if v[1] > 0}
     print("EVIDENCE_WEIGHTS =", json.dumps(weights))
 
@@ -122,6 +166,7 @@ def main() -> None:
                 "frames": d["n"],
                 "bad_frames": int(bad.sum()),
                 "bad10_frames": int((np.isfinite(d["err"]) & (d["err"] > 10)).sum()),
+                "ceiling": ceiling(bad, d["refs"]),
             }
             ex = d["refs"]
             row["score"] = review.recall_at(d["score"], bad, exclude=ex)

@@ -547,12 +547,20 @@ def review_evidence(
 
 
 #: ``{evidence name: (scale, weight)}`` of the "evidence" ranking: priority = sum of
-#: ``weight * log1p(x / scale)`` (a logit). Chosen by logistic regression on the tune part only
-#: (``benchmarks/bench_review_ranking.py``: synthetic seeds 0-1; reported on other seeds).
+#: ``weight * log1p(x / scale)`` (a logit). Scales = each term's median, weights = a non-negative
+#: logistic regression (frames > 10 mm off) then coordinate ascent of recall@10 %, both on the
+#: tune part only (``benchmarks/bench_review_ranking.py``: synthetic seeds 0-1, 800 frames, forest
+#: 5 % exact and 2 % with 2 px noise). Terms the fit left at weight 0: conf, conf_min, depth_max_mm,
+#: jump_mm, accel_mm. A model-fit residual joins as one more entry (e.g. ``"model_mm"``).
 EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
-    "conf": (0.1, 1.0),
-    "depth_mm": (5.0, 1.0),
-    "jump_mm": (10.0, 1.0),
+    "depth_mm": (4.07, 2.0),
+    "unexplained": (0.414, 1.99),
+    "refine_mm": (6.57, 0.135),
+    "angle_deg": (8.35, 2.2),
+    "swap_mm": (8.53, 3.84),
+    "bone": (0.001, 0.063),
+    "hops": (5.0, 0.292),
+    "gap": (8.0, 1.0),
 }
 #: frames within this distance (in time) of a frame already picked in the same round are shown
 #: only when nothing else is left: one bad stretch should not fill the list.

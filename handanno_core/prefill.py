@@ -8,9 +8,10 @@ is wrong. The estimate, best first:
    (``lifted_mm``);
 2. propagation (:func:`handanno_core.propagate.propagate`: flow between hand crops, depth read
    from each frame's own depth map, bone lengths restored) from the nearest frame in time, within
-   the same sequence segment, that has joints (a lifted reference or a frame with results),
-   through the frames in between (every ``stride``-th): on synthetic seed 0 at 5 % references one
-   jump across 10-50 frames left 7-21 of 21 joints more than 4 px off;
+   the same sequence segment, that has joints (a lifted reference or a frame with results), in
+   one jump or through the frames in between (every ``stride``-th; see :data:`STRIDE`). With
+   ``descriptors`` (the session's crop descriptors) also one jump from the frame that looks most
+   alike; of the two the propagation with the higher mean confidence wins;
 3. without hand crops on disk (the app never computes them on the UI thread): that neighbour's
    joints moved by the difference of the two hand centres (no translation without crop metadata).
 
@@ -25,8 +26,11 @@ from .session import CROPS_FILE, CROPS_META_FILE, Session
 
 __all__ = ["cached_crops", "known_joints", "prefill_reference", "prefill_uv"]
 
-#: the pre-fill propagates through every STRIDE-th frame between the source and the frame
-STRIDE = 1
+#: the pre-fill propagates through every STRIDE-th frame between the source and the frame (0: one
+#: jump). On synthetic seed 0 (5 % forest references, the first 11 after the first) walking every
+#: frame moved as many joints as one jump (10.4 vs 11.0 of 21 more than 4 px off) and took longer;
+#: on the 30-frame test sequence it drifted (3.9 mm against 1.6 mm for the jump).
+STRIDE = 0
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
 
@@ -104,7 +108,7 @@ def _propagate_path(
     session: Session, source: int, frame: int, joints: np.ndarray, crop_data, stride: int
 ):
     """Propagate ``source -> frame`` through the frames between them in time, every ``stride``-th
-    (small steps follow the hand; one long jump loses it); ``(J, 3)`` mm or None if skipped."""
+    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence)`` or None if it was skipped."""
     from .propagate import propagate
 
     crops, centres, boxes = crop_data
@@ -131,7 +135,9 @@ def _propagate_path(
         frames=path[1:],
     )
     out = result.joints_mm[frame]
-    return out if np.all(np.isfinite(out)) else None
+    if not np.all(np.isfinite(out)):
+        return None
+    return out, float(np.nanmean(result.confidence[frame]))
 
 
 def prefill_reference(
@@ -154,18 +160,20 @@ def prefill_reference(
     joints, has = known_joints(results)
     if has[frame]:
         return joints[frame].copy()
-    if descriptors is not None:
-        source = _most_similar_known(frame, has, descriptors)
-        stride = 0
-    else:
-        source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
+    source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
     if source is None:
         return None
     crop_data = cached_crops(session)
     if crop_data is not None:
-        out = _propagate_path(session, source, frame, joints[source], crop_data, stride)
-        if out is not None:
-            return out
+        tries = [(source, stride)]
+        if descriptors is not None:
+            similar = _most_similar_known(frame, has, descriptors)
+            if similar is not None and similar != source:
+                tries.append((similar, 0))
+        found = [_propagate_path(session, s, frame, joints[s], crop_data, k) for s, k in tries]
+        found = [f for f in found if f is not None]
+        if found:  # the most confident propagation (no ground truth)
+            return max(found, key=lambda f: f[1])[0].copy()
         centres = crop_data[1]
         shift = np.asarray(centres[frame] - centres[source], dtype=np.float64)
         if np.all(np.isfinite(shift)):

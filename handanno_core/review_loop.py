@@ -10,9 +10,10 @@ app would, from ground truth (2D positions, visibility and depth order only):
   the others where they are drawn, and sets visibility and depth order as the truth says. One click
   per moved joint.
 * :func:`annotate_prefilled` - the references, in time order, each opened pre-filled by
-  :func:`handanno_core.prefill.prefill_reference` from the references annotated before it (each is
-  lifted right after it is annotated, with the skeleton's template bones, so the next one can be
-  pre-filled from it); a frame with nothing to pre-fill from costs one click per joint.
+  :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
+  annotated before it (each is lifted right after it is annotated, with the skeleton's template
+  bones, so the next one can be pre-filled from it); a frame with nothing to pre-fill from costs
+  one click per joint.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
@@ -61,20 +62,46 @@ def simulated_fix(
     noise_px: float = 0.0,
     rng: np.random.Generator | None = None,
     click_px: float = CLICK_PX,
+    drag_subtree: bool = False,
 ) -> tuple[FrameAnnotation, int]:
     """What the simulated annotator leaves on a frame drawn with ``shown_mm`` (J, 3) mm, and how
     many joints it moved (clicks). ``gt_mm`` (J, 3) mm, ``depth`` (H, W) mm. Moved joints get the
     true 2D plus ``noise_px`` Gaussian noise, the others keep their drawn 2D position; visibility
-    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`)."""
+    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`).
+
+    ``drag_subtree``: moving a joint drags the joints below it in the skeleton by the same 2D
+    offset (joints are visited parents first), so a finger drawn shifted costs one click at its
+    base; without it every joint more than ``click_px`` off is clicked on its own."""
     from .synth import simulate_annotation
 
     ann = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
-    drawn = camera.project(np.asarray(shown_mm, dtype=np.float64))
+    target = ann.uv_px.copy()  # truth + noise: where a moved joint is put
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
-    with np.errstate(invalid="ignore"):
-        keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
-    ann.uv_px[keep] = drawn[keep]
-    return ann, int((~keep).sum())
+    drawn = camera.project(np.asarray(shown_mm, dtype=np.float64))
+    if not drag_subtree:
+        with np.errstate(invalid="ignore"):
+            keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
+        ann.uv_px[keep] = drawn[keep]
+        return ann, int((~keep).sum())
+    uv = drawn.copy()
+    clicks = 0
+    parents = skeleton.parent_array
+    below = {int(k): [] for k in range(skeleton.num_joints)}
+    for k in skeleton.topological_order[::-1]:  # children before parents: collect subtrees
+        if parents[k] >= 0:
+            below[int(parents[k])] += [int(k)] + below[int(k)]
+    for k in (int(x) for x in skeleton.topological_order):
+        with np.errstate(invalid="ignore"):
+            ok = np.linalg.norm(uv[k] - truth[k]) <= click_px
+        if ok:
+            continue
+        delta = target[k] - uv[k]
+        uv[k] = target[k]
+        if np.all(np.isfinite(delta)):
+            uv[below[k]] += delta
+        clicks += 1
+    ann.uv_px[:] = uv
+    return ann, clicks
 
 
 def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init_mm=None):
@@ -104,11 +131,19 @@ def annotate_prefilled(
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
-    "clicks_per_reference": mean}``. Needs the session's crops on disk for propagated pre-fills.
+    "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
+    the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
+    plain one)}``. Needs the session's crops on disk for propagated pre-fills.
     """
-    from .prefill import prefill_reference
+    from .prefill import cached_crops, prefill_reference
 
     sequence = session.open_sequence()
+    crop_data = cached_crops(session)
+    descriptors = None
+    if crop_data is not None:
+        from .descriptors import compute_descriptors
+
+        descriptors = compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
     gt = sequence.ground_truth
     if gt is None:
         raise ValueError(f"{sequence.path}: the simulated annotator needs ground truth")
@@ -119,12 +154,13 @@ def annotate_prefilled(
     results = session.load_results()
     scratch = {k: np.full_like(results[k], np.nan) for k in ("lifted_mm", "init_mm", "final_mm")}
     clicks: dict[int, int] = {}
+    clicks_drag: dict[int, int] = {}
     prefilled: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
     for f in (int(x) for x in session.reference_frames):
         rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
         depth = sequence.depth(f)
-        guess = prefill_reference(session, f, scratch)
+        guess = prefill_reference(session, f, scratch, descriptors=descriptors)
         if guess is None:
             from .synth import simulate_annotation
 
@@ -143,6 +179,15 @@ def annotate_prefilled(
                 rng=rng,
                 click_px=click_px,
             )
+            clicks_drag[f] = simulated_fix(
+                guess,
+                gt.joints_mm[f],
+                depth,
+                sequence.camera,
+                skeleton,
+                click_px=click_px,
+                drag_subtree=True,
+            )[1]
             prefilled.append(f)
         annotations[f] = ann
         if bones is not None:  # lifted now so that the next reference can be pre-filled from it
@@ -157,13 +202,19 @@ def annotate_prefilled(
         client="simulated-annotator",
     )
     per_ref = float(np.mean(list(clicks.values()))) if clicks else float("nan")
+    per_ref_drag = float(np.mean(list(clicks_drag.values()))) if clicks else float("nan")
     if not quiet:
         print(
             f"annotated {len(clicks)} references pre-filled: {per_ref:.1f} joints moved per "
             f"reference ({len(prefilled)} opened pre-filled)",
             flush=True,
         )
-    return {"clicks": clicks, "prefilled": prefilled, "clicks_per_reference": per_ref}
+    return {
+        "clicks": clicks,
+        "prefilled": prefilled,
+        "clicks_per_reference": per_ref,
+        "clicks_per_reference_drag": per_ref_drag,
+    }
 
 
 def _frame_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -371,6 +422,7 @@ def bench_run_review(
     if prefilled is not None:
         clicks = int(sum(prefilled["clicks"].values()))
         run["clicks_per_reference"] = round(prefilled["clicks_per_reference"], 3)
+        run["clicks_per_reference_drag"] = round(prefilled["clicks_per_reference_drag"], 3)
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)

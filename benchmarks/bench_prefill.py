@@ -44,18 +44,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sessions", nargs="+", type=Path)
     ap.add_argument("--work", type=Path, default=Path("/tmp/handanno-bench-prefill"))
+    ap.add_argument("--click-px", type=float, default=4.0, help="joints farther off are moved")
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
     rows = []
     for folder in args.sessions:
         src = Session.open(folder)
         gt = src.open_sequence().ground_truth.joints_mm
-        row: dict = {"session": str(folder), "references": int(len(src.reference_frames))}
+        row: dict = {
+            "session": str(folder),
+            "references": int(len(src.reference_frames)),
+            "click_px": args.click_px,
+        }
         for mode in ("all_clicks", "prefilled"):
             s = fresh_copy(src, args.work / f"{folder.parent.name}-{folder.name}-{mode}")
             t = time.perf_counter()
             if mode == "prefilled":
-                info = annotate_prefilled(s, quiet=True)
+                info = annotate_prefilled(s, click_px=args.click_px, quiet=True)
                 row["clicks_per_reference"] = round(info["clicks_per_reference"], 3)
                 row["clicks_per_reference_drag"] = round(info["clicks_per_reference_drag"], 3)
                 row["clicks"] = [int(c) for c in info["clicks"].values()]

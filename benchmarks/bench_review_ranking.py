@@ -128,6 +128,7 @@ def main() -> None:
     ap.add_argument("--fit-mm", type=float, default=10.0)
     ap.add_argument("--radius", type=int, nargs="+", default=[0, 2, 5])
     ap.add_argument("--search", action="store_true", help="refine the weights on tune recall")
+    ap.add_argument("--fixed", action="store_true", help="evaluate the committed weights")
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
 
@@ -153,6 +154,8 @@ def main() -> None:
     if args.search:
         weights = coordinate_search(tune, names, weights, args.bad_mm)
     weights = {k: v for k, v in weights.items() if v[1] > 0}
+    if args.fixed:  # report the committed weights (handanno_core.review.EVIDENCE_WEIGHTS)
+        weights = dict(review.EVIDENCE_WEIGHTS)
     print("EVIDENCE_WEIGHTS =", json.dumps(weights))
 
     rows = []

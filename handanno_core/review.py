@@ -12,6 +12,13 @@ simulated review loop (:mod:`handanno_core.review_loop`).
   propagated frame it is a :class:`~handanno_core.session.Batch` that makes the frame a reference
   (``correction=True``), seeds its annotation from the shown skeleton and applies the joint edit,
   all as one undo step.
+* :func:`review_evidence` - per-frame evidence that a skeleton is wrong (confidence, depth and
+  silhouette residuals, temporal jumps, refinement shift, angle limits incl. mirrored hands,
+  finger order, bones, distance to the reference; a model-fit residual can be passed in), and
+  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`).
+* :func:`rank_priority` / :func:`pick_frames` / :func:`uniform_pick` - the frames a review round
+  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked;
+  :func:`recall_at` measures a ranking against ground truth (evaluation only).
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from .session import (
     SetReference,
 )
 
+#: scale of each score term: a term equal to its scale halves the score (``1 / (1 + (x/s)^2)``).
 SCORE_SCALES = {"bone": 0.10, "depth_mm": 15.0, "jump_mm": 30.0, "flow_px": 3.0}
 #: penalty (mm) of a joint projecting onto background / outside the hand cube.
 OFF_HAND_MM = 40.0

@@ -451,21 +451,22 @@ def bench_run_review(
 
 
 def plot_effort(doc: dict, path: Path) -> None:
-    """The effort curve: mean error and share of bad frames against frames touched, one line per
-    (strategy, reference fraction, ranking)."""
+    """The effort curve: mean error and share of bad frames against frames touched, one colour per
+    (strategy, reference fraction), one line style per ranking (uniform dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
-    for run in doc["runs"]:
+    styles = {"evidence": "-", "score": "-.", "uniform": "--"}
+    for i, run in enumerate(doc["runs"]):
         for ranking, entries in (run.get("review") or {}).items():
             x = [100.0 * e["frames_touched"] / doc["frames"] for e in entries]
             label = f"{run['strategy']} {run['ref_fraction_target']:g} {ranking}"
-            style = "--" if ranking == "uniform" else "-"
-            ax1.plot(x, [e["mean_mm"] for e in entries], "o" + style, label=label, ms=3)
-            ax2.plot(x, [100.0 * e["bad_share"] for e in entries], "o" + style, label=label, ms=3)
+            kw = {"color": f"C{i % 10}", "ls": styles.get(ranking, ":"), "marker": "o", "ms": 3}
+            ax1.plot(x, [e["mean_mm"] for e in entries], label=label, **kw)
+            ax2.plot(x, [100.0 * e["bad_share"] for e in entries], label=label, **kw)
     ax1.axhline(3.0, color="grey", lw=0.8, ls=":")
     ax2.axhline(1.0, color="grey", lw=0.8, ls=":")
     ax1.set_ylabel("mean 3D joint error (mm)")

@@ -232,6 +232,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--gt-bones", action="store_true", help="use ground-truth bone lengths (comparison only)"
     )
     p.add_argument("--json", required=True, type=Path, dest="json_out", help="report to write")
+    p.add_argument("--review-rounds", type=int, default=0, help="simulated review rounds")
+    p.add_argument(
+        "--review-budget",
+        type=float,
+        default=0.02,
+        help="frames shown per review round (>= 1), or a share of the frames (< 1)",
+    )
+    p.add_argument(
+        "--review-ranking",
+        type=_strings,
+        default=["evidence", "uniform"],
+        help="rankings compared in review (evidence, score = the old one, uniform)",
+    )
+    p.add_argument(
+        "--prefill",
+        action="store_true",
+        help="references open pre-filled; the annotator moves only joints > 4 px off",
+    )
+    p.add_argument("--work-dir", type=Path, help="keep the bench sessions in this folder")
     return parser
 
 
@@ -424,6 +443,15 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             workers=args.workers,
             aligner=args.aligner,
             gt_bones=args.gt_bones,
+            work_dir=args.work_dir,
+            review={
+                "rounds": args.review_rounds,
+                "budget": args.review_budget,
+                "rankings": args.review_ranking,
+                "prefill": args.prefill,
+            }
+            if args.review_rounds or args.prefill
+            else None,
         )
     return None
 

@@ -1,15 +1,10 @@
-"""Review logic without viser: per-frame review scores, "next worst frame", review corrections, and
-the background job that propagates and refines while the app streams its results.
+"""The app side of review: live results streamed while a job runs, and the background job that
+propagates and refines. The review engine (scores, "next worst frame", review edits) lives in
+:mod:`handanno_core.review` (no viser; the bench's review loop uses it too) and is re-exported here
+under its old names.
 
-* :func:`frame_scores` - a pure-numpy per-frame score in [0, 1] (1 = trustworthy) from the
-  propagation confidence (which already contains the forward-backward flow consistency), bone-length
-  anomalies, depth residuals, temporal jumps and an optional flow-inconsistency term.
-* :func:`worst_order` / :func:`next_worst` - walk frames by increasing score.
-* :func:`correction_command` - the session command of a review edit: on a propagated frame it is a
-  :class:`~handanno_core.session.Batch` that makes the frame a reference (``correction=True``),
-  seeds its annotation from the shown skeleton and applies the joint edit, all as one undo step.
 * :class:`LiveResults` - the joints shown by the review view, updated frame by frame while a job
-  runs (``on_result``), thread-safe.
+  runs (``on_result``), thread-safe; :meth:`LiveResults.scores` ranks them.
 * :class:`ReviewRunner` - one background thread running "propagate & refine" jobs: a full run, or
   after review corrections only the corrected frames' descendants in the parent forest; and "lift
   all" (:func:`handanno_core.pipeline.lift`: every annotated reference, bone lengths estimated),
@@ -24,290 +19,29 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from handanno_core.annotation import FrameAnnotation
-from handanno_core.camera import CameraIntrinsics
-from handanno_core.session import (
-    Batch,
-    Command,
-    Session,
-    SessionError,
-    SetFrameAnnotation,
-    SetJoint3D,
-    SetReference,
-    atomic_save_npz,
+from handanno_core.review import (  # noqa: F401  (re-exported: the app's and tests' names)
+    OFF_HAND_MM,
+    SCORE_SCALES,
+    FrameScores,
+    bone_anomaly,
+    correction_command,
+    depth_residuals,
+    frame_scores,
+    next_worst,
+    seed_annotation,
+    session_scores,
+    temporal_jump,
+    worst_order,
 )
+from handanno_core.session import Session, SessionError, atomic_save_npz
 
-#: scale of each score term: a term equal to its scale halves the score (``1 / (1 + (x/s)^2)``).
-SCORE_SCALES = {"bone": 0.10, "depth_mm": 15.0, "jump_mm": 30.0, "flow_px": 3.0}
-#: penalty (mm) of a joint projecting onto background / outside the hand cube.
-OFF_HAND_MM = 40.0
 PARTIAL_FILE = "propagation_partial.npz"
-
-
-# =============================================================================================
-# scores (pure numpy)
-
-
-def bone_anomaly(
-    joints_mm: np.ndarray, bones: np.ndarray, bone_lengths_mm: np.ndarray
-) -> np.ndarray:
-    """``(N,)`` largest relative bone-length deviation per frame (0 = exact; NaN if no joints).
-
-    ``joints_mm`` (N, J, 3) mm, ``bones`` (B, 2) (parent, child), ``bone_lengths_mm`` (B,) mm.
-    """
-    j = np.asarray(joints_mm, dtype=np.float64)
-    b = np.asarray(bones, dtype=np.int64)
-    lengths = np.linalg.norm(j[:, b[:, 1]] - j[:, b[:, 0]], axis=-1)  # (N, B)
-    ref = np.asarray(bone_lengths_mm, dtype=np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dev = np.abs(lengths - ref) / np.maximum(ref, 1e-6)
-        out = np.max(dev, axis=1)
-    out[~np.all(np.isfinite(dev), axis=1)] = np.nan
-    return out
-
-
-def temporal_jump(joints_mm: np.ndarray, sequence_breaks: Iterable[int] = ()) -> np.ndarray:
-    """``(N,)`` mm: for each frame the largest joint displacement to its previous and to its next
-    frame, and of those two the *smaller* one (a single wrong frame jumps away from both of its
-    neighbours; a frame next to it only from one). Jumps across sequence breaks are ignored; NaN
-    where no neighbour has joints."""
-    j = np.asarray(joints_mm, dtype=np.float64)
-    n = len(j)
-    step = np.full(n + 1, np.nan)  # step[t] = jump between frame t-1 and t
-    if n > 1:
-        d = np.max(np.linalg.norm(j[1:] - j[:-1], axis=-1), axis=1)
-        step[1:n] = d
-    for b in sequence_breaks:
-        if 0 < int(b) < n:
-            step[int(b)] = np.nan
-    prev, nxt = step[:n], step[1 : n + 1]
-    with np.errstate(invalid="ignore"):
-        out = np.fmin(prev, nxt)
-    out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
-    return out
-
-
-def depth_residuals(
-    joints_mm: np.ndarray,
-    crops: np.ndarray,
-    boxes: np.ndarray,
-    centres_mm: np.ndarray,
-    camera: CameraIntrinsics,
-    *,
-    cube_mm: float = 220.0,
-    surface_offsets_mm: np.ndarray | None = None,
-) -> np.ndarray:
-    """``(N, J)`` mm: how far each joint sits *in front of* the observed surface (a joint centre
-    lies on or behind it), read from the normalized crops (no depth file is opened); a joint that
-    projects onto background or outside the crop costs :data:`OFF_HAND_MM`. NaN without joints.
-
-    ``crops`` (N, S, S) normalized depth ``(d - z_c) / (cube_mm / 2)``, +1 = background;
-    ``boxes`` (N, 4) ``[u_left, v_top, sx, sy]``; ``centres_mm`` (N, 3).
-    """
-    from handanno_core.crops import image_to_crop
-
-    j = np.asarray(joints_mm, dtype=np.float64)
-    n, nj = j.shape[:2]
-    out = np.full((n, nj), np.nan)
-    ok = np.all(np.isfinite(j), axis=(1, 2))
-    if not ok.any():
-        return out
-    frames = np.flatnonzero(ok)
-    jj = j[frames]
-    uv = camera.project(jj)  # (M, J, 2)
-    xy = image_to_crop(uv, np.asarray(boxes, dtype=np.float64)[frames][:, None, :])
-    size = crops.shape[1]
-    xy = np.where(np.isfinite(xy), xy, -1.0)  # joints at z <= 0 project nowhere: off the crop
-    xi = np.rint(xy[..., 0]).astype(np.int64)
-    yi = np.rint(xy[..., 1]).astype(np.int64)
-    inside = (xi >= 0) & (xi < size) & (yi >= 0) & (yi < size)
-    fi = np.broadcast_to(frames[:, None], xi.shape)
-    vals = np.ones(xi.shape, dtype=np.float64)
-    vals[inside] = np.asarray(crops[fi[inside], yi[inside], xi[inside]], dtype=np.float64)
-    background = ~inside | (vals >= 0.999)
-    observed = np.asarray(centres_mm, dtype=np.float64)[frames, 2][:, None] + vals * (cube_mm / 2.0)
-    offsets = (
-        0.0
-        if surface_offsets_mm is None
-        else np.asarray(surface_offsets_mm, dtype=np.float64)[None, :]
-    )
-    # A visible joint centre sits ~offset behind the surface: in front of (observed + offset) is wrong.
-    res = np.maximum(observed + offsets - jj[..., 2], 0.0)
-    res = np.where(background, OFF_HAND_MM, np.minimum(res, OFF_HAND_MM))
-    out[frames] = res
-    return out
-
-
-@dataclass
-class FrameScores:
-    """``score`` (N,) in [0, 1], 1 = trustworthy, NaN = nothing to review (no joints); ``terms``:
-    each ingredient (N,) in its own unit (``confidence`` 0..1, ``bone`` relative, ``depth_mm``,
-    ``jump_mm``, ``flow_px``)."""
-
-    score: np.ndarray
-    terms: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-def _goodness(x: np.ndarray, scale: float) -> np.ndarray:
-    """1 / (1 + (x / scale)^2), with NaN (term unavailable) -> 1."""
-    g = 1.0 / (1.0 + (np.asarray(x, dtype=np.float64) / scale) ** 2)
-    return np.where(np.isfinite(g), g, 1.0)
-
-
-def frame_scores(
-    confidence: np.ndarray,
-    joints_mm: np.ndarray,
-    bones: np.ndarray,
-    bone_lengths_mm: np.ndarray | None,
-    *,
-    depth_residual_mm: np.ndarray | None = None,
-    flow_error_px: np.ndarray | None = None,
-    sequence_breaks: Iterable[int] = (),
-    is_reference: np.ndarray | None = None,
-    scales: dict[str, float] | None = None,
-) -> FrameScores:
-    """Combine the review evidence into one score per frame (see :class:`FrameScores`).
-
-    ``confidence`` (N, J) in [0, 1] (propagation confidence, NaN = unknown -> 0.5);
-    ``joints_mm`` (N, J, 3) the skeletons shown; ``bone_lengths_mm`` (B,) or None (no bone term);
-    ``depth_residual_mm`` (N, J) from :func:`depth_residuals`; ``flow_error_px`` (N,) or (N, J)
-    flow inconsistency (optional; the propagation confidence already includes its forward-backward
-    consistency). Reference frames score 1. The score is the product of the per-frame confidence
-    (mean and minimum over joints, averaged) and ``1 / (1 + (x / scale)^2)`` for each other term.
-    """
-    s = dict(SCORE_SCALES, **(scales or {}))
-    joints = np.asarray(joints_mm, dtype=np.float64)
-    n = len(joints)
-    has = np.all(np.isfinite(joints), axis=(1, 2))
-    conf = np.asarray(confidence, dtype=np.float64)
-    conf = np.where(np.isfinite(conf), np.clip(conf, 0.0, 1.0), 0.5)
-    c = 0.5 * (conf.mean(axis=1) + conf.min(axis=1)) if conf.size else np.ones(n)
-    terms: dict[str, np.ndarray] = {"confidence": c}
-    score = c.copy()
-    if bone_lengths_mm is not None:
-        terms["bone"] = bone_anomaly(joints, bones, bone_lengths_mm)
-        score *= _goodness(terms["bone"], s["bone"])
-    if depth_residual_mm is not None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # frames without joints: NaN
-            terms["depth_mm"] = np.nanmean(np.asarray(depth_residual_mm, dtype=np.float64), axis=1)
-        score *= _goodness(terms["depth_mm"], s["depth_mm"])
-    terms["jump_mm"] = temporal_jump(joints, sequence_breaks)
-    score *= _goodness(terms["jump_mm"], s["jump_mm"])
-    if flow_error_px is not None:
-        f = np.asarray(flow_error_px, dtype=np.float64)
-        if f.ndim == 2:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                f = np.nanmean(f, axis=1)
-        terms["flow_px"] = f
-        score *= _goodness(f, s["flow_px"])
-    score = np.where(has, np.clip(score, 0.0, 1.0), np.nan)
-    if is_reference is not None:
-        score = np.where(np.asarray(is_reference, dtype=bool) & has, 1.0, score)
-    return FrameScores(score=score, terms=terms)
-
-
-def worst_order(score: np.ndarray, exclude: Iterable[int] = ()) -> np.ndarray:
-    """Frames with a score, by increasing score (ties by frame index), ``exclude`` left out."""
-    score = np.asarray(score, dtype=np.float64)
-    ok = np.isfinite(score)
-    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
-    ok[ex[(ex >= 0) & (ex < len(score))]] = False
-    frames = np.flatnonzero(ok)
-    return frames[np.lexsort((frames, score[frames]))]
-
-
-def next_worst(
-    score: np.ndarray, current: int | None = None, exclude: Iterable[int] = ()
-) -> int | None:
-    """The next frame after ``current`` in :func:`worst_order` (the worst one if ``current`` is
-    None or not in the order; None when there is nothing to review)."""
-    order = worst_order(score, exclude)
-    if order.size == 0:
-        return None
-    if current is not None:
-        hit = np.flatnonzero(order == int(current))
-        if hit.size and hit[0] + 1 < order.size:
-            return int(order[hit[0] + 1])
-        if hit.size:
-            return int(order[0])  # wrapped around
-    return int(order[0])
-
-
-# =============================================================================================
-# review edits
-
-
-def seed_annotation(
-    joints_mm: np.ndarray,
-    camera: CameraIntrinsics,
-    depth_mm: np.ndarray | None = None,
-    surface_offsets_mm: np.ndarray | None = None,
-    margin_mm: float = 10.0,
-) -> FrameAnnotation:
-    """A reference annotation from a shown skeleton ``(J, 3)`` mm: every joint placed in 3D (and its
-    projection in 2D), visibility by a depth test against ``depth_mm`` (H, W) when given."""
-    x = np.asarray(joints_mm, dtype=np.float64)
-    nj = len(x)
-    ann = FrameAnnotation.empty(nj)
-    ann.xyz_mm[:] = x
-    ann.uv_px[:] = camera.project(x)
-    if depth_mm is not None:
-        uv = np.rint(ann.uv_px).astype(np.int64)
-        inside = (
-            (uv[:, 0] >= 0)
-            & (uv[:, 0] < camera.width)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < camera.height)
-        )
-        d = np.zeros(nj)
-        d[inside] = depth_mm[uv[inside, 1], uv[inside, 0]]
-        off = (
-            0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)
-        )
-        ann.visible[:] = inside & (d > 0) & (d >= x[:, 2] - off - margin_mm)
-    return ann
-
-
-def correction_command(
-    session: Session,
-    frame: int,
-    joint: int,
-    xyz_mm: np.ndarray,
-    shown_mm: np.ndarray,
-    depth_mm: np.ndarray | None = None,
-) -> tuple[Command, bool]:
-    """The command of a review edit of ``joint`` on ``frame`` to ``xyz_mm`` (mm, camera frame).
-
-    Returns ``(command, became_reference)``. On a frame that is already an annotated reference it is
-    a single :class:`SetJoint3D`. Otherwise one :class:`Batch`: ``SetReference(is_reference=True,
-    correction=True)`` (unless it is a selected reference without annotation), the frame's
-    annotation seeded from ``shown_mm`` (J, 3) (:func:`seed_annotation`) and the joint edit.
-    Call it under ``session.lock`` together with ``session.execute`` so that two annotators
-    correcting the same frame at once cannot seed over each other's joints.
-    """
-    xyz = tuple(round(float(v), 2) for v in np.asarray(xyz_mm, dtype=np.float64))
-    edit = SetJoint3D(frame=int(frame), joint=int(joint), xyz_mm=xyz)  # type: ignore[arg-type]
-    is_ref = int(frame) in set(session.model.selection.reference_frames)
-    if is_ref and session.annotation(int(frame)) is not None:
-        return edit, False
-    commands: list[dict[str, Any]] = []
-    if not is_ref:
-        commands.append(
-            SetReference(frame=int(frame), is_reference=True, correction=True).model_dump()
-        )
-    seed = seed_annotation(shown_mm, session.camera, depth_mm, session.skeleton.surface_offsets_mm)
-    commands.append(SetFrameAnnotation(frame=int(frame), annotation=seed.to_json()).model_dump())
-    commands.append(edit.model_dump())
-    return Batch(commands=commands), not is_ref
 
 
 # =============================================================================================
@@ -371,23 +105,9 @@ class LiveResults:
         with self._lock:
             return int((self.stage > 0).sum())
 
-    def _crop_data(self):
-        if self._crops is None:
-            from handanno_core.session import CROPS_FILE, CROPS_META_FILE
-
-            folder = self.session.folder
-            if not (folder / CROPS_FILE).exists() or not (folder / CROPS_META_FILE).exists():
-                return None  # never compute crops from the UI; the depth term is skipped
-            with np.load(folder / CROPS_META_FILE) as meta:
-                centres, boxes = meta["centres_mm"], meta["boxes"]
-            crops = np.load(folder / CROPS_FILE, mmap_mode="r")
-            if len(crops) != self.session.num_frames:
-                return None
-            self._crops = (crops, boxes, centres)
-        return self._crops
-
     def scores(self) -> FrameScores:
-        """:func:`frame_scores` of the current skeletons (cached per version)."""
+        """:func:`~handanno_core.review.session_scores` of the current skeletons (cached per
+        version; the depth term only when the session's crops are cached on disk)."""
         cached = self._score_cache
         if cached is not None and cached[0] == self.version:
             return cached[1]
@@ -396,32 +116,11 @@ class LiveResults:
             joints = self.joints_mm.copy()
             conf = self.confidence.copy()
             bones_mm = self.bone_lengths_mm
-        session = self.session
-        skeleton = session.skeleton
-        is_ref = np.zeros(session.num_frames, dtype=bool)
-        is_ref[session.reference_frames] = True
-        residual = None
-        crop_data = self._crop_data()
-        if crop_data is not None:
-            crops, boxes, centres = crop_data
-            residual = depth_residuals(
-                joints,
-                crops,
-                boxes,
-                centres,
-                session.camera,
-                cube_mm=session.model.settings.cube_mm,
-                surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
-            )
-        result = frame_scores(
-            conf,
-            joints,
-            skeleton.bones,
-            bones_mm,
-            depth_residual_mm=residual,
-            sequence_breaks=session.model.sequence_breaks,
-            is_reference=is_ref,
-        )
+        if self._crops is None:
+            from handanno_core.prefill import cached_crops
+
+            self._crops = cached_crops(self.session)  # never computed from the UI
+        result = session_scores(self.session, joints, conf, self._crops, bone_lengths_mm=bones_mm)
         self._score_cache = (version, result)
         return result
 

@@ -62,7 +62,10 @@ def run_bench(
     gt_bones: bool = False,
     work_dir: str | Path | None = None,
     quiet: bool = False,
+    review: dict | None = None,
 ) -> dict:
+    """``review``: keyword arguments of :func:`handanno_core.review_loop.bench_run_review`
+    (``rounds``, ``budget``, ``rankings``, ``prefill``, ...); None: no pre-fill, no review rounds."""
     json_out = Path(json_out)
     json_out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(work_dir) if work_dir else Path(tempfile.mkdtemp(prefix="handanno-bench-"))
@@ -110,7 +113,13 @@ def run_bench(
             )
             timings["select"] = round(time.perf_counter() - t, 3)
             refs = session.reference_frames
-            pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
+            prefilled = None
+            if review and review.get("prefill"):
+                from .review_loop import annotate_prefilled
+
+                prefilled = annotate_prefilled(session, noise_px=noise_px, quiet=True)
+            else:
+                pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
             if gt_bone_lengths is not None:
                 session.set_bone_lengths(gt_bone_lengths, pinned=True)
 
@@ -144,6 +153,10 @@ def run_bench(
             }
             runs.append(run)
             session.close()
+            if review:
+                from .review_loop import bench_run_review
+
+                bench_run_review(run, folder, review, prefilled, noise_px, workers, aligner, quiet)
             json_out.write_text(json.dumps(doc, indent=2))
             if not quiet:
                 print(_row(run), flush=True)
@@ -151,6 +164,10 @@ def run_bench(
         print()
         print(format_table(doc))
     plot_error_vs_fraction(doc, json_out.with_suffix(".png"))
+    if review and review.get("rounds"):
+        from .review_loop import plot_effort
+
+        plot_effort(doc, json_out.with_name(json_out.stem + "_effort.png"))
     if not work_dir:
         shutil.rmtree(tmp, ignore_errors=True)
     return doc

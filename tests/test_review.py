@@ -347,3 +347,123 @@ def test_session_names_from_users_are_refused(name, tmp_path):
 def test_session_names_inside_the_sessions_folder(tmp_path):
     assert safe_session_path("demo", tmp_path) == (tmp_path / "demo").resolve()
     assert resolve_session("demo-2", tmp_path) == (tmp_path / "demo-2").resolve()
+
+
+# ------------------------------------------------------------------------------------------ engine: rankings
+def test_pick_frames_skips_reviewed_and_suppresses_neighbours():
+    from handanno_core.review import pick_frames, uniform_pick
+
+    p = np.array([0.1, 0.9, 0.8, 0.7, np.nan, 0.2, 0.6, 0.0, 0.5, 0.3])
+    assert pick_frames(p, 3).tolist() == [1, 2, 3]
+    assert pick_frames(p, 3, exclude=[2]).tolist() == [1, 3, 6]
+    assert 4 not in pick_frames(p, 9).tolist() and len(pick_frames(p, 20)) == 9
+    # radius 1: 2 is next to 1 and waits; 3 is not next to 1; then 6, 8; deferred fill the rest
+    assert pick_frames(p, 4, radius=1).tolist() == [1, 3, 6, 8]
+    assert pick_frames(p, 9, radius=1)[-1] in (2, 5, 7, 9, 0)
+    # a sequence break between 1 and 2 makes them independent
+    assert pick_frames(p, 2, radius=1, sequence_breaks=[2]).tolist() == [1, 2]
+    u = uniform_pick(100, 5, exclude=[0])
+    assert len(u) == 5 and 0 not in u and u[0] == 1 and u[-1] == 99
+
+
+def test_evidence_priority_ignores_missing_terms_and_hops():
+    from handanno_core.review import evidence_priority, hops_to_reference
+
+    ev = {"a": np.array([0.0, 1.0, np.nan, 4.0]), "b": np.array([1.0, 0.0, 0.0, 0.0])}
+    p = evidence_priority(ev, {"a": (1.0, 1.0), "b": (1.0, 0.5), "model_mm": (5.0, 9.0)})
+    assert p[3] > p[1] > p[0] > p[2] == 0.0
+    assert hops_to_reference(np.array([-1, 0, 1, 2, -1, 4, 5, 1])).tolist() == [
+        0,
+        1,
+        2,
+        3,
+        0,
+        1,
+        2,
+        2,
+    ]
+
+
+def test_plausibility_terms_find_mirrored_and_swapped_hands(data_dir):
+    from handanno_core.datasets import open_sequence
+    from handanno_core.review import angle_violation, finger_order_violation
+
+    gt = open_sequence(data_dir).ground_truth.joints_mm[:10]
+    mirrored = gt.copy()
+    centre = gt[:, :1]
+    mirrored[..., 0] = 2 * centre[..., 0] - gt[..., 0]  # a left hand where the right one is
+    assert np.all(angle_violation(mirrored, MSRA21) > angle_violation(gt, MSRA21) + 10.0)
+    swapped = gt.copy()
+    swapped[:, [4, 8]] = gt[:, [8, 4]]  # index and middle fingertips exchanged
+    assert np.all(finger_order_violation(gt, MSRA21) == 0.0)
+    assert np.all(finger_order_violation(swapped, MSRA21) > 0.0)
+    gt_nan = gt.copy()
+    gt_nan[3] = np.nan
+    assert np.isnan(angle_violation(gt_nan, MSRA21)[3])
+
+
+def test_unexplained_foreground_sees_an_uncovered_finger():
+    from handanno_core.review import unexplained_foreground
+
+    cam = CameraIntrinsics(fx=200.0, fy=200.0, cx=63.5, cy=63.5, width=128, height=128)
+    crops = np.ones((2, 128, 128), np.float32)
+    crops[:, 60:68, 20:100] = 0.0  # a horizontal bar of hand
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0]] * 2)
+    joints = np.zeros((2, 3, 3))
+    joints[:, :, 2] = 400.0
+    joints[:, :, 0] = np.array([-86.0, 0.0, 72.0]) * 2.0  # a bone chain along the bar
+    joints[1, 2, :2] = [0.0, 80.0]  # second frame: the right half of the bar is not covered
+    out = unexplained_foreground(joints, crops, boxes, cam, np.array([[0, 1], [1, 2]]))
+    assert out[0] < 0.1 and out[1] > 0.3
+
+
+def test_simulated_fix_moves_only_joints_off_by_more_than_4px(data_dir):
+    from handanno_core.datasets import open_sequence
+    from handanno_core.review_loop import simulated_fix
+
+    seq = open_sequence(data_dir)
+    gt = seq.ground_truth.joints_mm[5]
+    cam = seq.camera
+    ann, clicks = simulated_fix(gt, gt, seq.depth(5), cam, seq.skeleton)
+    assert clicks == 0 and np.allclose(ann.uv_px, cam.project(gt))
+    shown = gt.copy()
+    shown[[4, 9], 0] += 20.0  # ~12 px off at 400 mm
+    shown[[7], 0] += 3.0  # ~2 px off: accepted where drawn
+    ann, clicks = simulated_fix(shown, gt, seq.depth(5), cam, seq.skeleton)
+    assert clicks == 2
+    assert np.allclose(ann.uv_px[[4, 9]], cam.project(gt)[[4, 9]])
+    assert np.allclose(ann.uv_px[7], cam.project(shown)[7])
+    assert np.isnan(ann.xyz_mm).all() and ann.visible.any()
+    # a whole finger drawn shifted: four clicks, or one if its base drags the rest along
+    finger = gt.copy()
+    finger[1:5, 0] += 20.0
+    assert simulated_fix(finger, gt, seq.depth(5), cam, seq.skeleton)[1] == 4
+    ann, clicks = simulated_fix(finger, gt, seq.depth(5), cam, seq.skeleton, drag_subtree=True)
+    assert clicks == 1 and np.allclose(ann.uv_px[1], cam.project(gt)[1])
+    assert np.all(np.linalg.norm(ann.uv_px[2:5] - cam.project(gt)[2:5], axis=1) <= 4.0)
+
+
+def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session):
+    from handanno_core import pipeline
+    from handanno_core.propagate import descendants
+    from handanno_core.review_loop import effort_to_target, review_rounds
+
+    pipeline.ensure_crops(session, quiet=True)
+    pipeline.propagate(session, quiet=True)
+    pipeline.refine(session, quiet=True)
+    refs = session.reference_frames.tolist()
+    parent_before = session.parent.copy()
+    entries = review_rounds(session, rounds=1, budget=2, ranking="evidence", quiet=True)
+    first, second = entries
+    assert first["frames_touched"] == len(refs) and first["joints_clicked"] == len(refs) * 21
+    assert second["corrections"] == 2 and second["frames_touched"] == len(refs) + 2
+    assert second["joints_clicked"] == first["joints_clicked"] + second["clicks"]
+    shown = sorted(set(session.model.corrections))
+    assert not set(shown) & set(refs)
+    assert second["repropagated"] == len(descendants(parent_before, shown))
+    res = session.load_results()
+    assert np.all(np.isfinite(res["lifted_mm"][shown])) and np.all(np.isfinite(res["final_mm"]))
+    for key in ("mean_mm", "median_mm", "max_mm", "bad_share", "recall_at_10", "shown_bad"):
+        assert key in second
+    assert effort_to_target(entries, mean_mm=1e3, bad_share=1.0) == len(refs)
+    assert effort_to_target(entries, mean_mm=0.0) is None

@@ -1,0 +1,84 @@
+"""Clicks per reference with pre-filled references, and what the accepted guesses cost in lift error.
+
+For each finished bench session given (``handanno bench --work-dir``), a fresh session with the
+same dataset, selection and cached crops is annotated by the simulated annotator twice: every
+joint clicked (``annotate_from_gt``) and pre-filled (:func:`handanno_core.review_loop.
+annotate_prefilled`: joints within 4 px of the truth accepted where the guess put them). Both are
+lifted (bone lengths estimated as the pipeline does) and compared with ground truth.
+
+    python benchmarks/bench_prefill.py SESSION [SESSION ...] --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from handanno_core import pipeline
+from handanno_core.evaluate import error_summary
+from handanno_core.review_loop import annotate_prefilled
+from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+
+
+def fresh_copy(src: Session, folder: Path) -> Session:
+    s = Session.create(
+        folder,
+        src.model.dataset,
+        src.num_frames,
+        src.camera,
+        src.model.skeleton,
+        src.model.sequence_breaks,
+        overwrite=True,
+    )
+    for name in (CROPS_FILE, CROPS_META_FILE):
+        (folder / name).symlink_to((src.folder / name).resolve())
+    sel = src.model.selection.model_dump()
+    sel["parent"] = list(src.model.selection.parent)
+    s.set_selection(sel)
+    return s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sessions", nargs="+", type=Path)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/handanno-bench-prefill"))
+    ap.add_argument("--click-px", type=float, default=4.0, help="joints farther off are moved")
+    ap.add_argument("--json", type=Path, required=True)
+    args = ap.parse_args()
+    rows = []
+    for folder in args.sessions:
+        src = Session.open(folder)
+        gt = src.open_sequence().ground_truth.joints_mm
+        row: dict = {
+            "session": str(folder),
+            "references": int(len(src.reference_frames)),
+            "click_px": args.click_px,
+        }
+        for mode in ("all_clicks", "prefilled"):
+            s = fresh_copy(src, args.work / f"{folder.parent.name}-{folder.name}-{mode}")
+            t = time.perf_counter()
+            if mode == "prefilled":
+                info = annotate_prefilled(s, click_px=args.click_px, quiet=True)
+                row["clicks_per_reference"] = round(info["clicks_per_reference"], 3)
+                row["clicks_per_reference_drag"] = round(info["clicks_per_reference_drag"], 3)
+                row["clicks"] = [int(c) for c in info["clicks"].values()]
+            else:
+                pipeline.annotate_from_gt(s, quiet=True)
+            row[f"{mode}_annotate_s"] = round(time.perf_counter() - t, 2)
+            pipeline.lift(s, quiet=True)
+            refs = s.reference_frames
+            lifted = s.load_results()["lifted_mm"]
+            e = error_summary(lifted, gt, frames=refs)
+            row[f"{mode}_lift_mm"] = {k: round(float(e[k]), 3) for k in ("mean_mm", "max_mm")}
+            s.close()
+        src.close()
+        rows.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "clicks"}), flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

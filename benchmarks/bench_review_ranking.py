@@ -1,0 +1,203 @@
+"""Choose the "evidence" review ranking's weights on a tune part; measure recall@10 % everywhere.
+
+Input: finished bench sessions (``handanno bench --work-dir`` keeps them; each holds refined
+results and the cached crops). For every session the evidence of :func:`handanno_core.review.
+review_evidence` is computed for the non-reference frames; ground truth labels a frame bad when a
+joint is more than ``--bad-mm`` off (evaluation and weight fitting only).
+
+The weights: a logistic regression (non-negative weights, L2, on ``log1p(x / scale)`` with each
+term's scale = its median over the tune frames) fitted on the ``--tune`` sessions only, with frames
+bad at ``--fit-mm`` as the positive class. recall@10 % (share of bad frames among the ranking's
+first 10 % of frames) is then reported per session for the app's ranking until now (``score``),
+the fitted ``evidence`` ranking and each term alone. The weights to paste into
+``handanno_core/review.py`` are printed and written with the report.
+
+    python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from handanno_core import review
+from handanno_core.prefill import cached_crops
+from handanno_core.session import Session
+
+
+def load(folder: Path, bad_mm: float) -> dict:
+    session = Session.open(folder)
+    try:
+        results = session.load_results()
+        crop_data = cached_crops(session)
+        gt = session.open_sequence().ground_truth.joints_mm
+        final = np.asarray(results["final_mm"], dtype=np.float64)
+        err = np.linalg.norm(final - gt, axis=-1).max(axis=1)
+        ev = review.review_evidence(session, results, crop_data)
+        score = review.rank_priority("score", session, results, crop_data)
+        refs = session.reference_frames
+        return {
+            "name": str(folder),
+            "evidence": ev,
+            "score": score,
+            "err": err,
+            "refs": refs,
+            "n": session.num_frames,
+            "breaks": list(session.model.sequence_breaks),
+        }
+    finally:
+        session.close()
+
+
+def features(ev: dict, names: list[str], scales: dict[str, float]) -> np.ndarray:
+    cols = []
+    for k in names:
+        t = np.log1p(np.maximum(np.asarray(ev[k], dtype=np.float64), 0.0) / scales[k])
+        cols.append(np.where(np.isfinite(t), t, 0.0))
+    return np.stack(cols, axis=1)
+
+
+def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-2, iters: int = 4000) -> np.ndarray:
+    """Non-negative weights ``(F,)`` and a bias (last) by projected gradient descent."""
+    mu = x.mean(axis=0)
+    sd = x.std(axis=0) + 1e-9
+    z = (x - mu) / sd
+    w = np.zeros(x.shape[1])
+    b = 0.0
+    pos = max(y.mean(), 1e-3)
+    sw = np.where(y, 0.5 / pos, 0.5 / (1 - pos))  # balanced classes
+    lr = 0.5
+    for _ in range(iters):
+        p = 1.0 / (1.0 + np.exp(-(z @ w + b)))
+        g = sw * (p - y)
+        w -= lr * (z.T @ g / len(y) + l2 * w)
+        b -= lr * g.mean()
+        w = np.maximum(w, 0.0)
+    return w / sd  # weights on the raw (unstandardized) features; the bias does not rank
+
+
+def ceiling(bad: np.ndarray, refs: np.ndarray, share: float = 0.10) -> float:
+    """The best recall@10 % possible: 1, or (10 % of the frames) / (bad frames) when fewer."""
+    b = bad.copy()
+    b[refs] = False
+    return min(1.0, round(share * len(bad)) / max(int(b.sum()), 1))
+
+
+def tune_objective(tune: list[dict], weights: dict, bad_mm: float) -> float:
+    """Mean recall@10 % (relative to its :func:`ceiling`) over the tune sessions at ``bad_mm``,
+    ``bad_mm - 5`` and ``bad_mm - 10`` (the lower thresholds have more frames and steady it)."""
+    out = []
+    for d in tune:
+        p = review.evidence_priority(d["evidence"], weights)
+        for thr in (bad_mm, bad_mm - 5.0, bad_mm - 10.0):
+            bad = np.isfinite(d["err"]) & (d["err"] > thr)
+            r = review.recall_at(p, bad, exclude=d["refs"])
+            if np.isfinite(r):
+                out.append(r / ceiling(bad, d["refs"]))
+    return float(np.mean(out)) if out else 0.0
+
+
+def coordinate_search(tune: list[dict], names: list[str], start: dict, bad_mm: float) -> dict:
+    """Greedy coordinate ascent of :func:`tune_objective` over each weight in a small grid."""
+    weights = dict(start)
+    best = tune_objective(tune, weights, bad_mm)
+    for _ in range(3):
+        improved = False
+        for k in names:
+            scale, w0 = weights[k]
+            for w in (0.0, 0.25 * w0, 0.5 * w0, 2.0 * w0, 4.0 * w0, 0.5, 1.0, 2.0):
+                trial = dict(weights)
+                trial[k] = (scale, round(float(w), 4))
+                v = tune_objective(tune, trial, bad_mm)
+                if v > best + 1e-9:
+                    best, weights, improved = v, trial, True
+        if not improved:
+            break
+    print(f"tune objective {best:.3f}")
+    return weights
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tune", nargs="+", type=Path, required=True)
+    ap.add_argument("--report", nargs="+", type=Path, required=True)
+    ap.add_argument("--bad-mm", type=float, default=20.0)
+    ap.add_argument("--fit-mm", type=float, default=10.0)
+    ap.add_argument("--radius", type=int, nargs="+", default=[0, 2, 5])
+    ap.add_argument("--search", action="store_true", help="refine the weights on tune recall")
+    ap.add_argument("--fixed", action="store_true", help="evaluate the committed weights")
+    ap.add_argument("--json", type=Path, required=True)
+    args = ap.parse_args()
+
+    tune = [load(f, args.bad_mm) for f in args.tune]
+    report = [load(f, args.bad_mm) for f in args.report]
+    names = [k for k in tune[0]["evidence"] if all(k in d["evidence"] for d in tune + report)]
+
+    def candidates(d):
+        m = np.isfinite(d["err"])
+        m[d["refs"]] = False
+        return m
+
+    stack = np.concatenate
+    ev_all = {k: stack([d["evidence"][k][candidates(d)] for d in tune]) for k in names}
+    scales = {}
+    for k in names:
+        v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
+        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
+    x = features(ev_all, names, scales)
+    y = stack([d["err"][candidates(d)] > args.fit_mm for d in tune]).astype(np.float64)
+    w = fit_logistic(x, y)
+    weights = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
+    if args.search:
+        weights = coordinate_search(tune, names, weights, args.bad_mm)
+    weights = {k: v for k, v in weights.items() if v[1] > 0}
+    if args.fixed:  # report the committed weights (handanno_core.review.EVIDENCE_WEIGHTS)
+        weights = dict(review.EVIDENCE_WEIGHTS)
+    print("EVIDENCE_WEIGHTS =", json.dumps(weights))
+
+    rows = []
+    for part, data in (("tune", tune), ("report", report)):
+        for d in data:
+            bad = np.isfinite(d["err"]) & (d["err"] > args.bad_mm)
+            bad[d["refs"]] = False
+            row = {
+                "part": part,
+                "session": d["name"],
+                "frames": d["n"],
+                "bad_frames": int(bad.sum()),
+                "bad10_frames": int((np.isfinite(d["err"]) & (d["err"] > 10)).sum()),
+                "ceiling": ceiling(bad, d["refs"]),
+            }
+            ex = d["refs"]
+            row["score"] = review.recall_at(d["score"], bad, exclude=ex)
+            for r in args.radius:
+                pe = review.evidence_priority(d["evidence"], weights)
+                row[f"evidence_r{r}"] = review.recall_at(
+                    pe, bad, exclude=ex, radius=r, sequence_breaks=d["breaks"]
+                )
+            for k in names:
+                row[f"only_{k}"] = review.recall_at(
+                    np.nan_to_num(d["evidence"][k], nan=-1.0), bad, exclude=ex
+                )
+            rows.append(row)
+            print(
+                part,
+                Path(d["name"]).parent.name,
+                Path(d["name"]).name,
+                f"bad={row['bad_frames']}",
+                " ".join(f"{k}={v:.2f}" for k, v in row.items() if isinstance(v, float)),
+            )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(
+        json.dumps(
+            {"bad_mm": args.bad_mm, "fit_mm": args.fit_mm, "weights": weights, "rows": rows},
+            indent=1,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

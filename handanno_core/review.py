@@ -1,0 +1,690 @@
+"""Review engine (no viser): which frames to show the annotator, and what a review edit does.
+
+Used by the app's review view (``app/review_state.py`` re-exports these names) and by the bench's
+simulated review loop (:mod:`handanno_core.review_loop`).
+
+* :func:`frame_scores` - a pure-numpy per-frame score in [0, 1] (1 = trustworthy) from the
+  propagation confidence (which already contains the forward-backward flow consistency), bone-length
+  anomalies, depth residuals, temporal jumps and an optional flow-inconsistency term (the app's
+  ranking until now, kept as the ``"score"`` ranking of the bench).
+* :func:`worst_order` / :func:`next_worst` - walk frames by increasing score.
+* :func:`seed_annotation` / :func:`correction_command` - the session command of a review edit: on a
+  propagated frame it is a :class:`~handanno_core.session.Batch` that makes the frame a reference
+  (``correction=True``), seeds its annotation from the shown skeleton and applies the joint edit,
+  all as one undo step.
+* :func:`review_evidence` - per-frame evidence that a skeleton is wrong (confidence, depth and
+  silhouette residuals, temporal jumps, refinement shift, angle limits incl. mirrored hands,
+  finger order, bones, distance to the reference; a model-fit residual can be passed in), and
+  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`).
+* :func:`rank_priority` / :func:`pick_frames` / :func:`uniform_pick` - the frames a review round
+  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked;
+  :func:`recall_at` measures a ranking against ground truth (evaluation only).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .annotation import FrameAnnotation
+from .camera import CameraIntrinsics
+from .session import (
+    Batch,
+    Command,
+    Session,
+    SetFrameAnnotation,
+    SetJoint3D,
+    SetReference,
+)
+
+#: scale of each score term: a term equal to its scale halves the score (``1 / (1 + (x/s)^2)``).
+SCORE_SCALES = {"bone": 0.10, "depth_mm": 15.0, "jump_mm": 30.0, "flow_px": 3.0}
+#: penalty (mm) of a joint projecting onto background / outside the hand cube.
+OFF_HAND_MM = 40.0
+
+
+# =============================================================================================
+# scores (pure numpy)
+
+
+def bone_anomaly(
+    joints_mm: np.ndarray, bones: np.ndarray, bone_lengths_mm: np.ndarray
+) -> np.ndarray:
+    """``(N,)`` largest relative bone-length deviation per frame (0 = exact; NaN if no joints).
+
+    ``joints_mm`` (N, J, 3) mm, ``bones`` (B, 2) (parent, child), ``bone_lengths_mm`` (B,) mm.
+    """
+    j = np.asarray(joints_mm, dtype=np.float64)
+    b = np.asarray(bones, dtype=np.int64)
+    lengths = np.linalg.norm(j[:, b[:, 1]] - j[:, b[:, 0]], axis=-1)  # (N, B)
+    ref = np.asarray(bone_lengths_mm, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dev = np.abs(lengths - ref) / np.maximum(ref, 1e-6)
+        out = np.max(dev, axis=1)
+    out[~np.all(np.isfinite(dev), axis=1)] = np.nan
+    return out
+
+
+def temporal_jump(joints_mm: np.ndarray, sequence_breaks: Iterable[int] = ()) -> np.ndarray:
+    """``(N,)`` mm: for each frame the largest joint displacement to its previous and to its next
+    frame, and of those two the *smaller* one (a single wrong frame jumps away from both of its
+    neighbours; a frame next to it only from one). Jumps across sequence breaks are ignored; NaN
+    where no neighbour has joints."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    step = np.full(n + 1, np.nan)  # step[t] = jump between frame t-1 and t
+    if n > 1:
+        d = np.max(np.linalg.norm(j[1:] - j[:-1], axis=-1), axis=1)
+        step[1:n] = d
+    for b in sequence_breaks:
+        if 0 < int(b) < n:
+            step[int(b)] = np.nan
+    prev, nxt = step[:n], step[1 : n + 1]
+    with np.errstate(invalid="ignore"):
+        out = np.fmin(prev, nxt)
+    out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
+    return out
+
+
+def depth_residuals(
+    joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = 220.0,
+    surface_offsets_mm: np.ndarray | None = None,
+) -> np.ndarray:
+    """``(N, J)`` mm: how far each joint sits *in front of* the observed surface (a joint centre
+    lies on or behind it), read from the normalized crops (no depth file is opened); a joint that
+    projects onto background or outside the crop costs :data:`OFF_HAND_MM`. NaN without joints.
+
+    ``crops`` (N, S, S) normalized depth ``(d - z_c) / (cube_mm / 2)``, +1 = background;
+    ``boxes`` (N, 4) ``[u_left, v_top, sx, sy]``; ``centres_mm`` (N, 3).
+    """
+    from .crops import image_to_crop
+
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n, nj = j.shape[:2]
+    out = np.full((n, nj), np.nan)
+    ok = np.all(np.isfinite(j), axis=(1, 2))
+    if not ok.any():
+        return out
+    frames = np.flatnonzero(ok)
+    jj = j[frames]
+    uv = camera.project(jj)  # (M, J, 2)
+    xy = image_to_crop(uv, np.asarray(boxes, dtype=np.float64)[frames][:, None, :])
+    size = crops.shape[1]
+    xy = np.where(np.isfinite(xy), xy, -1.0)  # joints at z <= 0 project nowhere: off the crop
+    xi = np.rint(xy[..., 0]).astype(np.int64)
+    yi = np.rint(xy[..., 1]).astype(np.int64)
+    inside = (xi >= 0) & (xi < size) & (yi >= 0) & (yi < size)
+    fi = np.broadcast_to(frames[:, None], xi.shape)
+    vals = np.ones(xi.shape, dtype=np.float64)
+    vals[inside] = np.asarray(crops[fi[inside], yi[inside], xi[inside]], dtype=np.float64)
+    background = ~inside | (vals >= 0.999)
+    observed = np.asarray(centres_mm, dtype=np.float64)[frames, 2][:, None] + vals * (cube_mm / 2.0)
+    offsets = (
+        0.0
+        if surface_offsets_mm is None
+        else np.asarray(surface_offsets_mm, dtype=np.float64)[None, :]
+    )
+    # A visible joint centre sits ~offset behind the surface: in front of (observed + offset) is wrong.
+    res = np.maximum(observed + offsets - jj[..., 2], 0.0)
+    res = np.where(background, OFF_HAND_MM, np.minimum(res, OFF_HAND_MM))
+    out[frames] = res
+    return out
+
+
+@dataclass
+class FrameScores:
+    """``score`` (N,) in [0, 1], 1 = trustworthy, NaN = nothing to review (no joints); ``terms``:
+    each ingredient (N,) in its own unit (``confidence`` 0..1, ``bone`` relative, ``depth_mm``,
+    ``jump_mm``, ``flow_px``)."""
+
+    score: np.ndarray
+    terms: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def _goodness(x: np.ndarray, scale: float) -> np.ndarray:
+    """1 / (1 + (x / scale)^2), with NaN (term unavailable) -> 1."""
+    g = 1.0 / (1.0 + (np.asarray(x, dtype=np.float64) / scale) ** 2)
+    return np.where(np.isfinite(g), g, 1.0)
+
+
+def frame_scores(
+    confidence: np.ndarray,
+    joints_mm: np.ndarray,
+    bones: np.ndarray,
+    bone_lengths_mm: np.ndarray | None,
+    *,
+    depth_residual_mm: np.ndarray | None = None,
+    flow_error_px: np.ndarray | None = None,
+    sequence_breaks: Iterable[int] = (),
+    is_reference: np.ndarray | None = None,
+    scales: dict[str, float] | None = None,
+) -> FrameScores:
+    """Combine the review evidence into one score per frame (see :class:`FrameScores`).
+
+    ``confidence`` (N, J) in [0, 1] (propagation confidence, NaN = unknown -> 0.5);
+    ``joints_mm`` (N, J, 3) the skeletons shown; ``bone_lengths_mm`` (B,) or None (no bone term);
+    ``depth_residual_mm`` (N, J) from :func:`depth_residuals`; ``flow_error_px`` (N,) or (N, J)
+    flow inconsistency (optional; the propagation confidence already includes its forward-backward
+    consistency). Reference frames score 1. The score is the product of the per-frame confidence
+    (mean and minimum over joints, averaged) and ``1 / (1 + (x / scale)^2)`` for each other term.
+    """
+    s = dict(SCORE_SCALES, **(scales or {}))
+    joints = np.asarray(joints_mm, dtype=np.float64)
+    n = len(joints)
+    has = np.all(np.isfinite(joints), axis=(1, 2))
+    conf = np.asarray(confidence, dtype=np.float64)
+    conf = np.where(np.isfinite(conf), np.clip(conf, 0.0, 1.0), 0.5)
+    c = 0.5 * (conf.mean(axis=1) + conf.min(axis=1)) if conf.size else np.ones(n)
+    terms: dict[str, np.ndarray] = {"confidence": c}
+    score = c.copy()
+    if bone_lengths_mm is not None:
+        terms["bone"] = bone_anomaly(joints, bones, bone_lengths_mm)
+        score *= _goodness(terms["bone"], s["bone"])
+    if depth_residual_mm is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # frames without joints: NaN
+            terms["depth_mm"] = np.nanmean(np.asarray(depth_residual_mm, dtype=np.float64), axis=1)
+        score *= _goodness(terms["depth_mm"], s["depth_mm"])
+    terms["jump_mm"] = temporal_jump(joints, sequence_breaks)
+    score *= _goodness(terms["jump_mm"], s["jump_mm"])
+    if flow_error_px is not None:
+        f = np.asarray(flow_error_px, dtype=np.float64)
+        if f.ndim == 2:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                f = np.nanmean(f, axis=1)
+        terms["flow_px"] = f
+        score *= _goodness(f, s["flow_px"])
+    score = np.where(has, np.clip(score, 0.0, 1.0), np.nan)
+    if is_reference is not None:
+        score = np.where(np.asarray(is_reference, dtype=bool) & has, 1.0, score)
+    return FrameScores(score=score, terms=terms)
+
+
+def session_scores(
+    session: Session,
+    joints_mm: np.ndarray,
+    confidence: np.ndarray,
+    crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    *,
+    bone_lengths_mm: np.ndarray | None = None,
+) -> FrameScores:
+    """:func:`frame_scores` of a session's skeletons ``joints_mm`` (N, J, 3) mm with their
+    ``confidence`` (N, J): the session's bone lengths (or ``bone_lengths_mm``), sequence breaks and
+    references; the depth term when ``crop_data`` = ``(crops, centres_mm, boxes)`` is given
+    (:func:`handanno_core.prefill.cached_crops`)."""
+    skeleton = session.skeleton
+    if bone_lengths_mm is None and session.model.bone_lengths_mm is not None:
+        bone_lengths_mm = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
+    is_ref = np.zeros(session.num_frames, dtype=bool)
+    is_ref[session.reference_frames] = True
+    residual = None
+    if crop_data is not None:
+        crops, centres, boxes = crop_data
+        residual = depth_residuals(
+            joints_mm,
+            crops,
+            boxes,
+            centres,
+            session.camera,
+            cube_mm=session.model.settings.cube_mm,
+            surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
+        )
+    return frame_scores(
+        confidence,
+        joints_mm,
+        skeleton.bones,
+        bone_lengths_mm,
+        depth_residual_mm=residual,
+        sequence_breaks=session.model.sequence_breaks,
+        is_reference=is_ref,
+    )
+
+
+def worst_order(score: np.ndarray, exclude: Iterable[int] = ()) -> np.ndarray:
+    """Frames with a score, by increasing score (ties by frame index), ``exclude`` left out."""
+    score = np.asarray(score, dtype=np.float64)
+    ok = np.isfinite(score)
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    ok[ex[(ex >= 0) & (ex < len(score))]] = False
+    frames = np.flatnonzero(ok)
+    return frames[np.lexsort((frames, score[frames]))]
+
+
+def next_worst(
+    score: np.ndarray, current: int | None = None, exclude: Iterable[int] = ()
+) -> int | None:
+    """The next frame after ``current`` in :func:`worst_order` (the worst one if ``current`` is
+    None or not in the order; None when there is nothing to review)."""
+    order = worst_order(score, exclude)
+    if order.size == 0:
+        return None
+    if current is not None:
+        hit = np.flatnonzero(order == int(current))
+        if hit.size and hit[0] + 1 < order.size:
+            return int(order[hit[0] + 1])
+        if hit.size:
+            return int(order[0])  # wrapped around
+    return int(order[0])
+
+
+# =============================================================================================
+# review edits
+
+
+def seed_annotation(
+    joints_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    depth_mm: np.ndarray | None = None,
+    surface_offsets_mm: np.ndarray | None = None,
+    margin_mm: float = 10.0,
+) -> FrameAnnotation:
+    """A reference annotation from a shown skeleton ``(J, 3)`` mm: every joint placed in 3D (and its
+    projection in 2D), visibility by a depth test against ``depth_mm`` (H, W) when given."""
+    x = np.asarray(joints_mm, dtype=np.float64)
+    nj = len(x)
+    ann = FrameAnnotation.empty(nj)
+    ann.xyz_mm[:] = x
+    ann.uv_px[:] = camera.project(x)
+    if depth_mm is not None:
+        uv = np.rint(ann.uv_px).astype(np.int64)
+        inside = (
+            (uv[:, 0] >= 0)
+            & (uv[:, 0] < camera.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < camera.height)
+        )
+        d = np.zeros(nj)
+        d[inside] = depth_mm[uv[inside, 1], uv[inside, 0]]
+        off = (
+            0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)
+        )
+        ann.visible[:] = inside & (d > 0) & (d >= x[:, 2] - off - margin_mm)
+    return ann
+
+
+def correction_command(
+    session: Session,
+    frame: int,
+    joint: int,
+    xyz_mm: np.ndarray,
+    shown_mm: np.ndarray,
+    depth_mm: np.ndarray | None = None,
+) -> tuple[Command, bool]:
+    """The command of a review edit of ``joint`` on ``frame`` to ``xyz_mm`` (mm, camera frame).
+
+    Returns ``(command, became_reference)``. On a frame that is already an annotated reference it is
+    a single :class:`SetJoint3D`. Otherwise one :class:`Batch`: ``SetReference(is_reference=True,
+    correction=True)`` (unless it is a selected reference without annotation), the frame's
+    annotation seeded from ``shown_mm`` (J, 3) (:func:`seed_annotation`) and the joint edit.
+    Call it under ``session.lock`` together with ``session.execute`` so that two annotators
+    correcting the same frame at once cannot seed over each other's joints.
+    """
+    xyz = tuple(round(float(v), 2) for v in np.asarray(xyz_mm, dtype=np.float64))
+    edit = SetJoint3D(frame=int(frame), joint=int(joint), xyz_mm=xyz)  # type: ignore[arg-type]
+    is_ref = int(frame) in set(session.model.selection.reference_frames)
+    if is_ref and session.annotation(int(frame)) is not None:
+        return edit, False
+    commands: list[dict[str, Any]] = []
+    if not is_ref:
+        commands.append(
+            SetReference(frame=int(frame), is_reference=True, correction=True).model_dump()
+        )
+    seed = seed_annotation(shown_mm, session.camera, depth_mm, session.skeleton.surface_offsets_mm)
+    commands.append(SetFrameAnnotation(frame=int(frame), annotation=seed.to_json()).model_dump())
+    commands.append(edit.model_dump())
+    return Batch(commands=commands), not is_ref
+
+
+# =============================================================================================
+# review evidence: the ingredients of the ranking, per frame (no ground truth)
+
+
+def angle_violation(joints_mm: np.ndarray, skeleton) -> np.ndarray:
+    """``(N,)`` degrees: the sum over joints of how far flexion and abduction leave the skeleton's
+    limits (0 inside; a mirrored or left/right-swapped hand bends its fingers backwards). NaN
+    without joints; zeros for a skeleton without angle limits."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    out = np.zeros(len(j))
+    if skeleton.palm_joints is None or skeleton.flexion_limits_deg is None:
+        out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
+        return out
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flex, abd = skeleton.joint_angles(j)
+        fl, al = skeleton.angle_limits()
+        over = (
+            np.maximum(fl[:, 0] - flex, 0)
+            + np.maximum(flex - fl[:, 1], 0)
+            + np.maximum(al[:, 0] - abd, 0)
+            + np.maximum(abd - al[:, 1], 0)
+        )
+        out = over.sum(axis=1)
+    out[~np.all(np.isfinite(j), axis=(1, 2))] = np.nan
+    return out
+
+
+def finger_order_violation(joints_mm: np.ndarray, skeleton, margin_mm: float = 5.0) -> np.ndarray:
+    """``(N,)`` mm: swapped fingers. The fingers whose base lies on the segment between the palm's
+    two side joints (``skeleton.palm_joints``: index and little MCP for MSRA-21; the thumb, whose
+    base is off that line, is left out) keep their
+    order across the palm: for each pair of adjacent fingers, how far (beyond ``margin_mm``) their
+    tips cross along the palm's lateral axis, summed. NaN without joints; zeros without palm joints."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    bad = ~np.all(np.isfinite(j), axis=(1, 2))
+    out = np.zeros(n)
+    if skeleton.palm_joints is None:
+        out[bad] = np.nan
+        return out
+    w, a, b = skeleton.palm_joints
+    parents = skeleton.parent_array
+    bases = [int(k) for k in np.flatnonzero(parents == w)]
+    tips = []
+    for k in bases:  # follow the single-child chain to its end
+        t = k
+        while len(skeleton.children(t)) == 1:
+            t = int(skeleton.children(t)[0])
+        tips.append(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = j[:, b] - j[:, a]
+        span = np.linalg.norm(axis, axis=-1, keepdims=True)
+        axis = axis / np.maximum(span, 1e-9)
+        rel = j[:, bases] - j[:, a][:, None]  # (N, F, 3)
+        base_pos = np.einsum("nkd,nd->nk", rel, axis)
+        off_line = np.linalg.norm(rel - base_pos[..., None] * axis[:, None], axis=-1)
+        tip_pos = np.einsum("nkd,nd->nk", j[:, tips] - j[:, a][:, None], axis)
+        inside = (base_pos > -margin_mm) & (base_pos < span + margin_mm) & (off_line < 0.5 * span)
+        inside = np.nanmean(inside[~bad], axis=0) > 0.5 if (~bad).any() else inside[0] & False
+    idx = np.flatnonzero(inside)
+    if idx.size >= 2:
+        order = idx[np.argsort(np.nanmedian(base_pos[:, idx], axis=0))]
+        cross = tip_pos[:, order[:-1]] - tip_pos[:, order[1:]]  # > 0: tips out of order
+        out = np.maximum(cross - margin_mm, 0.0).sum(axis=1)
+    out[bad] = np.nan
+    return out
+
+
+def unexplained_foreground(
+    joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    camera: CameraIntrinsics,
+    bones: np.ndarray,
+    *,
+    radius_px: float = 6.0,
+    stride: int = 4,
+) -> np.ndarray:
+    """``(N,)`` share of the hand's pixels in the crop (normalized depth < 1) farther than
+    ``radius_px`` crop pixels from every projected bone: a finger the skeleton does not cover (a
+    2D model-fit residual). Crop pixels are sampled every ``stride``. NaN without joints or hand.
+
+    ``crops`` (N, S, S), ``boxes`` (N, 4) as :mod:`handanno_core.crops`; ``bones`` (B, 2).
+    """
+    from .crops import image_to_crop
+
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    out = np.full(n, np.nan)
+    size = crops.shape[1]
+    grid = np.arange(stride // 2, size, stride)
+    gy, gx = np.meshgrid(grid, grid, indexing="ij")
+    pix = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)  # (P, 2) crop px
+    b = np.asarray(bones, dtype=np.int64)
+    ok = np.flatnonzero(np.all(np.isfinite(j), axis=(1, 2)))
+    for f in ok:
+        fg = np.asarray(crops[f][gy, gx]).ravel() < 0.999
+        if not fg.any():
+            continue
+        xy = image_to_crop(camera.project(j[f]), np.asarray(boxes[f], dtype=np.float64))
+        p0, p1 = xy[b[:, 0]], xy[b[:, 1]]  # (B, 2)
+        q = pix[fg][:, None, :]  # (P, 1, 2)
+        d = p1 - p0
+        t = np.clip(np.sum((q - p0) * d, axis=-1) / np.maximum(np.sum(d * d, axis=-1), 1e-9), 0, 1)
+        dist = np.linalg.norm(q - (p0 + t[..., None] * d), axis=-1).min(axis=1)
+        out[f] = float(np.mean(dist > radius_px))
+    return out
+
+
+def hops_to_reference(parent: np.ndarray) -> np.ndarray:
+    """``(N,)`` number of propagation steps from each frame's reference (0 at references)."""
+    parent = np.asarray(parent, dtype=np.int64)
+    n = len(parent)
+    p = np.where(parent < 0, np.arange(n), parent)
+    d = (parent >= 0).astype(np.int64)  # invariant: d[i] = steps from i up to p[i]
+    for _ in range(int(np.log2(max(n, 2))) + 2):  # pointer jumping; bounded against cycles
+        d = d + d[p]
+        p = p[p]
+    return d
+
+
+def _max_joint_norm(x: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.max(np.linalg.norm(x, axis=-1), axis=-1)
+
+
+def review_evidence(
+    session: Session,
+    results: dict[str, np.ndarray],
+    crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    *,
+    extra: dict[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """Per-frame evidence ``{name: (N,)}`` that a frame's shown skeleton (refined, else
+    propagated, else lifted) is wrong, larger = worse, NaN = unavailable. No ground truth.
+
+    ``conf`` 1 - propagation confidence (mean and minimum over joints averaged; it contains the
+    forward-backward flow consistency of the step); ``conf_min`` 1 - its minimum;
+    ``depth_mm`` / ``depth_max_mm`` joints in front of the observed surface or off the hand
+    (:func:`depth_residuals`, mean and max over joints; needs ``crop_data``); ``unexplained`` hand
+    pixels no bone covers (:func:`unexplained_foreground`; needs ``crop_data``); ``jump_mm``
+    (:func:`temporal_jump`); ``accel_mm`` largest second difference in time; ``refine_mm`` how far
+    refinement moved a joint from its propagated position; ``angle_deg`` joint-angle limit
+    violation (:func:`angle_violation`, also catches mirrored hands); ``swap_mm`` finger order
+    (:func:`finger_order_violation`); ``bone`` bone-length anomaly of the propagated pose;
+    ``hops`` propagation steps from the reference; ``gap`` frames (in time) to the reference.
+    ``extra``: further terms ``{name: (N,)}`` (e.g. a model-fit residual) passed through.
+    ``crop_data`` = ``(crops, centres_mm, boxes)`` (:func:`handanno_core.prefill.cached_crops`).
+    """
+    from .export import best_joints
+    from .pipeline import root_reference
+
+    skeleton = session.skeleton
+    joints, _ = best_joints(results)
+    init = np.asarray(results["init_mm"], dtype=np.float64)
+    n = len(joints)
+    conf = np.asarray(results["confidence"], dtype=np.float64)
+    conf = np.where(np.isfinite(conf), np.clip(conf, 0.0, 1.0), 0.5)
+    ev: dict[str, np.ndarray] = {
+        "conf": 1.0 - 0.5 * (conf.mean(axis=1) + conf.min(axis=1)),
+        "conf_min": 1.0 - conf.min(axis=1),
+    }
+    if crop_data is not None:
+        crops, centres, boxes = crop_data
+        res = depth_residuals(
+            joints,
+            crops,
+            boxes,
+            centres,
+            session.camera,
+            cube_mm=session.model.settings.cube_mm,
+            surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ev["depth_mm"] = np.nanmean(res, axis=1)
+            ev["depth_max_mm"] = np.nanmax(res, axis=1)
+        ev["unexplained"] = unexplained_foreground(
+            joints, crops, boxes, session.camera, skeleton.bones
+        )
+    ev["jump_mm"] = temporal_jump(joints, session.model.sequence_breaks)
+    accel = np.full(n, np.nan)
+    if n > 2:
+        accel[1:-1] = _max_joint_norm(joints[2:] - 2.0 * joints[1:-1] + joints[:-2])
+    for b in session.model.sequence_breaks:  # no second difference across a break
+        for f in (int(b) - 1, int(b)):
+            if 0 <= f < n:
+                accel[f] = np.nan
+    ev["accel_mm"] = accel
+    ev["refine_mm"] = _max_joint_norm(joints - np.where(np.isfinite(init), init, joints))
+    ev["angle_deg"] = angle_violation(joints, skeleton)
+    ev["swap_mm"] = finger_order_violation(joints, skeleton)
+    if session.model.bone_lengths_mm is not None:
+        ev["bone"] = bone_anomaly(
+            init, skeleton.bones, np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
+        )
+    parent = session.parent
+    ev["hops"] = hops_to_reference(parent).astype(np.float64)
+    ev["gap"] = np.abs(np.arange(n) - root_reference(parent)).astype(np.float64)
+    for name, value in (extra or {}).items():
+        ev[name] = np.asarray(value, dtype=np.float64)
+    return ev
+
+
+# =============================================================================================
+# rankings: which K frames to show
+
+
+#: ``{evidence name: (scale, weight)}`` of the "evidence" ranking: priority = sum of
+#: ``weight * log1p(x / scale)`` (a logit). Scales = each term's median, weights = a non-negative
+#: logistic regression (frames > 10 mm off) then coordinate ascent of recall@10 %, both on the
+#: tune part only (``benchmarks/bench_review_ranking.py``: synthetic seeds 0-1, 800 frames, forest
+#: 5 % exact and 2 % with 2 px noise). Terms the fit left at weight 0: conf, conf_min, depth_max_mm,
+#: jump_mm, accel_mm. A model-fit residual joins as one more entry (e.g. ``"model_mm"``).
+EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
+    "depth_mm": (4.07, 2.0),
+    "unexplained": (0.414, 1.99),
+    "refine_mm": (6.57, 0.135),
+    "angle_deg": (8.35, 2.2),
+    "swap_mm": (8.53, 3.84),
+    "bone": (0.001, 0.063),
+    "hops": (5.0, 0.292),
+    "gap": (8.0, 1.0),
+}
+#: frames within this distance (in time) of a frame already picked in the same round are shown
+#: only when nothing else is left: one bad stretch should not fill the list.
+SUPPRESS_RADIUS = 0
+
+RANKINGS = ("evidence", "score", "uniform")
+
+
+def evidence_priority(
+    evidence: dict[str, np.ndarray], weights: dict[str, tuple[float, float]] | None = None
+) -> np.ndarray:
+    """``(N,)`` priority (larger = show first) from :func:`review_evidence`: the sum over terms of
+    ``weight * log1p(max(x, 0) / scale)``; a term that is missing or NaN contributes nothing (a
+    model-fit residual added to ``evidence`` and ``weights`` joins without other changes)."""
+    w = EVIDENCE_WEIGHTS if weights is None else weights
+    n = len(next(iter(evidence.values())))
+    out = np.zeros(n)
+    for name, (scale, weight) in w.items():
+        x = evidence.get(name)
+        if x is None:
+            continue
+        t = np.log1p(np.maximum(np.asarray(x, dtype=np.float64), 0.0) / scale)
+        out += weight * np.where(np.isfinite(t), t, 0.0)
+    return out
+
+
+def pick_frames(
+    priority: np.ndarray,
+    k: int,
+    *,
+    exclude: Iterable[int] = (),
+    radius: int = SUPPRESS_RADIUS,
+    sequence_breaks: Iterable[int] = (),
+) -> np.ndarray:
+    """The ``k`` frames to show (``(<=k,)`` int64, in the order shown): by decreasing ``priority``
+    (NaN never), ``exclude`` (frames already reviewed, references) left out, and a frame within
+    ``radius`` frames of one already picked (same segment) deferred until nothing else is left."""
+    p = np.asarray(priority, dtype=np.float64)
+    n = len(p)
+    ok = np.isfinite(p)
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    ok[ex[(ex >= 0) & (ex < n)]] = False
+    cand = np.flatnonzero(ok)
+    cand = cand[np.lexsort((cand, -p[cand]))]
+    k = min(int(k), cand.size)
+    if radius <= 0 or k == 0:
+        return cand[:k]
+    segment = np.zeros(n, dtype=np.int64)
+    for b in sequence_breaks:
+        if 0 < int(b) < n:
+            segment[int(b)] = 1
+    segment = np.cumsum(segment)
+    blocked = np.zeros(n, dtype=bool)
+    picked: list[int] = []
+    deferred: list[int] = []
+    for f in cand:
+        if len(picked) == k:
+            break
+        if blocked[f]:
+            deferred.append(int(f))
+            continue
+        picked.append(int(f))
+        lo, hi = max(f - radius, 0), min(f + radius + 1, n)
+        blocked[lo:hi] |= segment[lo:hi] == segment[f]
+    picked += deferred[: k - len(picked)]
+    return np.asarray(picked, dtype=np.int64)
+
+
+def uniform_pick(n: int, k: int, exclude: Iterable[int] = ()) -> np.ndarray:
+    """``k`` frames evenly spread over ``0..n-1`` (the baseline: corrections without a ranking),
+    skipping ``exclude``."""
+    ok = np.ones(n, dtype=bool)
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    ok[ex[(ex >= 0) & (ex < n)]] = False
+    cand = np.flatnonzero(ok)
+    k = min(int(k), cand.size)
+    if k == 0:
+        return cand[:0]
+    return cand[np.unique(np.linspace(0, cand.size - 1, k).round().astype(np.int64))]
+
+
+def rank_priority(
+    ranking: str,
+    session: Session,
+    results: dict[str, np.ndarray],
+    crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    *,
+    extra: dict[str, np.ndarray] | None = None,
+) -> np.ndarray:
+    """``(N,)`` priority of ``ranking`` (larger = show first; NaN = nothing to show): ``"evidence"``
+    (:func:`evidence_priority`), ``"score"`` (the app's ranking until now: ``1 -``
+    :func:`session_scores`), ``"uniform"`` (all equal; use :func:`uniform_pick`)."""
+    from .export import best_joints
+
+    joints, _ = best_joints(results)
+    has = np.all(np.isfinite(joints), axis=(1, 2))
+    if ranking == "evidence":
+        p = evidence_priority(review_evidence(session, results, crop_data, extra=extra))
+    elif ranking == "score":
+        p = 1.0 - session_scores(session, joints, results["confidence"], crop_data).score
+    elif ranking == "uniform":
+        p = np.zeros(len(joints))
+    else:
+        raise ValueError(f"unknown ranking {ranking!r}; choose one of {RANKINGS}")
+    return np.where(has, p, np.nan)
+
+
+def recall_at(
+    priority: np.ndarray, bad: np.ndarray, share: float = 0.10, exclude: Iterable[int] = (), **kw
+) -> float:
+    """Share of the ``bad`` frames ((N,) bool, not excluded) among the ranking's first
+    ``share * N`` picks (:func:`pick_frames`); NaN when no frame is bad. Evaluation only."""
+    bad = np.asarray(bad, dtype=bool).copy()
+    ex = np.fromiter((int(f) for f in exclude), dtype=np.int64)
+    bad[ex] = False
+    if not bad.any():
+        return float("nan")
+    top = pick_frames(priority, int(round(share * len(bad))), exclude=ex, **kw)
+    return float(bad[top].sum() / bad.sum())

@@ -1,0 +1,481 @@
+"""The bench's simulated annotator at work: pre-filled references and review rounds (benchmarks only).
+
+Annotation effort is what the bench reports error against: **frames touched** (references plus
+review corrections) and **joints clicked**. The simulated annotator behaves as a person with the
+app would, from ground truth (2D positions, visibility and depth order only):
+
+* :func:`simulated_fix` - a frame opens with a skeleton already drawn (a pre-fill, or the result
+  shown in review); the annotator moves only the joints whose drawn 2D position is more than
+  ``click_px`` (4 px) from the truth (to the truth plus the bench's Gaussian ``noise_px``), accepts
+  the others where they are drawn, and sets visibility and depth order as the truth says. One click
+  per moved joint.
+* :func:`annotate_prefilled` - the references, in time order, each opened pre-filled by
+  :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
+  annotated before it (each is lifted right after it is annotated, with the skeleton's template
+  bones, so the next one can be pre-filled from it); a frame with nothing to pre-fill from costs
+  one click per joint.
+* :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
+  (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
+  before; each is fixed as above and becomes a reference (a correction, whether or not it needed
+  one); the corrected frames are lifted, only their descendants in the parent forest re-propagate
+  (:func:`handanno_core.propagate.descendants`, as the app's review runner does), then everything
+  is refined. One report entry per round (round 0 = the first pass).
+* :func:`bench_review` - :func:`review_rounds` once per ranking, each on its own copy of a finished
+  bench session, so that every ranking starts from the same first pass.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .annotation import FrameAnnotation
+from .camera import CameraIntrinsics
+from .session import Batch, Session, SetFrameAnnotation, SetReference
+
+__all__ = [
+    "BAD_MM",
+    "CLICK_PX",
+    "annotate_prefilled",
+    "bench_review",
+    "effort_to_target",
+    "review_rounds",
+    "simulated_fix",
+]
+
+#: a drawn joint farther than this (px) from the truth is moved by the simulated annotator
+CLICK_PX = 4.0
+#: a frame is "bad" when a joint is more than this (mm) off
+BAD_MM = 20.0
+
+
+def simulated_fix(
+    shown_mm: np.ndarray,
+    gt_mm: np.ndarray,
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton,
+    *,
+    noise_px: float = 0.0,
+    rng: np.random.Generator | None = None,
+    click_px: float = CLICK_PX,
+    drag_subtree: bool = False,
+) -> tuple[FrameAnnotation, int]:
+    """What the simulated annotator leaves on a frame drawn with ``shown_mm`` (J, 3) mm, and how
+    many joints it moved (clicks). ``gt_mm`` (J, 3) mm, ``depth`` (H, W) mm. Moved joints get the
+    true 2D plus ``noise_px`` Gaussian noise, the others keep their drawn 2D position; visibility
+    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`).
+
+    ``drag_subtree``: moving a joint drags the joints below it in the skeleton by the same 2D
+    offset (joints are visited parents first), so a finger drawn shifted costs one click at its
+    base; without it every joint more than ``click_px`` off is clicked on its own."""
+    from .synth import simulate_annotation
+
+    ann = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
+    target = ann.uv_px.copy()  # truth + noise: where a moved joint is put
+    truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
+    drawn = camera.project(np.asarray(shown_mm, dtype=np.float64))
+    if not drag_subtree:
+        with np.errstate(invalid="ignore"):
+            keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
+        ann.uv_px[keep] = drawn[keep]
+        return ann, int((~keep).sum())
+    uv = drawn.copy()
+    clicks = 0
+    parents = skeleton.parent_array
+    below = {int(k): [] for k in range(skeleton.num_joints)}
+    for k in skeleton.topological_order[::-1]:  # children before parents: collect subtrees
+        if parents[k] >= 0:
+            below[int(parents[k])] += [int(k)] + below[int(k)]
+    for k in (int(x) for x in skeleton.topological_order):
+        with np.errstate(invalid="ignore"):
+            ok = np.linalg.norm(uv[k] - truth[k]) <= click_px
+        if ok:
+            continue
+        delta = target[k] - uv[k]
+        uv[k] = target[k]
+        if np.all(np.isfinite(delta)):
+            uv[below[k]] += delta
+        clicks += 1
+    ann.uv_px[:] = uv
+    return ann, clicks
+
+
+def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init_mm=None):
+    from .lift import lift_frame
+
+    s = session.model.settings
+    return lift_frame(
+        ann,
+        depth,
+        session.camera,
+        session.skeleton,
+        np.asarray(bones, dtype=np.float64),
+        eps_mm=s.eps_mm,
+        angle_limits=s.angle_limits,
+        init_mm=init_mm,
+    )
+
+
+def annotate_prefilled(
+    session: Session,
+    *,
+    noise_px: float = 0.0,
+    seed: int = 0,
+    click_px: float = CLICK_PX,
+    quiet: bool = False,
+) -> dict:
+    """Annotate every reference with pre-fills (see the module docstring); one journal entry.
+
+    Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
+    "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
+    the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
+    plain one)}``. Needs the session's crops on disk for propagated pre-fills.
+    """
+    from .prefill import cached_crops, prefill_reference
+
+    sequence = session.open_sequence()
+    crop_data = cached_crops(session)
+    descriptors = None
+    if crop_data is not None:
+        from .descriptors import compute_descriptors
+
+        descriptors = compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
+    gt = sequence.ground_truth
+    if gt is None:
+        raise ValueError(f"{sequence.path}: the simulated annotator needs ground truth")
+    skeleton = session.skeleton
+    bones = session.model.bone_lengths_mm
+    if bones is None:
+        bones = skeleton.template_bone_lengths_mm
+    results = session.load_results()
+    scratch = {k: np.full_like(results[k], np.nan) for k in ("lifted_mm", "init_mm", "final_mm")}
+    clicks: dict[int, int] = {}
+    clicks_drag: dict[int, int] = {}
+    prefilled: list[int] = []
+    annotations: dict[int, FrameAnnotation] = {}
+    for f in (int(x) for x in session.reference_frames):
+        rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
+        depth = sequence.depth(f)
+        guess = prefill_reference(session, f, scratch, descriptors=descriptors)
+        if guess is None:
+            from .synth import simulate_annotation
+
+            ann = simulate_annotation(
+                gt.joints_mm[f], depth, sequence.camera, skeleton, noise_px, rng
+            )
+            clicks[f] = skeleton.num_joints
+        else:
+            ann, clicks[f] = simulated_fix(
+                guess,
+                gt.joints_mm[f],
+                depth,
+                sequence.camera,
+                skeleton,
+                noise_px=noise_px,
+                rng=rng,
+                click_px=click_px,
+            )
+            clicks_drag[f] = simulated_fix(
+                guess,
+                gt.joints_mm[f],
+                depth,
+                sequence.camera,
+                skeleton,
+                click_px=click_px,
+                drag_subtree=True,
+            )[1]
+            prefilled.append(f)
+        annotations[f] = ann
+        if bones is not None:  # lifted now so that the next reference can be pre-filled from it
+            scratch["lifted_mm"][f] = _lift(session, ann, depth, bones, guess).joints_mm
+    session.execute(
+        Batch(
+            commands=[
+                SetFrameAnnotation(frame=f, annotation=a.to_json()).model_dump()
+                for f, a in annotations.items()
+            ]
+        ),
+        client="simulated-annotator",
+    )
+    per_ref = float(np.mean(list(clicks.values()))) if clicks else float("nan")
+    per_ref_drag = float(np.mean(list(clicks_drag.values()))) if clicks else float("nan")
+    if not quiet:
+        print(
+            f"annotated {len(clicks)} references pre-filled: {per_ref:.1f} joints moved per "
+            f"reference ({len(prefilled)} opened pre-filled)",
+            flush=True,
+        )
+    return {
+        "clicks": clicks,
+        "prefilled": prefilled,
+        "clicks_per_reference": per_ref,
+        "clicks_per_reference_drag": per_ref_drag,
+    }
+
+
+def _frame_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(N,)`` worst joint error per frame, mm (inf where not predicted)."""
+    e = np.linalg.norm(np.asarray(pred, dtype=np.float64) - gt, axis=-1).max(axis=1)
+    return np.where(np.isfinite(e), e, np.inf)
+
+
+def _entry(
+    session: Session, gt: np.ndarray, round_: int, touched: int, clicked: int, bad_mm: float
+) -> dict:
+    from .evaluate import error_summary
+
+    final = session.load_results()["final_mm"]
+    s = error_summary(final, gt)
+    e = _frame_errors(final, gt)
+    return {
+        "round": round_,
+        "references": len(session.reference_frames) - len(session.model.corrections),
+        "corrections": len(session.model.corrections),
+        "frames_touched": touched,
+        "joints_clicked": clicked,
+        "mean_mm": round(float(s["mean_mm"]), 3),
+        "median_mm": round(float(s["median_mm"]), 3),
+        "max_mm": round(float(s["max_mm"]), 3),
+        "bad_share": round(float(np.mean(e > bad_mm)), 5),
+    }
+
+
+def review_rounds(
+    session: Session,
+    *,
+    rounds: int,
+    budget: float,
+    ranking: str = "evidence",
+    noise_px: float = 0.0,
+    seed: int = 0,
+    click_px: float = CLICK_PX,
+    bad_mm: float = BAD_MM,
+    reference_clicks: int | None = None,
+    workers: int = 1,
+    aligner: str | None = None,
+    quiet: bool = False,
+) -> list[dict]:
+    """Simulated review rounds on a session whose first pass (lift, propagate, refine) is done.
+
+    ``budget``: frames shown per round (``>= 1``), or a share of the sequence's frames (``< 1``).
+    ``reference_clicks``: joints clicked on the references (default: every joint of every one).
+    Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references +
+    corrections), ``joints_clicked``, the error of all frames (``mean_mm``, ``median_mm``,
+    ``max_mm``), ``bad_share`` (frames with a joint more than ``bad_mm`` off) and, for the frames
+    the round showed: ``shown``, ``shown_bad`` (of them bad before the round), ``recall`` (share
+    of the bad frames shown), ``recall_at_10`` (share of them in the ranking's first 10 %),
+    ``clicks`` and ``timings_s``. Ground truth feeds only the annotator and these statistics.
+    """
+    from . import pipeline
+    from .export import best_joints
+    from .prefill import cached_crops
+    from .propagate import descendants
+    from .review import pick_frames, rank_priority, recall_at, uniform_pick
+
+    sequence = session.open_sequence()
+    gt = np.asarray(sequence.ground_truth.joints_mm, dtype=np.float64)
+    n = session.num_frames
+    k = int(round(budget * n)) if budget < 1 else int(budget)
+    if k < 1:
+        raise ValueError(f"review budget {budget} shows no frame of {n}")
+    refs0 = len(session.reference_frames) - len(session.model.corrections)
+    clicked = int(reference_clicks if reference_clicks is not None else refs0 * gt.shape[1])
+    entries = [_entry(session, gt, 0, len(session.reference_frames), clicked, bad_mm)]
+    if not quiet:
+        print(f"  {ranking} round 0: {entries[0]}", flush=True)
+    breaks = session.model.sequence_breaks
+    for r in range(1, rounds + 1):
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        results = session.load_results()
+        reviewed = np.asarray(session.reference_frames, dtype=np.int64)
+        err = _frame_errors(best_joints(results)[0], gt)
+        bad = err > bad_mm
+        bad[reviewed] = False
+        if ranking == "uniform":
+            shown = uniform_pick(n, k, exclude=reviewed)
+            top = uniform_pick(n, int(round(0.1 * n)), exclude=reviewed)
+            rec10 = float(bad[top].sum() / bad.sum()) if bad.any() else float("nan")
+        else:
+            priority = rank_priority(ranking, session, results, cached_crops(session))
+            shown = pick_frames(priority, k, exclude=reviewed, sequence_breaks=breaks)
+            rec10 = recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
+        timings["rank"] = round(time.perf_counter() - t, 3)
+        if shown.size == 0:
+            break
+        t = time.perf_counter()
+        shown_mm, _ = best_joints(results)
+        bones = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
+        lifted, conf = results["lifted_mm"], results["confidence"]
+        round_clicks = 0
+        for f in (int(x) for x in shown):
+            rng = np.random.default_rng([seed, f, 505])
+            depth = sequence.depth(f)
+            ann, c = simulated_fix(
+                shown_mm[f],
+                gt[f],
+                depth,
+                sequence.camera,
+                session.skeleton,
+                noise_px=noise_px,
+                rng=rng,
+                click_px=click_px,
+            )
+            round_clicks += c
+            session.execute(
+                Batch(
+                    commands=[
+                        SetReference(frame=f, is_reference=True, correction=True).model_dump(),
+                        SetFrameAnnotation(frame=f, annotation=ann.to_json()).model_dump(),
+                    ]
+                ),
+                client="simulated-annotator",
+            )
+            lift = _lift(session, ann, depth, bones, shown_mm[f])
+            lifted[f] = lift.joints_mm
+            conf[f] = lift.confidence
+        session.save_results(lifted_mm=lifted, confidence=conf)
+        timings["annotate_lift"] = round(time.perf_counter() - t, 3)
+        t = time.perf_counter()
+        frames = descendants(session.parent, shown)
+        pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
+        timings["propagate"] = round(time.perf_counter() - t, 3)
+        t = time.perf_counter()
+        pipeline.refine(session, quiet=True)
+        timings["refine"] = round(time.perf_counter() - t, 3)
+        clicked += round_clicks
+        entry = _entry(session, gt, r, len(session.reference_frames), clicked, bad_mm)
+        entry.update(
+            shown=int(shown.size),
+            shown_bad=int(bad[shown].sum()),
+            bad_before=int(bad.sum()),
+            recall=round(float(bad[shown].sum() / bad.sum()), 4) if bad.any() else None,
+            recall_at_10=None if np.isnan(rec10) else round(rec10, 4),
+            clicks=round_clicks,
+            repropagated=int(frames.size),
+            timings_s=timings,
+        )
+        entries.append(entry)
+        if not quiet:
+            print(f"  {ranking} round {r}: {entry}", flush=True)
+    return entries
+
+
+def bench_review(
+    folder: str | Path,
+    *,
+    rankings: list[str],
+    rounds: int,
+    budget: float,
+    **kw,
+) -> dict[str, list[dict]]:
+    """:func:`review_rounds` per ranking, each on a copy ``<folder>-review-<ranking>`` of the
+    finished (closed) bench session in ``folder``; ``{ranking: entries}``."""
+    folder = Path(folder)
+    out: dict[str, list[dict]] = {}
+    for ranking in rankings:
+        copy = folder.with_name(f"{folder.name}-review-{ranking}")
+        if copy.exists():
+            shutil.rmtree(copy)
+        shutil.copytree(folder, copy, symlinks=True)
+        session = Session.open(copy)
+        try:
+            out[ranking] = review_rounds(
+                session, rounds=rounds, budget=budget, ranking=ranking, **kw
+            )
+        finally:
+            session.close()
+    return out
+
+
+def effort_to_target(
+    entries: list[dict], mean_mm: float = 3.0, bad_share: float = 0.01
+) -> int | None:
+    """Frames touched at the first round with ``mean_mm`` at most 3 mm and at most 1 % of frames
+    with a joint more than :data:`BAD_MM` off; None if no round reached it."""
+    for e in entries:
+        if e["mean_mm"] <= mean_mm and e["bad_share"] <= bad_share:
+            return int(e["frames_touched"])
+    return None
+
+
+def bench_run_review(
+    run: dict,
+    folder: Path,
+    review: dict,
+    prefilled: dict | None,
+    noise_px: float,
+    workers: int,
+    aligner: str | None,
+    quiet: bool,
+) -> None:
+    """The bench's per-run review part: adds to ``run`` (one JSON run of :mod:`handanno_core.bench`)
+    ``reference_clicks`` and ``clicks_per_reference`` (joints moved on pre-filled references, or
+    every joint without pre-fill), ``review`` (:func:`bench_review`'s entries per ranking) and
+    ``effort_to_target`` (frames touched to reach mean <= 3 mm with at most 1 % bad frames, per
+    ranking). ``review``: ``rounds``, ``budget``, ``rankings`` (default evidence and uniform),
+    ``prefill``, ``click_px``."""
+    if prefilled is not None:
+        clicks = int(sum(prefilled["clicks"].values()))
+        run["clicks_per_reference"] = round(prefilled["clicks_per_reference"], 3)
+        run["clicks_per_reference_drag"] = round(prefilled["clicks_per_reference_drag"], 3)
+        run["prefilled_references"] = len(prefilled["prefilled"])
+    else:
+        session = Session.open(folder)
+        num_joints = session.skeleton.num_joints
+        session.close()
+        clicks = run["references"] * num_joints
+        run["clicks_per_reference"] = float(num_joints)
+    run["reference_clicks"] = clicks
+    rounds = int(review.get("rounds") or 0)
+    if rounds <= 0:
+        return
+    out = bench_review(
+        folder,
+        rankings=list(review.get("rankings") or ("evidence", "uniform")),
+        rounds=rounds,
+        budget=float(review.get("budget", 0.02)),
+        noise_px=noise_px,
+        click_px=float(review.get("click_px", CLICK_PX)),
+        reference_clicks=clicks,
+        workers=workers,
+        aligner=aligner,
+        quiet=quiet,
+    )
+    run["review"] = out
+    run["effort_to_target"] = {k: effort_to_target(v) for k, v in out.items()}
+
+
+def plot_effort(doc: dict, path: Path) -> None:
+    """The effort curve: mean error and share of bad frames against frames touched, one colour per
+    (strategy, reference fraction), one line style per ranking (uniform dashed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
+    styles = {"evidence": "-", "score": "-.", "uniform": "--"}
+    for i, run in enumerate(doc["runs"]):
+        for ranking, entries in (run.get("review") or {}).items():
+            x = [100.0 * e["frames_touched"] / doc["frames"] for e in entries]
+            label = f"{run['strategy']} {run['ref_fraction_target']:g} {ranking}"
+            kw = {"color": f"C{i % 10}", "ls": styles.get(ranking, ":"), "marker": "o", "ms": 3}
+            ax1.plot(x, [e["mean_mm"] for e in entries], label=label, **kw)
+            ax2.plot(x, [100.0 * e["bad_share"] for e in entries], label=label, **kw)
+    ax1.axhline(3.0, color="grey", lw=0.8, ls=":")
+    ax2.axhline(1.0, color="grey", lw=0.8, ls=":")
+    ax1.set_ylabel("mean 3D joint error (mm)")
+    ax2.set_ylabel(f"frames with a joint > {BAD_MM:g} mm (%)")
+    for ax in (ax1, ax2):
+        ax.set_xlabel("frames touched: references + corrections (% of sequence)")
+        ax.grid(alpha=0.3)
+    ax1.legend(fontsize=7)
+    fig.suptitle(f"{Path(doc['dataset']).name}: error against annotation effort")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

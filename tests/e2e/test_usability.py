@@ -245,8 +245,10 @@ def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     assert entries[0]["command"] == {"frame": worst, "kind": "set_review", "status": "accepted"}
     wait_until(lambda: review.frame != worst, what="accept moving on")
     shown = review.frame
-    page.keyboard.press("n")
-    wait_until(lambda: review.frame == shown + 1, what="the next frame")
+    # N steps to the next frame, P to the previous one (whichever exists from the shown frame)
+    key, step = ("n", 1) if shown + 1 < app.session.num_frames else ("p", -1)
+    page.keyboard.press(key)
+    wait_until(lambda: review.frame == shown + step, what=f"the frame after '{key}'")
     # back to the annotate scene and tab for the next tests
     page.get_by_role("button", name="Show annotate scene").click()
     page.get_by_role("tab", name="Annotate").click()

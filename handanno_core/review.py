@@ -211,6 +211,21 @@ def frame_scores(
     return FrameScores(score=score, terms=terms)
 
 
+def session_depth_residuals(session, joints_mm: np.ndarray, crop_data) -> np.ndarray:
+    """:func:`depth_residuals` (N, J) mm of ``joints_mm`` (N, J, 3) mm against the session's crops
+    ``crop_data`` = ``(crops, centres_mm, boxes)``, with the session's camera, cube and offsets."""
+    crops, centres, boxes = crop_data
+    return depth_residuals(
+        joints_mm,
+        crops,
+        boxes,
+        centres,
+        session.camera,
+        cube_mm=session.model.settings.cube_mm,
+        surface_offsets_mm=np.asarray(session.skeleton.surface_offsets_mm),
+    )
+
+
 def session_scores(
     session: Session,
     joints_mm: np.ndarray,
@@ -228,18 +243,7 @@ def session_scores(
         bone_lengths_mm = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
     is_ref = np.zeros(session.num_frames, dtype=bool)
     is_ref[session.reference_frames] = True
-    residual = None
-    if crop_data is not None:
-        crops, centres, boxes = crop_data
-        residual = depth_residuals(
-            joints_mm,
-            crops,
-            boxes,
-            centres,
-            session.camera,
-            cube_mm=session.model.settings.cube_mm,
-            surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
-        )
+    residual = None if crop_data is None else session_depth_residuals(session, joints_mm, crop_data)
     return frame_scores(
         confidence,
         joints_mm,
@@ -509,16 +513,8 @@ def review_evidence(
         "conf_min": 1.0 - conf.min(axis=1),
     }
     if crop_data is not None:
-        crops, centres, boxes = crop_data
-        res = depth_residuals(
-            joints,
-            crops,
-            boxes,
-            centres,
-            session.camera,
-            cube_mm=session.model.settings.cube_mm,
-            surface_offsets_mm=np.asarray(skeleton.surface_offsets_mm),
-        )
+        crops, _, boxes = crop_data
+        res = session_depth_residuals(session, joints, crop_data)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             ev["depth_mm"] = np.nanmean(res, axis=1)

@@ -781,7 +781,9 @@ class _Problem:
 
     def ineq_jac(self, x: np.ndarray) -> np.ndarray:
         jac = self._cached("ineq", x)[1]
-        jac = (jac * self.sc3).reshape(jac.shape[0], -1)
+        # (rows, J, 3) -> (rows, 3J); explicit width, since there may be no rows (elastic mode
+        # with every depth bound turned into a slack row below)
+        jac = (jac * self.sc3).reshape(jac.shape[0], 3 * self.j)
         if self.elastic:
             ns = self.n_slack
             jac = np.hstack([jac, np.zeros((len(jac), ns))])

@@ -585,3 +585,25 @@ def test_surface_offset_self_calibration_recovers_a_deeper_wrist():
         return np.mean([np.linalg.norm(res.joints_mm[f][0] - poses[f][0]) for f in poses])
 
     assert wrist_err(cal) < wrist_err(raw)
+
+
+def test_elastic_lift_of_a_frame_with_few_joints_has_no_hard_rows(frames):
+    """A frame with only its first joints placed, one of them occluded, re-lifted in elastic mode
+    (as the app does): every depth bound becomes a slack row and angle ranges are soft penalties,
+    so no hard inequality row is left; the lift must still run (it crashed reshaping the empty
+    Jacobian in the app)."""
+    from dataclasses import replace
+
+    X, depth, ann = frames[5]
+    bones = SK.bone_lengths(X)
+    few = np.zeros(SK.num_joints, dtype=bool)
+    few[:2] = True
+    partial = replace(
+        ann,
+        uv_px=np.where(few[:, None], ann.uv_px, np.nan),
+        visible=np.where(np.arange(SK.num_joints) == 0, False, ann.visible),
+        depth_order=np.zeros(SK.num_joints, dtype=np.int8),
+    )
+    result = lift_frame(partial, depth, CAM, SK, bones, start_elastic=True, elastic_joints=[0, 1])
+    assert np.all(np.isfinite(result.joints_mm))
+    assert np.linalg.norm(result.joints_mm[1] - X[1]) < 15.0

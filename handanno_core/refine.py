@@ -37,9 +37,9 @@ apart), are assembled with batched numpy products (no Python loops over
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
 lowers the true robust energy, so ``energy_history`` never increases.
 
-**Hand model** (``hand_model=True``; off by default): the temporal weight of each frame pair is divided by
-``1 + (v / temporal_motion_mm)²`` (``v`` the pair's median joint displacement in the
-initialization), and after the solve a frame whose hand-model energy
+**Hand model** (``hand_model=True``; off by default): the velocity term's weight (itself off by
+default) of each frame pair is divided by ``1 + (v / temporal_motion_mm)²`` (``v`` the pair's
+median joint displacement in the initialization), and after the solve a frame whose hand-model energy
 (:func:`handanno_core.handmodel.frame_energy`, fitted to its own crop) rose by more than 10 %
 keeps its initialization, so refinement never makes a frame's fit to its depth worse. The model
 energy can also be a term of the LM (``RefineWeights.model`` > 0: θ-space blocks added to the

@@ -315,7 +315,7 @@ def _progress_bar(desc: str):
 
 def _serve(args) -> int | None:
     """``demo`` / ``serve``; a busy port is an error naming it (never a silent move)."""
-    from app.server import PortInUseError, demo, serve
+    from app.ui.server import PortInUseError, demo, serve
 
     try:
         if args.command == "demo":

@@ -35,5 +35,5 @@ def test_engine_imports_neither_viser_nor_app(path: Path) -> None:
 
 def test_rule_checker_sees_imports(tmp_path: Path) -> None:
     module = tmp_path / "m.py"
-    module.write_text("import viser\nfrom app.server import serve\nfrom . import x\n")
-    assert imported_modules(module) == {"viser", "app.server"}
+    module.write_text("import viser\nfrom app.ui.server import serve\nfrom . import x\n")
+    assert imported_modules(module) == {"viser", "app.ui.server"}

@@ -432,7 +432,7 @@ class ReviewRunner:
                 kind="full", phase="starting", message="starting", started_at=time.time()
             )
             self._cond.notify_all()
-        self._emit("progress", -1)
+        self.emit("progress", -1)
         return True
 
     def start_lift(self) -> bool:
@@ -447,7 +447,7 @@ class ReviewRunner:
                 kind="lift", phase="starting", message="starting", started_at=time.time()
             )
             self._cond.notify_all()
-        self._emit("progress", -1)
+        self.emit("progress", -1)
         return True
 
     def needs_lift(self) -> bool:
@@ -502,7 +502,7 @@ class ReviewRunner:
         self._thread.join(timeout)
 
     # ------------------------------------------------------------------ thread
-    def _emit(self, event: str, frame: int) -> None:
+    def emit(self, event: str, frame: int) -> None:
         for listener in list(self.listeners):
             try:
                 listener(event, self, frame)
@@ -546,7 +546,7 @@ class ReviewRunner:
     def _set(self, **kw: Any) -> None:
         for k, v in kw.items():
             setattr(self.status, k, v)
-        self._emit("progress", -1)
+        self.emit("progress", -1)
 
     def _finish(self, phase: str, message: str) -> None:
         self._remove_partial()
@@ -557,9 +557,9 @@ class ReviewRunner:
             self.history.append(JobStatus(**vars(self.status)))
             self._cond.notify_all()
         self.live.reload()
-        self._emit("finished", -1)
+        self.emit("finished", -1)
 
-    def _check(self) -> None:
+    def check_cancelled(self) -> None:
         if self._cancel.is_set():
             raise Cancelled
 
@@ -571,12 +571,12 @@ class ReviewRunner:
         self._set(phase="lift-all", done=0, total=0, message="")
 
         def progress(done: int, total: int) -> None:
-            self._check()
+            self.check_cancelled()
             self._set(done=int(done), total=int(total))
 
         self.lift_all_fn(self.session, workers=self.workers, quiet=True, progress=progress)
         self.live.reload()
-        self._emit("lifted", -1)
+        self.emit("lifted", -1)
 
     def _job(self, kind: str, corrections: dict[int, int]) -> None:
         if kind == "lift":
@@ -598,11 +598,11 @@ class ReviewRunner:
 
         self._set(phase="lift", message=", ".join(map(str, sorted(corrections))))
         for frame, seq in sorted(corrections.items()):
-            self._check()
+            self.check_cancelled()
             joints, conf = self._lift(frame, seq)
             update_lifted(self.session, {frame: (joints, conf)})
             self.live.put(frame, joints, conf, Stage.LIFTED)
-            self._emit("frame", frame)
+            self.emit("frame", frame)
         return descendants(self.session.parent, sorted(corrections))
 
     def _propagate_refine(self, todo: np.ndarray, frames: np.ndarray | None) -> None:
@@ -617,11 +617,11 @@ class ReviewRunner:
         on_result = _Checkpoint(self)
 
         def progress(done: int, total: int) -> None:
-            self._check()
+            self.check_cancelled()
             self._set(done=int(done), total=int(total))
 
         def refine_progress(iteration: int, energy: float) -> None:
-            self._check()
+            self.check_cancelled()
             self._set(done=int(iteration))
 
         with session.staged_results():
@@ -634,10 +634,10 @@ class ReviewRunner:
                     on_result=on_result,
                     quiet=True,
                 )
-            self._check()
+            self.check_cancelled()
             self._set(phase="refine", done=0, total=30, message="")
             final = self.refine_fn(session, progress=refine_progress)
-            self._check()
+            self.check_cancelled()
             self._set(phase="saving")
             session.save_results(final_mm=final)
         self.live.put_all(final, Stage.REFINED)
@@ -669,7 +669,7 @@ class _Checkpoint:
 
     def __call__(self, frame: int, joints: np.ndarray, conf: np.ndarray) -> None:
         runner = self.runner
-        runner._check()
+        runner.check_cancelled()
         self.init_mm[frame] = joints
         self.confidence[frame] = conf
         runner.live.put(
@@ -678,7 +678,7 @@ class _Checkpoint:
             np.asarray(conf, dtype=np.float64),
             Stage.PROPAGATED,
         )
-        runner._emit("frame", int(frame))
+        runner.emit("frame", int(frame))
         if time.monotonic() - self.last >= runner.checkpoint_every_s:
             self.last = time.monotonic()
             atomic_save_npz(

@@ -110,6 +110,44 @@ def make_annotate_widgets(
     return w
 
 
+def _bind_widgets(self: AnnotatePanel) -> None:
+    """The panel's widget callbacks (using a widget shows the Annotate scene)."""
+    w = self.w
+
+    def claimed(fn):  # using the panel shows its scene
+        def run(*args: Any) -> None:
+            self.ui.show("annotate")
+            fn(*args)
+
+        return run
+
+    w.frame_slider.on_update(
+        lambda e: (
+            e.client is not None
+            and int(w.frame_slider.value) != self.state.index
+            and claimed(self.go_to_index)(int(w.frame_slider.value))
+        )
+    )
+    w.nav.on_click(
+        claimed(lambda e: self.next_frame() if e.target.value.startswith("Next") else self.prev_frame())
+    )  # fmt: skip
+    w.joint_dropdown.on_update(
+        lambda e: (
+            e.client is not None
+            and int(w.joint_dropdown.value.split()[0]) != self.state.joint
+            and claimed(self.select_joint)(int(w.joint_dropdown.value.split()[0]))
+        )
+    )
+    w.visibility_button.on_click(claimed(lambda _: self.toggle_visibility()))
+    w.depth_button.on_click(claimed(lambda _: self.cycle_depth_order()))
+    w.click_mode.on_update(lambda _: self._set_click_mode(w.click_mode.value))
+    w.edit_buttons.on_click(
+        claimed(lambda e: {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[e.target.value]())
+    )  # fmt: skip
+    w.accept_button.on_click(claimed(lambda _: self.accept_guesses()))
+    w.camera_button.on_click(claimed(lambda _: self.ui.post(self.hand.reset_camera)))
+
+
 class AnnotatePanel:
     """The Annotate tab of one browser; see the module docstring."""
 
@@ -127,7 +165,7 @@ class AnnotatePanel:
             self.client.gui, self._options, len(self.state.frames), self.state.index, help_md
         )
         self._shown_frame = -1
-        self._frame_data: FrameData | None = None
+        self.frame_data: FrameData | None = None
         self._annotation = FrameAnnotation.empty(self.skeleton.num_joints)
         self._lifted: LiftOutcome | None = None
         #: (J, 3) mm pre-filled joints of the shown frame (AppContext.prefill), None if none
@@ -137,9 +175,10 @@ class AnnotatePanel:
         #: (journal_seq, perf_counter) of the last lift drawn / when an edit was first drawn
         self.last_skeleton_update: tuple[int, float] | None = None
         self.last_edit_drawn: tuple[int, float] | None = None
+        self.clicks = AnnotateClicks(self)
         if self.session.can_undo(ui.name):
             self.w.saved_md.content = "✓ every edit of this browser is saved (undo available)"
-        self._bind()
+        _bind_widgets(self)
 
     @property
     def frame(self) -> int:
@@ -151,42 +190,6 @@ class AnnotatePanel:
 
     def flush(self, timeout: float = 30.0) -> None:
         self.ui.flush(timeout)
-
-    def _bind(self) -> None:
-        w = self.w
-
-        def claimed(fn):  # using the panel shows its scene
-            def run(*args: Any) -> None:
-                self.ui.show("annotate")
-                fn(*args)
-
-            return run
-
-        w.frame_slider.on_update(
-            lambda e: (
-                e.client is not None
-                and int(w.frame_slider.value) != self.state.index
-                and claimed(self.go_to_index)(int(w.frame_slider.value))
-            )
-        )
-        w.nav.on_click(
-            claimed(lambda e: self.next_frame() if e.target.value.startswith("Next") else self.prev_frame())
-        )  # fmt: skip
-        w.joint_dropdown.on_update(
-            lambda e: (
-                e.client is not None
-                and int(w.joint_dropdown.value.split()[0]) != self.state.joint
-                and claimed(self.select_joint)(int(w.joint_dropdown.value.split()[0]))
-            )
-        )
-        w.visibility_button.on_click(claimed(lambda _: self.toggle_visibility()))
-        w.depth_button.on_click(claimed(lambda _: self.cycle_depth_order()))
-        w.click_mode.on_update(lambda _: self._set_click_mode(w.click_mode.value))
-        w.edit_buttons.on_click(
-            claimed(lambda e: {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[e.target.value]())
-        )  # fmt: skip
-        w.accept_button.on_click(claimed(lambda _: self.accept_guesses()))
-        w.camera_button.on_click(claimed(lambda _: self.ui.post(self.hand.reset_camera)))
 
     def _set_click_mode(self, value: str) -> None:
         self.state.click_mode = "3d" if value.startswith("3D") else "2d"
@@ -228,7 +231,7 @@ class AnnotatePanel:
             self.skeleton.num_joints
         )
         lifted = self.ctx.worker.latest.get(frame)
-        self._frame_data, self._shown_frame, self._annotation = data, frame, annotation
+        self.frame_data, self._shown_frame, self._annotation = data, frame, annotation
         self._lifted = lifted if lifted is not None and lifted.joints_mm is not None else None
         self._stale, self._prefill = {}, None
         self.w.lift_md.content = ""  # the previous frame's lift says nothing about this one
@@ -259,71 +262,21 @@ class AnnotatePanel:
             self._prefill = joints
             self._render()
 
-    # ================================================================== scene events
-    def _ray_pixel(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
-        data = self._frame_data
-        if data is None or data.depth is None:
-            return None
-        return data.geometry.ray_to_pixel(origin, direction)
-
-    def on_image_click(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
-        """A click ray on the image plane (mode 2D) -> the selected joint's 2D position."""
-        uv = self._ray_pixel(origin, direction) if self.state.click_mode == "2d" else None
-        return None if uv is None else self._edit(lambda: self.state.place_2d(uv))
-
-    def on_scene_click(self, origin: np.ndarray, direction: np.ndarray, shift: bool) -> None:
-        """Mode 3D (or Shift): a placed joint's sphere selects it; anywhere else (guesses
-        included) the selected joint snaps to the nearest cloud point along the ray."""
-        if self.state.click_mode != "3d" and not shift:
-            return
-        k = self.hand.joint_hit(origin, direction)
-        if k is not None:
-            self.select_joint(k)
-            return
-        data = self._frame_data
-        xyz = None if data is None else data.geometry.nearest_cloud_point(origin, direction)
-        if xyz is not None:
-            self._edit(lambda: self.state.place_3d(xyz))
-
-    def on_joint_click(self, k, origin, direction, modifier) -> None:
-        """Mode 2D (no modifier): places the selected joint's 2D position under the pointer (a
-        neighbouring joint never swallows a click). Mode 3D or Shift: selects joint ``k``."""
-        if modifier is None and self.state.click_mode == "2d":
-            uv = self._ray_pixel(origin, direction)
-            if uv is not None:
-                self._edit(lambda: self.state.place_2d(uv))
-            return
-        k = self.hand.joint_hit(origin, direction) if k is None else k
-        if k is not None:
-            self.select_joint(int(k))
-
-    def can_drag(self, k: int) -> bool:
-        """In mode 3D only the selected joint moves (grabbing another selects it)."""
-        ok = not (self.state.click_mode == "3d" and k != self.state.joint)
-        self.select_joint(k)
-        return ok
-
-    def on_drop(self, k: int, xyz_mm: np.ndarray) -> None:
-        self._edit(lambda: self.state.place_3d(xyz_mm, joint=k, advance=False))
-
-    def on_ring_drop(self, k: int, uv_px: np.ndarray) -> None:
-        self._edit(lambda: self.state.place_2d(uv_px, joint=k, advance=False))
-
     # ================================================================== edits
     def toggle_visibility(self) -> JournalEntry | None:
-        return self._edit(self.state.toggle_visibility)
+        return self.edit(self.state.toggle_visibility)
 
     def cycle_depth_order(self) -> JournalEntry | None:
-        return self._edit(self.state.cycle_depth_order)
+        return self.edit(self.state.cycle_depth_order)
 
     def clear_joint(self) -> JournalEntry | None:
-        return self._edit(self.state.clear_joint)
+        return self.edit(self.state.clear_joint)
 
     def accept_guesses(self) -> JournalEntry | None:
         """Every joint not placed yet goes where its guess is drawn (one journaled Batch)."""
-        if self._frame_data is None:
+        if self.frame_data is None:
             return None
-        entry = self._edit(lambda: self.state.accept_guesses(self.joint_positions_mm()))
+        entry = self.edit(lambda: self.state.accept_guesses(self.joint_positions_mm()))
         if entry is None:
             self.client.add_notification("No guesses to accept", "", auto_close_seconds=2.0)
         return entry
@@ -335,7 +288,7 @@ class AnnotatePanel:
         return self._undo_redo(self.state.redo, "redo")
 
     def _undo_redo(self, action, what: str) -> JournalEntry | None:
-        entry = self._edit(action)
+        entry = self.edit(action)
         if entry is None:
             self.client.add_notification(f"Nothing to {what}", "", auto_close_seconds=2.0)
             return None
@@ -344,7 +297,7 @@ class AnnotatePanel:
             self.go_to_index(self.state.frames.index(frame))
         return entry
 
-    def _edit(self, action) -> JournalEntry | None:
+    def edit(self, action) -> JournalEntry | None:
         """Run one edit; show "saved" only once the session acknowledged it (journal fsynced)."""
         self.ui.show("annotate")
         try:
@@ -413,7 +366,7 @@ class AnnotatePanel:
     # ================================================================== drawing
     def joint_positions_mm(self) -> np.ndarray:
         """(J, 3) mm where each joint is drawn (:func:`~app.control.annotate.display_joints`)."""
-        data = self._frame_data
+        data = self.frame_data
         if data is None:
             return np.full((self.skeleton.num_joints, 3), np.nan)
         lifted = self._lifted.joints_mm if self._lifted is not None else None
@@ -427,7 +380,7 @@ class AnnotatePanel:
         return self.hand.to_scene(self.joint_positions_mm())
 
     def _render(self, lift: LiftOutcome | None = None, edit_seq: int | None = None) -> None:
-        if self._frame_data is None or not self.active:
+        if self.frame_data is None or not self.active:
             return
         ann = self._annotation
         self.hand.draw(
@@ -462,10 +415,67 @@ class AnnotatePanel:
             w.joint_dropdown.value = self._options[st.joint]
         w.visibility_button.label = f"Visibility: {vis} (V)"
         w.depth_button.label = f"Depth vs parent: {order} (D)"
-        data = self._frame_data
+        data = self.frame_data
         w.message_md.content = f"**⚠ {data.error}**" if data is not None and data.error else ""
         w.legend_md.content = joint_legend(
             self.skeleton.joint_names, self.hand.base_colours, self._annotation, st.joint
         )
         if not self.ctx.worker.available:
             w.lift_md.content = "*live lifting unavailable (handanno_core.lift missing)*"
+
+
+class AnnotateClicks:
+    """The Annotate panel's answers to the hand scene's pointer events (a
+    :class:`~app.ui.hand_scene.ScenePanel`); see the module docstring for the rules."""
+
+    def __init__(self, panel: AnnotatePanel):
+        self.panel = panel
+
+    def _ray_pixel(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
+        data = self.panel.frame_data
+        if data is None or data.depth is None:
+            return None
+        return data.geometry.ray_to_pixel(origin, direction)
+
+    def on_image_click(self, origin: np.ndarray, direction: np.ndarray) -> JournalEntry | None:
+        """A click ray on the image plane (mode 2D) -> the selected joint's 2D position."""
+        uv = self._ray_pixel(origin, direction) if self.panel.state.click_mode == "2d" else None
+        return None if uv is None else self.panel.edit(lambda: self.panel.state.place_2d(uv))
+
+    def on_scene_click(self, origin: np.ndarray, direction: np.ndarray, shift: bool) -> None:
+        """Mode 3D (or Shift): a placed joint's sphere selects it; anywhere else (guesses
+        included) the selected joint snaps to the nearest cloud point along the ray."""
+        if self.panel.state.click_mode != "3d" and not shift:
+            return
+        k = self.panel.hand.joint_hit(origin, direction)
+        if k is not None:
+            self.panel.select_joint(k)
+            return
+        data = self.panel.frame_data
+        xyz = None if data is None else data.geometry.nearest_cloud_point(origin, direction)
+        if xyz is not None:
+            self.panel.edit(lambda: self.panel.state.place_3d(xyz))
+
+    def on_joint_click(self, k, origin, direction, modifier) -> None:
+        """Mode 2D (no modifier): places the selected joint's 2D position under the pointer (a
+        neighbouring joint never swallows a click). Mode 3D or Shift: selects joint ``k``."""
+        if modifier is None and self.panel.state.click_mode == "2d":
+            uv = self._ray_pixel(origin, direction)
+            if uv is not None:
+                self.panel.edit(lambda: self.panel.state.place_2d(uv))
+            return
+        k = self.panel.hand.joint_hit(origin, direction) if k is None else k
+        if k is not None:
+            self.panel.select_joint(int(k))
+
+    def can_drag(self, k: int) -> bool:
+        """In mode 3D only the selected joint moves (grabbing another selects it)."""
+        ok = not (self.panel.state.click_mode == "3d" and k != self.panel.state.joint)
+        self.panel.select_joint(k)
+        return ok
+
+    def on_drop(self, k: int, xyz_mm: np.ndarray) -> None:
+        self.panel.edit(lambda: self.panel.state.place_3d(xyz_mm, joint=k, advance=False))
+
+    def on_ring_drop(self, k: int, uv_px: np.ndarray) -> None:
+        self.panel.edit(lambda: self.panel.state.place_2d(uv_px, joint=k, advance=False))

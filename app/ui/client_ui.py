@@ -66,7 +66,7 @@ class ClientUI:
             self.annotate = AnnotatePanel(self, help_md)
         with tabs.add_tab("Review"):
             self.review = ReviewPanel(self)
-        self.scene.panel = self.annotate
+        self.scene.panel = self.annotate.clicks
         self.state.connect(self._on_state)
         self._bind_hotkeys()
         self._unsubscribe = ctx.bus.subscribe(self._on_update)
@@ -102,7 +102,7 @@ class ClientUI:
 
     def _on_state(self, state: ClientState) -> None:
         panel = self.review if state.active_scene == "review" else self.annotate
-        self.scene.panel = panel
+        self.scene.panel = self.review if panel is self.review else self.annotate.clicks
         self.post(panel.activate, reset_camera=True)
         other = self.annotate if panel is self.review else self.review
         self.post(other.deactivated)

@@ -120,7 +120,7 @@ class ReviewPanel:
         self.state = ui.ctx.review_state(ui.name)
         refs = [int(f) for f in self.session.reference_frames]
         self.w = make_review_widgets(self.client.gui, self.session.num_frames, refs)
-        self._frame_data: FrameData | None = None
+        self.frame_data: FrameData | None = None
         self._joints_mm = np.full((self.session.skeleton.num_joints, 3), np.nan)
         self._playing = False
         self._shown_version = -1
@@ -193,8 +193,8 @@ class ReviewPanel:
     def _show_frame(self, frame: int, reset_camera: bool) -> None:
         if frame != self.frame or not self.scene_active:
             return
-        self._frame_data = self.ctx.frames.get(frame)
-        self.hand.show_frame(self._frame_data, None, image=bool(self.w.image.value))
+        self.frame_data = self.ctx.frames.get(frame)
+        self.hand.show_frame(self.frame_data, None, image=bool(self.w.image.value))
         if reset_camera:
             self.hand.reset_camera()
         if int(self.w.slider.value) != frame:
@@ -203,7 +203,7 @@ class ReviewPanel:
         self.refresh(force=True)
 
     def render_skeleton(self) -> None:
-        if self._frame_data is None or not self.scene_active:
+        if self.frame_data is None or not self.scene_active:
             return
         joints, _ = self.live.frame(self.frame)
         self._joints_mm = joints
@@ -276,7 +276,7 @@ class ReviewPanel:
         return self._execute(lambda: self.state.set_review(None))
 
     def move_joint(self, joint: int, xyz_mm: np.ndarray) -> JournalEntry | None:
-        depth = self._frame_data.depth if self._frame_data is not None else None
+        depth = self.frame_data.depth if self.frame_data is not None else None
         return self._execute(
             lambda: self.state.move_joint(joint, xyz_mm, self._joints_mm.copy(), depth)
         )

@@ -75,7 +75,7 @@ class Ctx:
 
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""
-        geo = self.view._frame_data.geometry
+        geo = self.view.frame_data.geometry
         return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def joint_point(self, k: int) -> tuple[float, float]:
@@ -104,10 +104,10 @@ def ctx(session_folder):
 
 def hand_pixels(ctx: Ctx) -> tuple[np.ndarray, np.ndarray]:
     """Two pixels on the hand: its centre and one 25 px to the side that has depth."""
-    geo = ctx.view._frame_data.geometry
+    geo = ctx.view.frame_data.geometry
     cam = ctx.app.session.camera
     centre = cam.project(geo.centre_mm)
-    depth = ctx.view._frame_data.depth
+    depth = ctx.view.frame_data.depth
     for du in (25, -25, 0):
         for dv in (0, 20, -20):
             uv = np.round(centre + (du, dv))
@@ -291,14 +291,14 @@ def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
     view.flush()
     wait_until(lambda: page.get_by_text("⚠ frame 20: no depth").is_visible(), what="the message")
     assert (
-        view.on_image_click(view._frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0]))
+        view.clicks.on_image_click(view.frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0]))
         is None
     )
     view.go_to_index(view.state.frames.index(30))  # and the next frame is fine again
     wait_until(
         lambda: not page.get_by_text("⚠ frame 20: no depth").is_visible(), what="message gone"
     )
-    assert view._frame_data.depth is not None
+    assert view.frame_data.depth is not None
 
 
 def test_undo_survives_a_page_reload(ctx: Ctx):

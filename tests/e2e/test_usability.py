@@ -76,7 +76,7 @@ class Ctx:
 
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""
-        geo = self.view._frame_data.geometry
+        geo = self.view.frame_data.geometry
         return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def drawn_point(self, node: str, k: int) -> tuple[float, float]:
@@ -416,7 +416,7 @@ def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
         assert not np.any(view.hand.guesses.batched_scales)
         assert not any(label.visible for label in view.hand.labels)
     else:  # what is left is the frame's pre-fill, as when it was opened: guesses only
-        drawn = view._frame_data.geometry.to_scene(view.hand.display_mm(view._prefill))
+        drawn = view.frame_data.geometry.to_scene(view.hand.display_mm(view._prefill))
         assert np.allclose(view.hand.guesses.batched_positions, drawn, atol=1e-4)
     start = len(journal(ctx.folder))
     page.mouse.click(*ctx.image_point(uv[5]))

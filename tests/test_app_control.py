@@ -177,3 +177,40 @@ def test_display_joints_edited_joints_follow_their_annotation():
     first = display_joints(ann, camera, depth, np.array([0, 0, 300.0]))
     assert np.allclose(first[2], (0.0, 0.0, 350.0))  # 2D only: on the depth surface
     assert np.all(np.isnan(first[0]))
+
+
+def test_first_guess_of_a_fresh_session_is_hand_shaped(data_dir, tmp_path):
+    """Nothing in the session has joints: the first guess is a template hand at the frame's hand
+    centre (bone lengths of the template, spread in 2D), not joints hung off the wrist in a line."""
+    from handanno_core.pipeline import new_session
+
+    session = new_session(tmp_path / "fresh", data_dir, format="msra", overwrite=True)
+    ctx = AppContext(session, lift_fn=None)
+    try:
+        guess = ctx.prefill(0)
+        centre = ctx.frames.get(0).geometry.centre_mm
+    finally:
+        ctx.stop()
+    assert guess is not None and guess.shape == (21, 3)
+    sk = session.skeleton
+    np.testing.assert_allclose(
+        sk.bone_lengths(guess), np.asarray(sk.template_bone_lengths_mm), rtol=1e-6
+    )
+    s = np.linalg.svd(guess - guess.mean(axis=0), compute_uv=False)
+    assert s[1] > 0.3 * s[0], f"a column, not a hand: singular values {s}"
+    np.testing.assert_allclose(guess.mean(axis=0), centre, atol=1e-6)
+
+
+def test_lift_warns_about_incomplete_references(session, capsys):
+    from app.cli import warn_incomplete_references
+    from handanno_core.session import SetFrameAnnotation
+
+    assert warn_incomplete_references(session) == []  # every reference fully annotated
+    session.execute(SetJoint2D(frame=10, joint=5, uv_px=None), client="t")
+    empty = FrameAnnotation.empty(21).to_json()
+    session.execute(SetFrameAnnotation(frame=20, annotation=empty), client="t")
+    lines = warn_incomplete_references(session)
+    assert len(lines) == 2
+    assert "1 of 4 reference frames are only partly annotated (frames 10)" in lines[0]
+    assert "(frames 20): they are not lifted" in lines[1]
+    assert "handanno: warning: 1 of 4" in capsys.readouterr().err

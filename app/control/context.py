@@ -21,7 +21,7 @@ import numpy as np
 
 from handanno_core.session import JournalEntry, Session
 
-from .annotate import AnnotateState
+from .annotate import AnnotateState, template_hand
 from .events import EventBus, UpdateTopic, entry_update, job_update, lift_update
 from .frames import FrameStore
 from .jobs import LiftFunction, LiftOutcome, LiftWorker, ReviewRunner
@@ -71,13 +71,19 @@ class AppContext:
         return ReviewState(self.session, self.live, self.runner, client)
 
     def prefill(self, frame: int) -> np.ndarray | None:
-        """``(J, 3)`` mm pre-filled joints of ``frame`` (:func:`handanno_core.prefill.prefill_reference`:
-        the frame's own results, else one propagation step from the nearest frame with joints),
-        or None. Never raises: a failed pre-fill only means no first guess."""
+        """``(J, 3)`` mm first guess of ``frame``'s joints, always hand-shaped:
+        :func:`handanno_core.prefill.prefill_reference` (the frame's own results, else one
+        propagation step from the nearest frame with joints), else, when nothing in the session
+        has joints yet, :func:`~app.control.annotate.template_hand` at the frame's hand centre.
+        None where neither exists. Never raises: a failed pre-fill only means no first guess."""
         from handanno_core.prefill import prefill_reference
 
         try:
             joints = prefill_reference(self.session, frame, None)
+            if joints is None:
+                data = self.frames.get(frame)
+                if data.depth is not None:
+                    joints = template_hand(self.session.skeleton, data.geometry.centre_mm)
         except Exception:
             traceback.print_exc()
             return None

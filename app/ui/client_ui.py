@@ -25,6 +25,7 @@ from .annotate_panel import AnnotatePanel
 from .hand_scene import HandScene
 from .hotkeys import HOTKEYS, KEYBOARD_SHIM, REVIEW_HOTKEYS, bind_all
 from .review_panel import ReviewPanel
+from .watchdog import SERVER_WATCH_SHIM
 
 Scene = Literal["annotate", "review"]
 
@@ -60,6 +61,7 @@ class ClientUI:
         self._ui = ThreadPoolExecutor(1, thread_name_prefix=f"client-{client.client_id}")
         self._told: set[bool] = set()  # notifications shown once
         client.gui.add_html(KEYBOARD_SHIM)
+        client.gui.add_html(SERVER_WATCH_SHIM)
         self.scene = HandScene(client, ctx.session)
         tabs = client.gui.add_tab_group()
         with tabs.add_tab("Annotate"):

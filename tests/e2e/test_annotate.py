@@ -291,7 +291,9 @@ def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
     view.flush()
     wait_until(lambda: page.get_by_text("⚠ frame 20: no depth").is_visible(), what="the message")
     assert (
-        view.clicks.on_image_click(view.frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0]))
+        view.clicks.on_image_click(
+            view.frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0])
+        )
         is None
     )
     view.go_to_index(view.state.frames.index(30))  # and the next frame is fine again

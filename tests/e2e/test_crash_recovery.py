@@ -24,6 +24,7 @@ from viser_helpers import (
 )
 
 from app.control.frames import FrameStore
+from app.ui.watchdog import GONE_TITLE
 from handanno_core.session import Session
 
 REPO = Path(__file__).resolve().parents[2]
@@ -93,10 +94,15 @@ def test_sigkill_loses_no_acknowledged_edit(session_folder: Path, tmp_path: Path
             os.kill(proc.pid, signal.SIGKILL)  # no chance to snapshot or close anything
             proc.wait(90)
             assert proc.returncode == -signal.SIGKILL
+            # the page says so, clearly, instead of looking alive
+            banner = page.locator("#handanno-server-gone")
+            banner.wait_for(timeout=30_000)
+            assert GONE_TITLE in banner.inner_text() and "saved" in banner.inner_text()
             kinds = [e["command"]["kind"] for e in journal(session_folder)]
             assert kinds == ["set_2d", "set_visible", "set_depth_order"]
 
             proc = start_server(session_folder, port, log)  # the restart replays the journal
+            wait_until(lambda: "reload this page" in banner.inner_text(), what="'server back'")
             reopened = Session.open(session_folder)
             ann = reopened.annotation(0)
             assert np.allclose(ann.uv_px[0], uv, atol=1.5)

@@ -220,6 +220,11 @@ def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
     page.get_by_role("button", name="Next worst frame").click()
     wait_until(lambda: view.frame == expected, what=f"the worst frame {expected}")
     frame = view.frame
+    # the shown frame is one marker point on the priority plot (no line that looks like data)
+    wait_until(
+        lambda: np.flatnonzero(np.isfinite(view.w.plot.data[2])).tolist() == [frame],
+        what="the plot's marker on the shown frame",
+    )
     assert frame not in refs
     wait_until(
         lambda: page.get_by_text(f"Review frame {frame} (").is_visible(), what="the frame text"
@@ -425,3 +430,23 @@ def test_annotate_hotkeys_pause_while_the_review_scene_is_shown(ctx: Ctx):
     # the keys pressed before reached the server before this one, and did nothing
     assert annotate.state.joint == joint + 1 and len(journal(folder)) == entries
     page.get_by_role("tab", name="Review").click()
+
+
+def test_review_scene_shows_labels_and_the_depth_image(ctx: Ctx):
+    """Issue 15: the Review scene can show the joint labels and the depth image (both off by
+    default: the cloud and the skeleton are what a reviewer checks)."""
+    page, view = ctx.page, ctx.view()
+    page.get_by_role("tab", name="Review").click()
+    page.get_by_role("button", name="Next worst frame").click()
+    wait_until(lambda: view.scene_active, what="the review scene")
+    view.ui.flush()
+    hand = view.hand
+    assert not hand.image.visible and not any(label.visible for label in hand.labels)
+    page.get_by_role("checkbox", name="Show labels").check()
+    page.get_by_role("checkbox", name="Show depth image").check()
+    shown = np.all(np.isfinite(view.live.frame(view.frame)[0]), axis=1)
+    wait_until(
+        lambda: hand.image.visible and all(hand.labels[k].visible for k in np.flatnonzero(shown)),
+        what="labels and depth image on the review scene",
+    )
+    assert shown.any()

@@ -379,6 +379,33 @@ def test_hotkeys_never_move_the_camera(ctx: Ctx):
     start = len(journal(ctx.folder))
     page.keyboard.press("v")
     wait_until(lambda: ctx.edits(since=start), what="a hotkey edit after the number box")
+    # ... or without Enter, a press on the 3D scene leaves the box (viser's canvas keeps focus
+    # where it is otherwise); a right-button press edits nothing
+    box.click()
+    box.press("End")
+    assert page.evaluate("() => document.activeElement.tagName") == "INPUT"
+    canvas = page.locator("canvas").first.bounding_box()
+    page.mouse.click(canvas["x"] + 10, canvas["y"] + canvas["height"] - 10, button="right")
+    assert page.evaluate("() => document.activeElement.tagName") != "INPUT"
+    start = len(journal(ctx.folder))
+    page.keyboard.press("v")
+    wait_until(lambda: ctx.edits(since=start), what="a hotkey edit after a press on the scene")
+
+
+def test_sensor_view_is_square_on(ctx: Ctx):
+    """Issue 15: *Sensor view* looks along the depth camera's optical axis (the image plane is
+    seen square-on, as the sensor sees it), from the sensor position."""
+    page, view = ctx.page, ctx.view
+    page.get_by_role("button", name="Sensor view").click()
+    geo = view.frame_data.geometry
+    cam = view.client.camera
+    wait_until(
+        lambda: np.allclose(cam.position, geo.sensor_position, atol=1e-4),
+        what="the browser camera at the sensor",
+    )
+    wait_camera_still(page)
+    forward = np.asarray(cam.look_at) - np.asarray(cam.position)
+    assert np.allclose(forward / np.linalg.norm(forward), [0.0, 0.0, 1.0], atol=1e-3)
 
 
 def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):

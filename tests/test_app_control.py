@@ -214,3 +214,28 @@ def test_lift_warns_about_incomplete_references(session, capsys):
     assert "1 of 4 reference frames are only partly annotated (frames 10)" in lines[0]
     assert "(frames 20): they are not lifted" in lines[1]
     assert "handanno: warning: 1 of 4" in capsys.readouterr().err
+
+
+def test_frame_store_names_the_source_file(session):
+    from app.control.frames import FrameStore
+
+    store = FrameStore(session)
+    name = store.source_name(3)
+    assert name == session.open_sequence().frame_names[3]
+    assert (Path(session.model.dataset.path) / name).is_file()
+    assert store.source_name(session.num_frames) is None
+
+
+def test_joint_legend_shows_placed_occluded_and_selected():
+    from app.ui.theme import joint_legend
+
+    ann = FrameAnnotation.empty(3)
+    ann.uv_px[0] = (1.0, 2.0)
+    ann.visible[1] = False
+    colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255]], np.uint8)
+    html = joint_legend(["wrist", "index_mcp", "index_tip"], colours, ann, selected=2)
+    rows = html.split("<tr")[1:]
+    assert "●" in rows[0] and "○" in rows[1] and "○" in rows[2]  # placed / not placed
+    assert "occluded" in rows[1] and "opacity" in rows[1] and "occluded" not in rows[0]
+    assert "font-weight:bold" in rows[2] and "rgb(0,0,255)" in rows[2]
+    assert "I-tip" in rows[2]

@@ -353,7 +353,7 @@ class AnnotatePanel:
 
     def _apply_lift(self, outcome: LiftOutcome) -> None:
         if outcome.joints_mm is None:
-            self.w.lift_md.content = f"*skeleton: {outcome.error}*"
+            self.w.lift_md.content = f"*frame {outcome.frame}: no skeleton: {outcome.error}*"
             if not self._annotation.annotated.any():
                 # everything undone or cleared: no skeleton is left to draw (or to click)
                 self._lifted, self._stale = None, {}
@@ -394,7 +394,9 @@ class AnnotatePanel:
             self.last_edit_drawn = (edit_seq, time.perf_counter())
         if lift is not None:
             self.last_skeleton_update = (lift.journal_seq, time.perf_counter())
-            self.w.lift_md.content = f"*skeleton lifted in {1000 * lift.duration_s:.0f} ms*"
+            self.w.lift_md.content = (
+                f"*frame {lift.frame}: skeleton lifted in {1000 * lift.duration_s:.0f} ms*"
+            )
         self._update_panel()
 
     def _update_panel(self) -> None:
@@ -403,7 +405,10 @@ class AnnotatePanel:
         done, total = self.session.progress()
         where = f"{'reference' if st.has_selection else 'frame'} {st.index + 1} of {len(st.frames)}"
         status = "✓ complete" if self.session.is_annotated(st.frame) else "in progress"
-        w.frame_md.content = f"**Frame {st.frame}** ({where}), {status}"
+        source = self.ctx.frames.source_name(st.frame)
+        w.frame_md.content = f"**Frame {st.frame}** ({where}), {status}" + (
+            f"  \n`{source}`" if source else ""
+        )
         job = self.ctx.runner.status
         w.progress_md.content = st.progress_text() + (
             f"  \n*background: {job.text()}*" if job.running else ""

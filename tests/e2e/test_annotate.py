@@ -290,6 +290,9 @@ def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
     view.go_to_index(view.state.frames.index(20))
     view.flush()
     wait_until(lambda: page.get_by_text("⚠ frame 20: no depth").is_visible(), what="the message")
+    # the lift status is about the shown frame (or empty), never the previous frame's lift
+    lift_text = view.w.lift_md.content
+    assert lift_text == "" or "frame 20" in lift_text, lift_text
     assert (
         view.clicks.on_image_click(
             view.frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0])
@@ -324,6 +327,8 @@ def test_undo_survives_a_page_reload(ctx: Ctx):
     )
     new = ctx.view
     assert new.state.client == edit["client"]
+    # the reloaded page says its earlier edits are saved (not "no edits yet")
+    wait_until(lambda: "undo available" in new.w.saved_md.content, what="the saved status")
     ctx.settle()  # the page has the new view's hotkey bindings
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("Control+z")

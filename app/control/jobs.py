@@ -423,28 +423,25 @@ class ReviewRunner:
     # ------------------------------------------------------------------ requests
     def start_full(self) -> bool:
         """Queue a full run (propagate every frame, then refine). False if one is running/queued."""
-        with self._cond:
-            if self.status.running or self._pending_full:
-                return False
-            self._pending_full = True
-            self._cancel.clear()
-            self.status = JobStatus(
-                kind="full", phase="starting", message="starting", started_at=time.time()
-            )
-            self._cond.notify_all()
-        self.emit("progress", -1)
-        return True
+        return self._queue("full")
 
     def start_lift(self) -> bool:
         """Queue "lift all" (every annotated reference, bone lengths re-estimated). False if a
         job is running or queued."""
+        return self._queue("lift")
+
+    def _queue(self, kind: str) -> bool:
         with self._cond:
-            if self.status.running or self._pending_full or self._pending_lift:
+            busy = self._pending_full or (kind == "lift" and self._pending_lift)
+            if self.status.running or busy:
                 return False
-            self._pending_lift = True
+            if kind == "full":
+                self._pending_full = True
+            else:
+                self._pending_lift = True
             self._cancel.clear()
             self.status = JobStatus(
-                kind="lift", phase="starting", message="starting", started_at=time.time()
+                kind=kind, phase="starting", message="starting", started_at=time.time()
             )
             self._cond.notify_all()
         self.emit("progress", -1)

@@ -31,6 +31,9 @@ from .hand_scene import Drawing
 if TYPE_CHECKING:
     from .client_ui import ClientUI
 
+#: while a job runs, the priority plot (the evidence ranking of every frame) is redrawn at most
+#: this often
+PLOT_EVERY_S = 2.0
 STAGE_TEXT = {0: "not computed yet", 1: "lifted", 2: "propagated", 3: "refined"}
 
 
@@ -124,6 +127,7 @@ class ReviewPanel:
         self._joints_mm = np.full((self.session.skeleton.num_joints, 3), np.nan)
         self._playing = False
         self._shown_version = -1
+        self._plot_at = 0.0
         #: (entry seq, perf_counter at ack) of this client's review edits (benchmarks, tests)
         self.acks: list[tuple[int, float]] = []
         self._bind()
@@ -376,8 +380,11 @@ class ReviewPanel:
         review = self.session.model.review.get(str(self.frame))
         bits = ["reference" if is_ref else STAGE_TEXT[Stage(stage)]] + ([review] if review else [])
         w.frame_md.content = f"**Review frame {self.frame}** ({', '.join(bits)})"
-        if force or self.live.version != self._shown_version:
+        # the ranking of every frame is recomputed at most every PLOT_EVERY_S while a job runs
+        due = not st.running or time.monotonic() - self._plot_at >= PLOT_EVERY_S
+        if force or (self.live.version != self._shown_version and due):
             self._shown_version = self.live.version
+            self._plot_at = time.monotonic()
             self._refresh_plot()
 
     def _refresh_plot(self) -> None:

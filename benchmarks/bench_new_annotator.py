@@ -109,7 +109,7 @@ class Annotator:
         wait_camera_still(self.page)
 
     def image_point(self, uv) -> tuple[float, float]:
-        geo = self.view._frame_data.geometry
+        geo = self.view.frame_data.geometry
         return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def key(self, key: str, kind: str) -> None:

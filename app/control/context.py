@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, Session
 
 from .annotate import AnnotateState, template_hand
@@ -103,7 +104,7 @@ class AppContext:
         """The lift worker lifted a frame: a review-made reference's new skeleton goes to the
         live results too."""
         if outcome.joints_mm is not None and frame in set(self.session.model.corrections):
-            self.live.put(frame, outcome.joints_mm, None, 1)
+            self.live.put(frame, outcome.joints_mm, None, Stage.LIFTED)
         self.bus.publish(lift_update(outcome))
 
     def _on_job(self, event: str, runner: ReviewRunner, frame: int) -> None:

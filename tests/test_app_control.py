@@ -239,3 +239,25 @@ def test_joint_legend_shows_placed_occluded_and_selected():
     assert "occluded" in rows[1] and "opacity" in rows[1] and "occluded" not in rows[0]
     assert "font-weight:bold" in rows[2] and "rgb(0,0,255)" in rows[2]
     assert "I-tip" in rows[2]
+
+
+def test_hand_diagram_draws_every_joint_and_bone_placed_filled():
+    from app.control.annotate import template_hand
+    from app.ui.theme import hand_diagram_svg, joint_colours, load_colours
+    from handanno_core.skeleton import MSRA21
+
+    xy = template_hand(MSRA21, np.zeros(3))[:, :2]
+    ann = FrameAnnotation.empty(21)
+    ann.uv_px[[0, 4]] = 1.0
+    ann.visible[7] = False
+    colours = joint_colours(MSRA21.parent_array, load_colours())
+    svg = hand_diagram_svg(xy, MSRA21.bones, colours, ann, selected=4)
+    assert svg.count("<line") == len(MSRA21.bones)
+    joints = [c for c in svg.split("<circle")[1:] if 'class="joint-' in c]
+    assert len(joints) == 21
+    filled = [k for k, c in enumerate(joints) if 'fill="none"' not in c]
+    assert filled == [0, 4]
+    assert 'opacity="0.4"' in joints[7] and 'opacity="1"' in joints[6]
+    # the fingertips spread across the diagram (a hand, not a column)
+    tips = xy[[4, 8, 12, 16, 20]]
+    assert np.ptp(tips[:, 0]) > 30.0

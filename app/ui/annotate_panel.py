@@ -24,12 +24,12 @@ import numpy as np
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.session import JournalEntry, SessionError
 
-from ..control.annotate import display_joints
+from ..control.annotate import display_joints, template_hand
 from ..control.events import Update, UpdateTopic, entry_frame
 from ..control.frames import FrameData
 from ..control.jobs import LiftOutcome
 from .hand_scene import Drawing
-from .theme import joint_legend, joint_option
+from .theme import hand_diagram_svg, joint_legend, joint_option
 
 if TYPE_CHECKING:
     from .client_ui import ClientUI
@@ -176,6 +176,8 @@ class AnnotatePanel:
         self.last_skeleton_update: tuple[int, float] | None = None
         self.last_edit_drawn: tuple[int, float] | None = None
         self.clicks = AnnotateClicks(self)
+        hand = template_hand(self.skeleton, np.zeros(3))  # the legend's hand diagram
+        self._diagram_xy = None if hand is None else hand[:, :2]
         if self.session.can_undo(ui.name):
             self.w.saved_md.content = "✓ every edit of this browser is saved (undo available)"
         _bind_widgets(self)
@@ -422,9 +424,13 @@ class AnnotatePanel:
         w.depth_button.label = f"Depth vs parent: {order} (D)"
         data = self.frame_data
         w.message_md.content = f"**⚠ {data.error}**" if data is not None and data.error else ""
-        w.legend_md.content = joint_legend(
-            self.skeleton.joint_names, self.hand.base_colours, self._annotation, st.joint
-        )
+        colours, ann = self.hand.base_colours, self._annotation
+        diagram = self._diagram_xy
+        w.legend_md.content = (
+            ""
+            if diagram is None
+            else hand_diagram_svg(diagram, self.skeleton.bones, colours, ann, st.joint)
+        ) + joint_legend(self.skeleton.joint_names, colours, ann, st.joint)
         if not self.ctx.worker.available:
             w.lift_md.content = "*live lifting unavailable (handanno_core.lift missing)*"
 

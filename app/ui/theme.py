@@ -93,3 +93,44 @@ def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selecte
         + "</table><div style='font-size:0.75em'>● placed · ○ not placed (drawn as a small faded "
         "guess) · faded row / grey sphere: occluded · bold: selected</div>"
     )
+
+
+def hand_diagram_svg(
+    xy: np.ndarray,
+    bones: np.ndarray,
+    colours: np.ndarray,
+    annotation: Any,
+    selected: int,
+    size_px: int = 160,
+) -> str:
+    """An SVG hand diagram: joints at ``xy`` (J, 2) (any unit, y down: a template hand seen from
+    the camera) joined by ``bones`` (B, 2), each joint in its colour, filled when placed, hollow
+    when not, faded when occluded, the selected one ringed and labelled. Shows where each joint
+    goes and which are placed."""
+    xy = np.asarray(xy, dtype=np.float64)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    scale = (size_px - 24) / max(float((hi - lo).max()), 1e-9)
+    p = (xy - lo) * scale + 12
+    parts = [
+        f'<line x1="{p[a, 0]:.1f}" y1="{p[a, 1]:.1f}" x2="{p[b, 0]:.1f}" y2="{p[b, 1]:.1f}" '
+        'stroke="#999" stroke-width="1.5"/>'
+        for a, b in np.asarray(bones)
+    ]
+    for k in range(len(p)):
+        r, g, b = (int(c) for c in colours[k])
+        colour = f"rgb({r},{g},{b})"
+        fill = colour if annotation.annotated[k] else "none"
+        opacity = "0.4" if not annotation.visible[k] else "1"
+        parts.append(
+            f'<circle class="joint-{k}" cx="{p[k, 0]:.1f}" cy="{p[k, 1]:.1f}" r="4" '
+            f'fill="{fill}" stroke="{colour}" stroke-width="1.5" opacity="{opacity}"/>'
+        )
+    s = int(selected)
+    parts.append(
+        f'<circle cx="{p[s, 0]:.1f}" cy="{p[s, 1]:.1f}" r="7" fill="none" stroke="#222" '
+        'stroke-width="1.5"/>'
+    )
+    return (
+        f'<svg class="handanno-hand" width="{size_px}" height="{size_px}" '
+        f'viewBox="0 0 {size_px} {size_px}">' + "".join(parts) + "</svg>"
+    )

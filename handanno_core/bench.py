@@ -340,7 +340,10 @@ def run_bench_datasets(
     }
     for d in datasets:
         load_before = os.getloadavg()[0]
-        doc = run_bench(d["path"], json_out=folder / f"{d['name']}.json", quiet=quiet, **kwargs)
+        kw = dict(kwargs)
+        if kw.get("work_dir"):  # one session folder per dataset, or each would overwrite the last
+            kw["work_dir"] = Path(kw["work_dir"]) / d["name"]
+        doc = run_bench(d["path"], json_out=folder / f"{d['name']}.json", quiet=quiet, **kw)
         entry = {"name": d["name"], "part": d["part"], **doc}
         entry["load_avg_1m"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
         suite["datasets"].append(entry)

@@ -20,7 +20,7 @@ import os
 import time
 from pathlib import Path
 
-from handanno_core.review_loop import bench_review, effort_to_target
+from handanno_core.review_loop import bench_review, effort_to_target, review_rounds
 from handanno_core.session import Session
 
 
@@ -76,6 +76,29 @@ def plot_suite(out: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def resume(folder: Path, review: dict, args) -> dict:
+    """Continue each ranking's review copy ``<folder>-review-<ranking>`` (left by
+    :func:`bench_review`) for ``args.rounds`` more rounds; the entries appended, renumbered."""
+    out = {}
+    for ranking, entries in review.items():
+        session = Session.open(folder.with_name(f"{folder.name}-review-{ranking}"))
+        try:
+            more = review_rounds(
+                session,
+                rounds=args.rounds,
+                budget=args.budget,
+                ranking=ranking,
+                reference_clicks=entries[-1]["joints_clicked"],
+                workers=args.workers,
+                quiet=True,
+            )
+        finally:
+            session.close()
+        last = entries[-1]["round"]
+        out[ranking] = entries + [dict(e, round=last + e["round"]) for e in more[1:]]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sessions", nargs="+", type=Path)
@@ -84,7 +107,15 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=0.05, help="frames per round (< 1: share)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument(
+        "--resume",
+        type=Path,
+        help="a JSON of an earlier run: continue its review copies for --rounds more rounds",
+    )
     args = ap.parse_args()
+    earlier = {}
+    if args.resume:
+        earlier = {r["session"]: r for r in json.loads(args.resume.read_text())["runs"]}
     out = {
         "rounds": args.rounds,
         "budget": args.budget,
@@ -97,14 +128,17 @@ def main() -> None:
         frames, refs = s.num_frames, len(s.reference_frames)
         s.close()
         t, load = time.perf_counter(), os.getloadavg()[0]
-        review = bench_review(
-            folder,
-            rankings=out["rankings"],
-            rounds=args.rounds,
-            budget=args.budget,
-            workers=args.workers,
-            quiet=True,
-        )
+        if str(folder) in earlier:
+            review = resume(folder, earlier[str(folder)]["review"], args)
+        else:
+            review = bench_review(
+                folder,
+                rankings=out["rankings"],
+                rounds=args.rounds,
+                budget=args.budget,
+                workers=args.workers,
+                quiet=True,
+            )
         run = {
             "sequence": folder.parent.name,
             "session": str(folder),

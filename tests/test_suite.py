@@ -279,6 +279,23 @@ def test_single_dataset_keeps_todays_json(monkeypatch, tmp_path):
     assert not (tmp_path / "b.datasets").exists()
 
 
+def test_bench_keeps_one_work_dir_per_dataset(monkeypatch, tmp_path):
+    seen = []
+
+    def fake(dataset, **kwargs):
+        seen.append(kwargs["work_dir"])
+        return {"dataset": str(dataset), "frames": 1, "runs": []}
+
+    monkeypatch.setattr(bench, "run_bench", fake)
+    bench.run_bench_datasets(
+        [tmp_path / "a", tmp_path / "b"],
+        json_out=tmp_path / "s.json",
+        work_dir=tmp_path / "w",
+        quiet=True,
+    )
+    assert seen == [tmp_path / "w" / "a", tmp_path / "w" / "b"]  # not one folder overwritten
+
+
 @pytest.mark.slow
 def test_bench_over_two_datasets_end_to_end(tmp_path):
     paths = []

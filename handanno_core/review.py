@@ -13,12 +13,16 @@ simulated review loop (:mod:`handanno_core.review_loop`).
   (``correction=True``), seeds its annotation from the shown skeleton and applies the joint edit,
   all as one undo step.
 * :func:`review_evidence` - per-frame evidence that a skeleton is wrong (confidence, depth and
-  silhouette residuals, temporal jumps, refinement shift, angle limits incl. mirrored hands,
-  finger order, bones, distance to the reference; a model-fit residual can be passed in), and
-  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`).
+  silhouette residuals, joints far behind the surface, the skeleton drifting off the observed hand
+  centre, temporal jumps, refinement shift, angle limits incl. mirrored hands, finger order,
+  bones, distance to the reference; a model-fit residual can be passed in), and
+  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`,
+  chosen on the suite's tune part), optionally smoothed in time (:func:`smooth_in_time`,
+  :data:`SMOOTH`).
 * :func:`rank_priority` / :func:`pick_frames` / :func:`uniform_pick` - the frames a review round
-  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked;
-  :func:`recall_at` measures a ranking against ground truth (evaluation only).
+  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked
+  (:data:`SUPPRESS_RADIUS`); :func:`recall_at` measures a ranking against ground truth
+  (evaluation only).
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -45,6 +46,11 @@ def main() -> None:
     ap.add_argument("sessions", nargs="+", type=Path)
     ap.add_argument("--work", type=Path, default=Path("/tmp/handanno-bench-prefill"))
     ap.add_argument("--click-px", type=float, default=4.0, help="joints farther off are moved")
+    ap.add_argument(
+        "--modes",
+        default="all_clicks,prefilled,prefilled_model",
+        help="comma-separated: all_clicks, prefilled (flow), prefilled_model (flow + hand model)",
+    )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
     rows = []
@@ -55,15 +61,20 @@ def main() -> None:
             "session": str(folder),
             "references": int(len(src.reference_frames)),
             "click_px": args.click_px,
+            "load_avg_1m_before": round(os.getloadavg()[0], 2),
         }
-        for mode in ("all_clicks", "prefilled"):
+        for mode in args.modes.split(","):
             s = fresh_copy(src, args.work / f"{folder.parent.name}-{folder.name}-{mode}")
             t = time.perf_counter()
-            if mode == "prefilled":
-                info = annotate_prefilled(s, click_px=args.click_px, quiet=True)
-                row["clicks_per_reference"] = round(info["clicks_per_reference"], 3)
-                row["clicks_per_reference_drag"] = round(info["clicks_per_reference_drag"], 3)
-                row["clicks"] = [int(c) for c in info["clicks"].values()]
+            if mode.startswith("prefilled"):
+                info = annotate_prefilled(
+                    s, click_px=args.click_px, hand_model=mode == "prefilled_model", quiet=True
+                )
+                row[f"{mode}_clicks_per_reference"] = round(info["clicks_per_reference"], 3)
+                row[f"{mode}_clicks_per_reference_drag"] = round(
+                    info["clicks_per_reference_drag"], 3
+                )
+                row[f"{mode}_clicks"] = [int(c) for c in info["clicks"].values()]
             else:
                 pipeline.annotate_from_gt(s, quiet=True)
             row[f"{mode}_annotate_s"] = round(time.perf_counter() - t, 2)
@@ -75,7 +86,7 @@ def main() -> None:
             s.close()
         src.close()
         rows.append(row)
-        print(json.dumps({k: v for k, v in row.items() if k != "clicks"}), flush=True)
+        print(json.dumps({k: v for k, v in row.items() if not k.endswith("clicks")}), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"rows": rows}, indent=1))
 

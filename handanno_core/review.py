@@ -13,12 +13,16 @@ simulated review loop (:mod:`handanno_core.review_loop`).
   (``correction=True``), seeds its annotation from the shown skeleton and applies the joint edit,
   all as one undo step.
 * :func:`review_evidence` - per-frame evidence that a skeleton is wrong (confidence, depth and
-  silhouette residuals, temporal jumps, refinement shift, angle limits incl. mirrored hands,
-  finger order, bones, distance to the reference; a model-fit residual can be passed in), and
-  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`).
+  silhouette residuals, joints far behind the surface, the skeleton drifting off the observed hand
+  centre, temporal jumps, refinement shift, angle limits incl. mirrored hands, finger order,
+  bones, distance to the reference; a model-fit residual can be passed in), and
+  :func:`evidence_priority` - the ``"evidence"`` ranking made of it (:data:`EVIDENCE_WEIGHTS`,
+  chosen on the suite's tune part), optionally smoothed in time (:func:`smooth_in_time`,
+  :data:`SMOOTH`).
 * :func:`rank_priority` / :func:`pick_frames` / :func:`uniform_pick` - the frames a review round
-  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked;
-  :func:`recall_at` measures a ranking against ground truth (evaluation only).
+  shows: by a ranking, never a frame already reviewed, optionally not next to one just picked
+  (:data:`SUPPRESS_RADIUS`); :func:`recall_at` measures a ranking against ground truth
+  (evaluation only).
 """
 
 from __future__ import annotations
@@ -90,32 +94,21 @@ def temporal_jump(joints_mm: np.ndarray, sequence_breaks: Iterable[int] = ()) ->
     return out
 
 
-def depth_residuals(
+def _observed_depth(
     joints_mm: np.ndarray,
     crops: np.ndarray,
     boxes: np.ndarray,
     centres_mm: np.ndarray,
     camera: CameraIntrinsics,
-    *,
-    cube_mm: float = 220.0,
-    surface_offsets_mm: np.ndarray | None = None,
-) -> np.ndarray:
-    """``(N, J)`` mm: how far each joint sits *in front of* the observed surface (a joint centre
-    lies on or behind it), read from the normalized crops (no depth file is opened); a joint that
-    projects onto background or outside the crop costs :data:`OFF_HAND_MM`. NaN without joints.
-
-    ``crops`` (N, S, S) normalized depth ``(d - z_c) / (cube_mm / 2)``, +1 = background;
-    ``boxes`` (N, 4) ``[u_left, v_top, sx, sy]``; ``centres_mm`` (N, 3).
-    """
+    cube_mm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observed surface under each joint, read from the normalized crops: ``frames`` (M,) the
+    frames with joints, ``observed`` (M, J) mm (the crop's depth at the joint's projection) and
+    ``background`` (M, J) bool (the joint projects onto background or outside the crop)."""
     from .crops import image_to_crop
 
     j = np.asarray(joints_mm, dtype=np.float64)
-    n, nj = j.shape[:2]
-    out = np.full((n, nj), np.nan)
-    ok = np.all(np.isfinite(j), axis=(1, 2))
-    if not ok.any():
-        return out
-    frames = np.flatnonzero(ok)
+    frames = np.flatnonzero(np.all(np.isfinite(j), axis=(1, 2)))
     jj = j[frames]
     uv = camera.project(jj)  # (M, J, 2)
     xy = image_to_crop(uv, np.asarray(boxes, dtype=np.float64)[frames][:, None, :])
@@ -129,11 +122,46 @@ def depth_residuals(
     vals[inside] = np.asarray(crops[fi[inside], yi[inside], xi[inside]], dtype=np.float64)
     background = ~inside | (vals >= 0.999)
     observed = np.asarray(centres_mm, dtype=np.float64)[frames, 2][:, None] + vals * (cube_mm / 2.0)
+    return frames, observed, background
+
+
+def depth_residuals(
+    joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = 220.0,
+    surface_offsets_mm: np.ndarray | None = None,
+    behind: bool = False,
+) -> np.ndarray:
+    """``(N, J)`` mm: how far each joint sits *in front of* the observed surface (a joint centre
+    lies on or behind it), read from the normalized crops (no depth file is opened); a joint that
+    projects onto background or outside the crop costs :data:`OFF_HAND_MM`. NaN without joints.
+    ``behind``: instead, how far each joint on the hand sits *behind* the surface beyond its offset
+    (an occluded joint may; a whole hand behind its surface has drifted), 0 off the hand, capped at
+    :data:`OFF_HAND_MM`.
+
+    ``crops`` (N, S, S) normalized depth ``(d - z_c) / (cube_mm / 2)``, +1 = background;
+    ``boxes`` (N, 4) ``[u_left, v_top, sx, sy]``; ``centres_mm`` (N, 3).
+    """
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n, nj = j.shape[:2]
+    out = np.full((n, nj), np.nan)
+    frames, observed, background = _observed_depth(j, crops, boxes, centres_mm, camera, cube_mm)
+    if frames.size == 0:
+        return out
+    jj = j[frames]
     offsets = (
         0.0
         if surface_offsets_mm is None
         else np.asarray(surface_offsets_mm, dtype=np.float64)[None, :]
     )
+    if behind:
+        res = np.clip(jj[..., 2] - observed - offsets, 0.0, OFF_HAND_MM)
+        out[frames] = np.where(background, 0.0, res)
+        return out
     # A visible joint centre sits ~offset behind the surface: in front of (observed + offset) is wrong.
     res = np.maximum(observed + offsets - jj[..., 2], 0.0)
     res = np.where(background, OFF_HAND_MM, np.minimum(res, OFF_HAND_MM))
@@ -211,9 +239,12 @@ def frame_scores(
     return FrameScores(score=score, terms=terms)
 
 
-def session_depth_residuals(session, joints_mm: np.ndarray, crop_data) -> np.ndarray:
+def session_depth_residuals(
+    session, joints_mm: np.ndarray, crop_data, *, behind: bool = False
+) -> np.ndarray:
     """:func:`depth_residuals` (N, J) mm of ``joints_mm`` (N, J, 3) mm against the session's crops
-    ``crop_data`` = ``(crops, centres_mm, boxes)``, with the session's camera, cube and offsets."""
+    ``crop_data`` = ``(crops, centres_mm, boxes)``, with the session's camera, cube and offsets
+    (``behind``: the distance behind the surface instead)."""
     crops, centres, boxes = crop_data
     return depth_residuals(
         joints_mm,
@@ -223,6 +254,7 @@ def session_depth_residuals(session, joints_mm: np.ndarray, crop_data) -> np.nda
         session.camera,
         cube_mm=session.model.settings.cube_mm,
         surface_offsets_mm=np.asarray(session.skeleton.surface_offsets_mm),
+        behind=behind,
     )
 
 
@@ -471,6 +503,18 @@ def hops_to_reference(parent: np.ndarray) -> np.ndarray:
     return d
 
 
+def centre_drift(joints_mm: np.ndarray, centres_mm: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """``(N,)`` mm: how far the skeleton moved relative to the observed hand. The offset of the
+    joints' mean from the hand centre the crops were cut around (``centres_mm`` (N, 3), from the
+    depth alone) is compared with the same offset on the frame's reference ``root`` (N,) (its
+    root in the parent forest); a propagated skeleton that slid off the hand changes it, a pose
+    change only by a little. NaN without joints or centre."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        offset = j.mean(axis=1) - np.asarray(centres_mm, dtype=np.float64)  # (N, 3)
+        return np.linalg.norm(offset - offset[np.asarray(root, dtype=np.int64)], axis=-1)
+
+
 def _max_joint_norm(x: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         return np.max(np.linalg.norm(x, axis=-1), axis=-1)
@@ -522,6 +566,12 @@ def review_evidence(
         ev["unexplained"] = unexplained_foreground(
             joints, crops, boxes, session.camera, skeleton.bones
         )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ev["behind_mm"] = np.nanmedian(
+                session_depth_residuals(session, joints, crop_data, behind=True), axis=1
+            )
+        ev["drift_mm"] = centre_drift(joints, crop_data[1], root_reference(session.parent))
     ev["jump_mm"] = temporal_jump(joints, session.model.sequence_breaks)
     accel = np.full(n, np.nan)
     if n > 2:
@@ -551,24 +601,33 @@ def review_evidence(
 
 
 #: ``{evidence name: (scale, weight)}`` of the "evidence" ranking: priority = sum of
-#: ``weight * log1p(x / scale)`` (a logit). Scales = each term's median, weights = a non-negative
-#: logistic regression (frames > 10 mm off) then coordinate ascent of recall@10 %, both on the
-#: tune part only (``benchmarks/bench_review_ranking.py``: synthetic seeds 0-1, 800 frames, forest
-#: 5 % exact and 2 % with 2 px noise). Terms the fit left at weight 0: conf, conf_min, depth_max_mm,
-#: jump_mm, accel_mm. A model-fit residual joins as one more entry (e.g. ``"model_mm"``).
+#: ``weight * log1p(x / scale)`` (a logit). Chosen on the suite's tune part only
+#: (``benchmarks/bench_review_ranking.py --search``: ``handanno suite --part tune --frames-scale
+#: 0.5``, forest 5 %, exact 2D; coordinate ascent from the weights of the first round (synthetic
+#: seeds 0-1) of recall@10 % relative to its ceiling at 20/30/40 mm, on the (sequence, threshold)
+#: pairs whose ceiling is >= 0.5). Scales: each term's median on the tune frames. Terms at weight
+#: 0: conf_min, jump_mm, accel_mm. A model-fit residual joins as one more entry (e.g. "model_mm").
 EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
+    "conf": (0.7359, 4.0),
     "depth_mm": (4.07, 2.0),
-    "unexplained": (0.414, 1.99),
-    "refine_mm": (6.57, 0.135),
+    "depth_max_mm": (40.0, 4.0),
+    "unexplained": (0.414, 4.0),
+    "behind_mm": (2.2849, 0.5),
+    "drift_mm": (5.495, 1.0),
+    "refine_mm": (6.57, 0.5),
     "angle_deg": (8.35, 2.2),
     "swap_mm": (8.53, 3.84),
     "bone": (0.001, 0.063),
-    "hops": (5.0, 0.292),
-    "gap": (8.0, 1.0),
+    "hops": (5.0, 2.0),
+    "gap": (8.0, 0.5),
 }
 #: frames within this distance (in time) of a frame already picked in the same round are shown
-#: only when nothing else is left: one bad stretch should not fill the list.
+#: only when nothing else is left: one bad stretch should not fill the list. 0 (off): on the tune
+#: part radii 1, 2 and 4 all lowered recall@10 % (bad frames come in stretches).
 SUPPRESS_RADIUS = 0
+#: ``(radius, weight)`` of :func:`smooth_in_time` applied to the "evidence" priority; off: on the
+#: tune part no radius (1-8) and weight (0.25-0.75) raised recall@10 % with these weights.
+SMOOTH: tuple[int, float] = (0, 0.0)
 
 RANKINGS = ("evidence", "score", "uniform")
 
@@ -589,6 +648,33 @@ def evidence_priority(
         t = np.log1p(np.maximum(np.asarray(x, dtype=np.float64), 0.0) / scale)
         out += weight * np.where(np.isfinite(t), t, 0.0)
     return out
+
+
+def smooth_in_time(
+    priority: np.ndarray, radius: int, weight: float, sequence_breaks: Iterable[int] = ()
+) -> np.ndarray:
+    """``(N,)``: ``(1 - weight) * priority + weight * (mean of priority over the frames within
+    ``radius`` in time, same sequence segment)``. Bad frames come in stretches while single
+    evidence terms are noisy, so a frame whose neighbours look wrong is more likely wrong. NaN
+    entries stay NaN and do not enter their neighbours' means."""
+    p = np.asarray(priority, dtype=np.float64)
+    n = len(p)
+    if radius <= 0 or weight == 0.0 or n == 0:
+        return p.copy()
+    ok = np.isfinite(p)
+    seg = np.zeros(n, dtype=np.int64)
+    for b in sequence_breaks:
+        if 0 < int(b) < n:
+            seg[int(b)] = 1
+    seg = np.cumsum(seg)
+    idx = np.arange(n)
+    lo = np.maximum(idx - radius, np.searchsorted(seg, seg, side="left"))
+    hi = np.minimum(idx + radius + 1, np.searchsorted(seg, seg, side="right"))
+    csum = np.concatenate([[0.0], np.cumsum(np.where(ok, p, 0.0))])
+    ccnt = np.concatenate([[0], np.cumsum(ok)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = (csum[hi] - csum[lo]) / (ccnt[hi] - ccnt[lo])
+    return np.where(ok, (1.0 - weight) * p + weight * mean, np.nan)
 
 
 def pick_frames(
@@ -663,6 +749,7 @@ def rank_priority(
     has = np.all(np.isfinite(joints), axis=(1, 2))
     if ranking == "evidence":
         p = evidence_priority(review_evidence(session, results, crop_data, extra=extra))
+        p = smooth_in_time(p, SMOOTH[0], SMOOTH[1], session.model.sequence_breaks)
     elif ranking == "score":
         p = 1.0 - session_scores(session, joints, results["confidence"], crop_data).score
     elif ranking == "uniform":

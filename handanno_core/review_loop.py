@@ -50,6 +50,8 @@ __all__ = [
 CLICK_PX = 4.0
 #: a frame is "bad" when a joint is more than this (mm) off
 BAD_MM = 20.0
+#: references lifted before the pre-fills are snapped with the hand model personalized from them
+MODEL_MIN_REFERENCES = 2
 
 
 def simulated_fix(
@@ -126,16 +128,20 @@ def annotate_prefilled(
     noise_px: float = 0.0,
     seed: int = 0,
     click_px: float = CLICK_PX,
+    hand_model: bool = False,
     quiet: bool = False,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
+    ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
+    personalized from them (:func:`handanno_core.prefill.reference_hand_model`) snaps each further
+    pre-fill to its frame's own depth and silhouette.
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
     the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
     plain one)}``. Needs the session's crops on disk for propagated pre-fills.
     """
-    from .prefill import cached_crops, prefill_reference
+    from .prefill import cached_crops, prefill_reference, reference_hand_model
 
     sequence = session.open_sequence()
     crop_data = cached_crops(session)
@@ -160,7 +166,11 @@ def annotate_prefilled(
     for f in (int(x) for x in session.reference_frames):
         rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
         depth = sequence.depth(f)
-        guess = prefill_reference(session, f, scratch, descriptors=descriptors)
+        model = False
+        lifted = np.flatnonzero(np.all(np.isfinite(scratch["lifted_mm"]), axis=(1, 2)))
+        if hand_model and bones is not None and lifted.size >= MODEL_MIN_REFERENCES:
+            model = reference_hand_model(session, scratch["lifted_mm"], lifted, bones) or False
+        guess = prefill_reference(session, f, scratch, descriptors=descriptors, hand_model=model)
         if guess is None:
             from .synth import simulate_annotation
 

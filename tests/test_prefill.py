@@ -116,3 +116,25 @@ def test_bench_annotator_opens_references_prefilled(session):
         assert np.all(off <= 4.0 + 1e-9)  # every joint within 4 px: moved, or accepted
     lines = session.folder.joinpath("journal.jsonl").read_text().splitlines()
     assert len(lines) == entries_before + 1  # one journal entry, one undo step
+
+
+def test_hand_model_snaps_the_prefill_to_the_frames_depth(session):
+    from handanno_core.pipeline import ensure_crops
+    from handanno_core.prefill import reference_hand_model
+
+    ensure_crops(session, quiet=True)
+    gt = session.open_sequence().ground_truth.joints_mm
+    results = session.load_results()
+    refs = session.reference_frames  # 0, 10, 20: lifted
+    results["lifted_mm"][np.setdiff1d(np.arange(FRAMES), refs)] = np.nan
+    bones = np.asarray(session.model.bone_lengths_mm)
+    model = reference_hand_model(session, results["lifted_mm"], refs, bones)
+    assert model is not None and np.all(np.isfinite(model.radii))
+    frame = 26
+    flow = prefill_reference(session, frame, results)
+    snapped = prefill_reference(session, frame, results, hand_model=model)
+    assert snapped.shape == flow.shape and np.all(np.isfinite(snapped))
+    assert not np.allclose(snapped, flow)  # the model fit moved it
+    # still a usable guess, its bones the session's
+    assert errors(snapped, gt[frame]).mean() < 15.0
+    np.testing.assert_allclose(session.skeleton.bone_lengths(snapped), bones, rtol=0.02)

@@ -123,6 +123,29 @@ def test_depth_residuals_from_crops():
     res = depth_residuals(joints, crops, boxes, centres, cam, cube_mm=cube)
     assert res[0, 0] == 0.0 and res[0, 1] == pytest.approx(20.0) and res[0, 2] == OFF_HAND_MM
     assert np.all(res[1] == 0.0)
+    behind = depth_residuals(joints, crops, boxes, centres, cam, cube_mm=cube, behind=True)
+    assert behind[0, 0] == pytest.approx(10.0) and behind[0, 1] == 0.0 and behind[0, 2] == 0.0
+    joints[1, 0, 2] = 900.0  # far behind the surface: capped
+    behind = depth_residuals(joints, crops, boxes, centres, cam, cube_mm=cube, behind=True)
+    assert behind[1, 0] == OFF_HAND_MM
+
+
+def test_smooth_in_time_and_centre_drift():
+    from handanno_core.review import centre_drift, smooth_in_time
+
+    p = np.array([0.0, 0.0, 3.0, 0.0, np.nan, 0.0, 3.0, 3.0, 3.0, 0.0])
+    s = smooth_in_time(p, 1, 0.5)
+    assert np.isnan(s[4]) and s[2] == pytest.approx(0.5 * 3.0 + 0.5 * 1.0)
+    assert s[3] == pytest.approx(0.5 * 1.5)  # the NaN neighbour does not count
+    assert s[7] > s[6] > s[5]  # inside a stretch beats its edge
+    assert np.array_equal(smooth_in_time(p, 0, 0.5), p, equal_nan=True)
+    # a break at 7: frame 6 no longer sees 7
+    assert smooth_in_time(p, 1, 0.5, [7])[6] == pytest.approx(0.5 * 3.0 + 0.5 * 1.5)
+    joints = np.zeros((4, 3, 3))
+    joints[:, :, 0] = [[0.0], [10.0], [20.0], [50.0]]  # the skeleton moves right
+    centres = np.array([[0.0, 0.0, 0.0], [10.0, 0, 0], [20.0, 0, 0], [20.0, 0, 0]])
+    drift = centre_drift(joints, centres, np.zeros(4, dtype=np.int64))
+    assert drift[:3] == pytest.approx([0.0, 0.0, 0.0]) and drift[3] == pytest.approx(30.0)
 
 
 # ------------------------------------------------------------------------------------------ session fixture

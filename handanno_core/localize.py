@@ -103,8 +103,9 @@ MIN_BEHIND_AREA_MM2 = 500.0
 MAX_HAND_AREA_MM2 = 30000.0
 #: the arm's far end: nodes within this geodesic distance (mm) of its farthest.
 END_MM = 40.0
-#: the crop's depth range keeps the hand's farthest surface this far (mm) inside its back.
-BACK_MARGIN_MM = 25.0
+#: the hand's hidden side (fingers pointing away behind the palm, joint centres under the skin)
+#: lies at most this far (mm) behind its farthest visible surface: the cube's back is there.
+HIDDEN_DEPTH_MM = 25.0
 #: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
 MAX_ARM_AREA_MM2 = 100000.0
 #: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
@@ -120,6 +121,12 @@ WRIST_ALLOWANCE_MM = 15.0
 HAND_LENGTH_MM = 200.0
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
+#: without an arm end, the hand is the mean shift mode of the seed's points within this radius
+#: (mm; the palm and fingers) ...
+MEAN_SHIFT_RADIUS_MM = 88.0
+#: ... and its extent that of the points within this radius (mm) of it: a hand length, whatever
+#: the cube (an extent that grew with the cube would grow the cube again, with more forearm).
+FREE_EXTENT_RADIUS_MM = 110.0
 
 
 @dataclass(frozen=True)
@@ -448,13 +455,13 @@ def _free_blob(
     z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
 ) -> HandLocation:
     """No attachment: mean shift from the seed's nearest points (see module docstring); the
-    extent is that of the seed's points within ``cube_mm / 2`` of the centre (hand and whatever
-    of the forearm is that close: without an arm end the two are not told apart)."""
+    extent is that of the seed's points within ``FREE_EXTENT_RADIUS_MM`` of the centre (hand and
+    whatever of the forearm is that close: without an arm end the two are not told apart)."""
     rows, cols = np.nonzero(mask)
     zc = z[rows, cols].astype(np.float64)
     pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
     centre = pts[zc <= zc.min() + front_mm].mean(axis=0)
-    r2 = (0.4 * cube_mm) ** 2
+    r2 = MEAN_SHIFT_RADIUS_MM**2
     for _ in range(8):
         inside = np.sum((pts - centre) ** 2, axis=1) <= r2
         if not inside.any():
@@ -464,7 +471,7 @@ def _free_blob(
         centre = new
         if done:
             break
-    near = pts[np.sum((pts - centre) ** 2, axis=1) <= (0.5 * cube_mm) ** 2]
+    near = pts[np.sum((pts - centre) ** 2, axis=1) <= FREE_EXTENT_RADIUS_MM**2]
     return _box_of(near, "free-blob", cube_mm, centre)
 
 
@@ -596,11 +603,11 @@ def _box_of(
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
     z_lo, z_hi = np.percentile(z, [0.2, 99.8])
     if centre_mm is None:
-        zc = max(0.5 * (z_lo + z_hi), z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        zc = max(0.5 * (z_lo + z_hi), z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])
     else:
         centre = np.asarray(centre_mm, dtype=np.float64)
-        zc = max(centre[2], z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        zc = max(centre[2], z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = centre * (zc / centre[2])  # same ray, moved back if needed
     ac = centre[:2] / zc
     allowance = np.zeros(2)

@@ -452,8 +452,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="synthetic sequence length")
     ap.add_argument("--baseline", type=Path, help="checkout whose crops to compare (before)")
     ap.add_argument("--sequence", action="store_true", help="also the sequence and memory runs")
-    ap.add_argument("--suite", type=Path, help="suite folder (handanno suite): coverage per sequence")
-    ap.add_argument("--part", default="all", choices=("tune", "report", "all"), help="suite and forearm-fixture part")
+    ap.add_argument(
+        "--suite", type=Path, help="suite folder (handanno suite): coverage per sequence"
+    )
+    ap.add_argument(
+        "--part",
+        default="all",
+        choices=("tune", "report", "all"),
+        help="suite and forearm-fixture part",
+    )
     ap.add_argument("--no-forearm", action="store_true", help="skip the forearm fixture")
     ap.add_argument("--no-real", action="store_true", help="skip the real frames")
     ap.add_argument("--out", type=Path, default=RESULTS / "crops.json", help="JSON to write")

@@ -52,7 +52,10 @@ INDEX_MCP_UV = (287.0, 268.0)
 #: the joints are drawn pulled in front of the surface, which moves the drawn plane a little)
 BEYOND_MM = 25.0
 
-pytestmark = pytest.mark.skipif(not SEQUENCE.is_dir(), reason="SR305 frames not available")
+pytestmark = [
+    pytest.mark.skipif(not SEQUENCE.is_dir(), reason="SR305 frames not available"),
+    pytest.mark.slow,  # ~50 s on the 2-core VM (one server, one browser, two lifts)
+]
 
 
 def sr305_session(tmp_path: Path) -> Path:

@@ -13,10 +13,14 @@ Figures (printed and written to benchmarks/results/crops.json):
   the cube, not more than a cube in front), median/p90 distance crop centre to the joints'
   centroid, localization ms/frame, for the TUNE and REPORT cases; with ``--baseline DIR`` (a
   checkout of another commit, e.g. main) also its ``crops.locate_hands`` at a 220 mm cube.
+- benchmark suite (``--suite DIR --part tune|report``, a folder written by ``handanno suite``):
+  per sequence the same scores, with the centres and session cube the pipeline makes
+  (:func:`handanno_core.crops.locate_crops`), before (``--baseline``) and after.
 - synthetic sequence and memory (``--sequence``): as before, ``locate_hands`` + ``compute_crops``
   ms/frame and peak RSS at 2,000 vs 20,000 frames.
 
-Run: ``.venv/bin/python benchmarks/bench_crops.py [--baseline DIR] [--sequence] [--quick]``.
+Run: ``.venv/bin/python benchmarks/bench_crops.py [--suite DIR] [--part tune|report|all]
+[--baseline DIR] [--no-forearm] [--no-real] [--out FILE] [--sequence] [--quick]``.
 Timings are wall clock on whatever machine runs it (on the shared 2-core dev box they are under
 load from other jobs: the load average is recorded).
 """

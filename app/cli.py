@@ -315,7 +315,7 @@ def _progress_bar(desc: str):
 
 def _serve(args) -> int | None:
     """``demo`` / ``serve``; a busy port is an error naming it (never a silent move)."""
-    from app.server import PortInUseError, demo, serve
+    from app.ui.server import PortInUseError, demo, serve
 
     try:
         if args.command == "demo":
@@ -330,6 +330,39 @@ def _serve(args) -> int | None:
         print(f"handanno {args.command}: error: {exc}", file=sys.stderr)
         return 2
     return None
+
+
+def warn_incomplete_references(session) -> list[str]:
+    """Print (stderr) and return one warning line per kind of incomplete reference: references
+    with only some joints placed are lifted from those (the rest is guessed), references with no
+    joint placed are skipped."""
+
+    def frames_text(frames: list[int]) -> str:
+        shown = ", ".join(map(str, frames[:10]))
+        return shown + (f", ... ({len(frames)} in all)" if len(frames) > 10 else "")
+
+    anns = session.annotations(session.reference_frames)
+    partial = [
+        int(f) for f, a in sorted(anns.items()) if a.annotated.any() and not a.annotated.all()
+    ]
+    empty = [
+        int(f) for f in session.reference_frames if f not in anns or not anns[f].annotated.any()
+    ]
+    total = len(session.reference_frames)
+    lines = []
+    if partial:
+        lines.append(
+            f"{len(partial)} of {total} reference frames are only partly annotated (frames "
+            f"{frames_text(partial)}): their missing joints are guessed by the lift"
+        )
+    if empty:
+        lines.append(
+            f"{len(empty)} of {total} reference frames have no joint placed (frames "
+            f"{frames_text(empty)}): they are not lifted"
+        )
+    for line in lines:
+        print(f"handanno: warning: {line}", file=sys.stderr)
+    return lines
 
 
 def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
@@ -389,7 +422,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     elif cmd == "annotate-from-gt":
         pipeline.annotate_from_gt(_open(args, write=True), noise_px=args.noise_px, seed=args.seed)
     elif cmd == "lift":
-        pipeline.lift(_open(args, write=True), workers=args.workers)
+        session = _open(args, write=True)
+        warn_incomplete_references(session)
+        pipeline.lift(session, workers=args.workers)
     elif cmd == "propagate":
         session = _open(args, write=True)
         bar, update = _progress_bar("propagate")

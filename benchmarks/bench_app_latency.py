@@ -36,7 +36,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from app.server import serve  # noqa: E402
+from app.ui.server import serve  # noqa: E402
 from handanno_core.session import SetFrameAnnotation, SetJoint2D, SetJoint3D  # noqa: E402
 
 TIPS = (4, 8, 12, 16, 20)  # MSRA21 fingertips (the demo's skeleton)
@@ -153,7 +153,7 @@ def main() -> int:
             )
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             page.goto(app.url)
-            view = wait_for(lambda: (app.annotate_views() or [None])[0])
+            view = wait_for(lambda: (app.annotate_panels() or [None])[0])
 
             def measure(command, scenario: str) -> None:
                 start = time.perf_counter()

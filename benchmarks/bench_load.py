@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "load.json")
     args = parser.parse_args(argv)
 
-    from app.server import serve
+    from app.ui.server import serve
     from handanno_core.pipeline import ensure_demo_session
     from handanno_core.session import JOURNAL_FILE, Session
 

@@ -54,7 +54,7 @@ from viser_helpers import (  # noqa: E402
     wait_until,
 )
 
-from app.server import serve  # noqa: E402
+from app.ui.server import serve  # noqa: E402
 from handanno_core import pipeline  # noqa: E402
 from handanno_core.session import Session  # noqa: E402
 from handanno_core.synth import generate_sequence, simulate_annotations  # noqa: E402
@@ -87,7 +87,7 @@ class Annotator:
 
     @property
     def view(self):
-        views = self.app.annotate_views()
+        views = self.app.annotate_panels()
         assert len(views) == 1, f"expected one connected browser, got {len(views)}"
         return views[0]
 
@@ -104,13 +104,13 @@ class Annotator:
         view = self.view
         view.flush()
         sync_browser(self.page, view.client)
-        for handle in (view.joints, view.handles2d, view.image):
+        for handle in (view.hand.joints, view.hand.handles2d, view.hand.image):
             wait_drawn(self.page, handle)
         wait_camera_still(self.page)
 
     def image_point(self, uv) -> tuple[float, float]:
-        geo = self.view._frame_data.geometry
-        return screen_of(self.page, "/annotate", geo.pixel_to_scene(np.asarray(uv, float)))
+        geo = self.view.frame_data.geometry
+        return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def key(self, key: str, kind: str) -> None:
         start = len(journal(self.folder))
@@ -201,7 +201,7 @@ def main() -> int:
             with browser() as b:
                 browser_version = b.version
                 page = open_app(b, app.url)
-                wait_until(lambda: app.annotate_views(), what="the view of the browser")
+                wait_until(lambda: app.annotate_panels(), what="the view of the browser")
                 annotator = Annotator(app, page, folder)
                 annotator.settle()
                 for f in refs:

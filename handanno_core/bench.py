@@ -338,9 +338,14 @@ def run_bench_datasets(
         "datasets": [],
         "summary": [],
     }
+    work_dir = kwargs.pop("work_dir", None)
     for d in datasets:
         load_before = os.getloadavg()[0]
-        doc = run_bench(d["path"], json_out=folder / f"{d['name']}.json", quiet=quiet, **kwargs)
+        # one work folder per dataset: a shared one would leave only the last dataset's sessions
+        own = {"work_dir": Path(work_dir) / d["name"]} if work_dir else {}
+        doc = run_bench(
+            d["path"], json_out=folder / f"{d['name']}.json", quiet=quiet, **kwargs, **own
+        )
         entry = {"name": d["name"], "part": d["part"], **doc}
         entry["load_avg_1m"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
         suite["datasets"].append(entry)

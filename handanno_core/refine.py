@@ -3,7 +3,8 @@
 One robust least-squares problem over every frame of the sequence:
 
 ``E = Σ λ_app   ρ_W(appearance sample)        7×7 patch per joint, mm (Welsch)
-    + Σ λ_temp  ρ_H(‖X[i+1,k] − X[i,k]‖)       consecutive frames in time order, camera coords, mm
+    + Σ λ_acc   ρ_H(‖X[i+1,k] − 2X[i,k] + X[i−1,k]‖)  three consecutive frames, camera coords, mm
+    + Σ λ_temp  ρ_H(‖X[i+1,k] − X[i,k]‖)       consecutive frames (off by default), mm
     + Σ λ_proj  ½‖π(X[r,k]) − l[r,k]‖²          reference frames' annotated 2D, px
     + Σ λ_depth ρ_W(depth-band violation)       Eq. 3 band behind the observed surface, mm
     + Σ λ_angle ½(joint-angle violation)²       skeleton.angle_limits, degrees
@@ -30,14 +31,15 @@ the frame's closest reference annotation; both sides use a redescending loss bec
 projection lands on another surface must not be dragged onto it).
 
 **Solver**: Levenberg-Marquardt with IRLS weights for the robust terms. The normal equations are
-block-tridiagonal in time (blocks of ``3 + 2B`` parameters per frame; only the temporal term
-couples neighbouring frames), are assembled with batched numpy products (no Python loops over
+block-banded in time (blocks of ``3 + 2B`` parameters per frame; only the temporal terms
+couple frames: a frame with its neighbours and, through the acceleration, with the frames two
+apart), are assembled with batched numpy products (no Python loops over
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
 lowers the true robust energy, so ``energy_history`` never increases.
 
-**Hand model** (``hand_model=True``; off by default): the temporal weight of each frame pair is divided by
-``1 + (v / temporal_motion_mm)²`` (``v`` the pair's median joint displacement in the
-initialization), and after the solve a frame whose hand-model energy
+**Hand model** (``hand_model=True``; off by default): the velocity term's weight (itself off by
+default) of each frame pair is divided by ``1 + (v / temporal_motion_mm)²`` (``v`` the pair's
+median joint displacement in the initialization), and after the solve a frame whose hand-model energy
 (:func:`handanno_core.handmodel.frame_energy`, fitted to its own crop) rose by more than 10 %
 keeps its initialization, so refinement never makes a frame's fit to its depth worse. The model
 energy can also be a term of the LM (``RefineWeights.model`` > 0: θ-space blocks added to the
@@ -89,10 +91,15 @@ class RefineWeights:
       mismatches pull joints tens of mm away); relative depths are clipped at ±40 mm so background
       is a constant. Only joints visible in the closest reference use it (an occluded joint's
       patch shows its occluder). 0.05 and 0.01 were no better.
-    * ``temporal`` (per mm² per joint and consecutive-frame pair): 1.0, Huber scale 15 mm (true
-      motion on the synthetic data is <= 6 mm/frame; 15 mm still pulls outlier frames in
-      quadratically; 6 mm was 0.1-0.2 mm worse). 0.3-0.5 left more jitter, 3.0 over-smoothed
-      (mean +0.4 mm).
+    * ``acceleration`` (per mm² per joint and triple of consecutive frames): 1.0, Huber scale
+      15 mm. A constant-velocity prior: it removes the frame-to-frame jitter of the propagation
+      without pulling a moving hand towards a standing one. It replaced the velocity term
+      ``temporal`` (1.0 before), which on real fast motion dragged every frame between two
+      references towards their average pose and made refinement worse than its initialization;
+      chosen on the benchmark suite's tune part (``benchmarks/bench_refine_temporal.py``, figures
+      in ``benchmarks/results/refine_temporal_tune.json`` and the README).
+    * ``temporal`` (per mm² per joint and consecutive-frame pair, Huber ``temporal_huber_mm``):
+      0, the velocity prior, kept for comparison.
     * ``reprojection`` (per px² on the references' annotated 2D): 20; anchors references to a
       fraction of a pixel with exact annotations (4 was ~0.1 mm worse); lower it (to about
       1/σ² for σ px of annotation noise) for noisy annotators.
@@ -113,7 +120,9 @@ class RefineWeights:
     appearance_clip_mm: float = 40.0
     appearance_visible_only: bool = True
     appearance_robust: str = "welsch"
-    temporal: float = 1.0
+    acceleration: float = 1.0
+    acceleration_huber_mm: float = 15.0
+    temporal: float = 0.0
     temporal_huber_mm: float = 15.0
     reprojection: float = 20.0
     depth_band: float = 1.0
@@ -331,7 +340,16 @@ class _Problem:
         n, j = self.n, self.j
         x = self.kin.joints(root, u)
         terms = dict.fromkeys(
-            ("appearance", "temporal", "reprojection", "depth_band", "angle", "init"), 0.0
+            (
+                "appearance",
+                "acceleration",
+                "temporal",
+                "reprojection",
+                "depth_band",
+                "angle",
+                "init",
+            ),
+            0.0,
         )
         if want_jac:
             hd = np.zeros((n, j, 3, 3))
@@ -440,6 +458,22 @@ class _Problem:
                 hd[1:] += wt[..., None, None] * eye
                 gx[:-1] -= wt[..., None] * dvec
                 gx[1:] += wt[..., None] * dvec
+        # ---------------- constant-velocity prior (Huber on the per-joint second difference)
+        wa = None
+        if n > 2 and w.acceleration > 0:
+            acc = x[2:] - 2.0 * x[1:-1] + x[:-2]
+            cost, wa = _huber(np.linalg.norm(acc, axis=-1), w.acceleration_huber_mm)
+            scale = (self.pair_ok[:-1] & self.pair_ok[1:]).astype(np.float64)[:, None]
+            wa = w.acceleration * wa * scale
+            terms["acceleration"] = w.acceleration * float(np.sum(cost * scale))
+            if want_jac:
+                eye = np.eye(3)
+                hd[:-2] += wa[..., None, None] * eye
+                hd[1:-1] += 4.0 * wa[..., None, None] * eye
+                hd[2:] += wa[..., None, None] * eye
+                gx[:-2] += wa[..., None] * acc
+                gx[1:-1] -= 2.0 * wa[..., None] * acc
+                gx[2:] += wa[..., None] * acc
         # ---------------- joint-angle limits
         ang = None
         if w.angle > 0 and self.skel.flexion_limits_deg is not None:
@@ -451,7 +485,7 @@ class _Problem:
                     ang = (active, *self._angle_jacobian(root[active], u[active]))
         if not want_jac:
             return terms, x
-        return terms, x, hd, gx, wt, ang, mod
+        return terms, x, hd, gx, (wt, wa), ang, mod
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
@@ -465,8 +499,11 @@ class _Problem:
 # ------------------------------------------------------------------------------------------------
 # block-tridiagonal system in θ-space
 # ------------------------------------------------------------------------------------------------
-def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, mod, fixed: np.ndarray):
-    """θ-space diagonal blocks (N,P,P), super-diagonal blocks (N-1,P,P) and gradient (N,P)."""
+def _assemble(problem: _Problem, m: np.ndarray, hd, gx, weights, ang, mod, fixed: np.ndarray):
+    """θ-space diagonal blocks (N,P,P), first and second super-diagonal blocks (N-1,P,P),
+    (N-2,P,P) and gradient (N,P). ``weights``: the temporal terms' per-joint IRLS weights
+    (pairs (N-1,J), triples (N-2,J)), None where a term is off."""
+    wt, w_acc = weights
     n, j = problem.n, problem.j
     p = m.shape[-1]
     m4 = m.reshape(n, j, 3, p)
@@ -489,21 +526,37 @@ def _assemble(problem: _Problem, m: np.ndarray, hd, gx, wt, ang, mod, fixed: np.
             off = -np.matmul((m[:-1] * wrep[..., None]).transpose(0, 2, 1), m[1:])
     else:
         off = np.zeros((0, p, p))
+    off2 = None
+    if w_acc is not None:
+        # residual X[i-1] - 2X[i] + X[i+1]: pairs (k, k+1) get -2w from the triples centred at k
+        # and at k+1, frames two apart get +w
+        c = np.zeros((n - 1, j))
+        c[1:] -= 2.0 * w_acc
+        c[:-1] -= 2.0 * w_acc
+        off += np.matmul((m[:-1] * np.repeat(c, 3, axis=1)[..., None]).transpose(0, 2, 1), m[1:])
+        w2 = np.repeat(w_acc, 3, axis=1)[..., None]
+        off2 = np.matmul((m[:-2] * w2).transpose(0, 2, 1), m[2:])
     if np.any(fixed):
         diag[fixed] = np.eye(p)
         grad[fixed] = 0.0
         off[fixed[:-1]] = 0.0
         off[fixed[1:]] = 0.0
-    return diag, off, grad
+        if off2 is not None:
+            off2[fixed[:-2]] = 0.0
+            off2[fixed[2:]] = 0.0
+    return diag, off, off2, grad
 
 
-def _banded(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """Upper banded storage (u+1, N·P), u = 2P-1, of the symmetric block-tridiagonal matrix.
+def _banded(diag: np.ndarray, off: np.ndarray, off2: np.ndarray | None = None) -> np.ndarray:
+    """Upper banded storage (u+1, N·P) of the symmetric block-banded matrix with diagonal blocks
+    ``diag`` (N,P,P), first super-diagonal blocks ``off`` (N-1,P,P) and, if given, second
+    super-diagonal blocks ``off2`` (N-2,P,P); u = 2P-1 without ``off2``, 3P-1 with it.
 
-    ``ab[u + r - c, c] = A[r, c]`` for r <= c; filled one (block-)diagonal at a time (2P slices).
+    ``ab[u + r - c, c] = A[r, c]`` for r <= c; filled one (block-)diagonal at a time.
     """
     n, p = diag.shape[:2]
-    u = 2 * p - 1
+    second = off2 is not None and n > 2
+    u = 3 * p - 1 if second else 2 * p - 1
     ab = np.zeros((u + 1, n, p))
     for d in range(p):  # inside the diagonal blocks: A[ip+k, ip+k+d]
         ab[u - d, :, d:] = np.diagonal(diag, offset=d, axis1=1, axis2=2)
@@ -515,6 +568,14 @@ def _banded(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
                 ab[u - s, 1:, o:] = vals
             else:
                 ab[u - s, 1:, : p + o] = vals
+    if second:
+        for s in range(p + 1, 3 * p):  # block (i, i+2): A[ip+a, (i+2)p+b] with 2p+b-a = s
+            o = s - 2 * p
+            vals = np.diagonal(off2, offset=o, axis1=1, axis2=2)
+            if o >= 0:
+                ab[u - s, 2:, o:] = vals
+            else:
+                ab[u - s, 2:, : p + o] = vals
     return ab.reshape(u + 1, n * p)
 
 
@@ -669,9 +730,9 @@ def refine(
     log = []
     for it in range(1, iterations + 1):
         m = kin.jacobian(u)
-        diag, off, grad = _assemble(problem, m, hd, gx, wt, ang, mod, fixed)
+        diag, off, off2, grad = _assemble(problem, m, hd, gx, wt, ang, mod, fixed)
         dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
-        ab0 = _banded(diag, off)
+        ab0 = _banded(diag, off, off2)
         g = grad.reshape(-1)
         accepted = False
         tries = 0

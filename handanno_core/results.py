@@ -8,12 +8,26 @@ written whole (:func:`handanno_core.fileio.atomic_save_npz`) by
 
 from __future__ import annotations
 
+from enum import IntEnum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from .session import Session
+
 RESULTS_FILE = "results.npz"
 RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence")
+
+
+class Stage(IntEnum):
+    """The best stage a frame's joints come from (``handanno_core.export.best_joints``)."""
+
+    NONE = 0
+    LIFTED = 1  # lifted_mm: a reference lifted from its 2D/3D annotation
+    PROPAGATED = 2  # init_mm: propagated from its parent in the reference forest
+    REFINED = 3  # final_mm: after global refinement
 
 
 class ResultsError(ValueError):
@@ -53,3 +67,21 @@ def read_results(path: str | Path, frames: int, joints: int) -> dict[str, np.nda
                 f"{path}: {key} has shape {value.shape}, expected {expected} for this session; {hint}"
             )
     return out
+
+
+def update_lifted(
+    session: Session, lifted: dict[int, tuple[np.ndarray, np.ndarray | None]]
+) -> None:
+    """Write ``{frame: (joints (J, 3) mm, confidence (J,) or None)}`` into ``lifted_mm`` /
+    ``confidence`` of ``session``'s results: one read-modify-write under the session lock, so a
+    concurrent save (the review runner's, the lift worker's) is never overwritten with stale
+    arrays."""
+    if not lifted:
+        return
+    with session.lock:
+        current = session.load_results()
+        lifted_mm, conf = current["lifted_mm"], current["confidence"]
+        for frame, (joints, confidence) in lifted.items():
+            lifted_mm[frame] = joints
+            conf[frame] = 1.0 if confidence is None else confidence
+        session.save_results(lifted_mm=lifted_mm, confidence=conf)

@@ -10,11 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.annotate_state import AnnotateState, entry_frame
-from app.frames import FrameStore
-from app.geometry import MAX_CLOUD_POINTS, build_frame_geometry, colormap
-from app.hotkeys import HOTKEYS, REVIEW_HOTKEYS, bind, bind_all, hotkey_table_markdown
-from app.worker import LiftWorker
+from app.control.annotate import AnnotateState
+from app.control.events import entry_frame
+from app.control.frames import FrameStore
+from app.control.geometry import MAX_CLOUD_POINTS, build_frame_geometry, colormap
+from app.control.jobs import LiftWorker
+from app.ui.hotkeys import HOTKEYS, REVIEW_HOTKEYS, bind, bind_all, hotkey_table_markdown
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.datasets import write_msra_frame
 from handanno_core.session import DatasetSpec, Session
@@ -307,7 +308,7 @@ def test_worker_reports_errors_without_dying(session):
 
 
 def test_worker_without_lift_module_is_unavailable(session, monkeypatch):
-    import app.worker as w
+    import app.control.jobs as w
 
     monkeypatch.setattr(w, "default_lift_function", lambda: None)
     worker = LiftWorker(session, FrameStore(session))
@@ -400,7 +401,7 @@ def test_worker_forget_keeps_replaced_lifts_on_disk(session):
 def test_runner_lifts_first_when_the_session_has_no_bone_lengths(session):
     """A full run on a browser-annotated session (no bone lengths) lifts all references first,
     with progress; "lift all" alone does only that; a lift error fails the job with its text."""
-    from app.review_state import ReviewRunner
+    from app.control.jobs import ReviewRunner
     from handanno_core.session import SessionError
 
     calls, phases = [], []
@@ -451,7 +452,7 @@ def test_runner_lifts_first_when_the_session_has_no_bone_lengths(session):
 def test_busy_port_is_an_error_naming_the_port(tmp_path):
     import socket
 
-    from app.server import PortInUseError, serve
+    from app.ui.server import PortInUseError, serve
 
     s = make_session(tmp_path)
     s.close()
@@ -468,7 +469,7 @@ def test_busy_port_is_an_error_naming_the_port(tmp_path):
 
 
 def test_keyboard_shim_blocks_every_viser_camera_key():
-    from app.server import CAMERA_KEYS, KEYBOARD_SHIM
+    from app.ui.hotkeys import CAMERA_KEYS, KEYBOARD_SHIM
 
     assert KEYBOARD_SHIM.startswith("<img") and 'onerror="' in KEYBOARD_SHIM
     assert all(f"&quot;{code}&quot;" in KEYBOARD_SHIM for code in CAMERA_KEYS)

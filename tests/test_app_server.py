@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 from test_app_core import fake_lift, make_session
 
-from app import server as app_server
-from app.server import AnnoServer, serve
+from app.ui import server as app_server
+from app.ui.server import serve
 from handanno_core.session import SetJoint2D
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,7 +25,7 @@ def free_port() -> int:
 
 def run_server_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "app.server", *args],
+        [sys.executable, "-m", "app.ui.server", *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -69,11 +69,6 @@ def test_serve_prints_url_and_relifts_edits(tmp_path, capsys):
     finally:
         app.stop()
     assert np.isfinite(app.session.load_results()["lifted_mm"][5]).all()
-
-
-def test_views_are_registered_per_tab():
-    labels = [label for label, _ in AnnoServer.view_classes]
-    assert labels[0] == "Annotate"
 
 
 def test_demo_creates_then_serves(tmp_path, monkeypatch):

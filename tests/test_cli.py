@@ -132,10 +132,10 @@ def test_bad_input_gives_clear_errors(tmp_path, capsys):
 
 
 def test_demo_creates_the_session_once_and_serves_it(tmp_path, monkeypatch):
-    import app.server
+    import app.ui.server
 
     served = []
-    monkeypatch.setattr(app.server, "serve", lambda folder, **kw: served.append((folder, kw)))
+    monkeypatch.setattr(app.ui.server, "serve", lambda folder, **kw: served.append((folder, kw)))
     argv = ["--sessions-dir", str(tmp_path), "demo", "--frames", "40", "--port", "8123"]
     assert main(argv) == 0
     folder, kw = served[0]

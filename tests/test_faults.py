@@ -203,7 +203,7 @@ def test_second_writer_is_refused_with_the_owner_pid_and_a_dead_owner_is_taken_o
         info = subprocess.run([*cli, "info", "s"], env=ENV, capture_output=True, text=True)
         assert info.returncode == 0, info.stderr
         # the server refuses to start, before binding a port
-        from app.server import serve
+        from app.ui.server import serve
 
         with pytest.raises(SessionLockedError, match=f"PID {holder.pid}"):
             serve(folder, port=0, block=False)
@@ -353,7 +353,7 @@ def test_kill_during_cli_refine_leaves_results_and_journal_as_they_were(propagat
 APP_REFINE = r"""
 import sys, time
 import numpy as np
-from app.review_state import ReviewRunner
+from app.control.jobs import ReviewRunner
 from handanno_core.session import Session
 session = Session.open(sys.argv[1], writer="handanno serve s")
 def refine_then_hang(session, progress=None):

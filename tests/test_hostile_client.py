@@ -2,7 +2,7 @@
 
 * a ``ShareUrlRequest`` is refused: no tunnel object, no child process;
 * a flood of 3000 clicks from one client leaves another client's panel built, and its own click
-  answered, within 2 s (the per-client rate limit of app/guard.py coalesces the flood);
+  answered, within 2 s (the per-client rate limit of app/ui/guard.py coalesces the flood);
 * an upload declaring more than the cap is refused before a byte is buffered (the browser is told
   why), and a half-sent upload is freed when its client disconnects.
 """
@@ -23,8 +23,8 @@ from test_app_core import fake_lift, make_session
 from test_app_server import free_port
 from viser import _messages
 
-from app.guard import MAX_UPLOAD_BYTES
-from app.server import serve
+from app.ui.guard import MAX_UPLOAD_BYTES
+from app.ui.server import serve
 from handanno_core.export import import_json
 from handanno_core.session import SessionError
 

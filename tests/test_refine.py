@@ -95,7 +95,7 @@ def test_recovers_ground_truth_energy_monotone_and_bones_exact(scene):
     lengths = MSRA21.bone_lengths(res.joints_mm)
     assert np.max(np.abs(lengths - scene["bones"])) < 0.5
     assert res.bone_violation_max_mm < 0.5
-    assert set(res.terms) >= {"appearance", "temporal", "reprojection", "depth_band", "angle"}
+    assert set(res.terms) >= {"appearance", "acceleration", "reprojection", "depth_band", "angle"}
 
 
 def test_perturbed_init_violating_bones_is_projected(scene):
@@ -163,10 +163,16 @@ def _two_segment_problem(jump_mm: float = 120.0, n_half: int = 10):
     return gt, init, kwargs
 
 
-def test_temporal_term_does_not_cross_sequence_breaks():
+@pytest.mark.parametrize(
+    "term, w",
+    [
+        ("temporal", RefineWeights(temporal=5.0, temporal_huber_mm=200.0, acceleration=0.0)),
+        ("acceleration", RefineWeights(acceleration=5.0, acceleration_huber_mm=200.0)),
+    ],
+)
+def test_temporal_terms_do_not_cross_sequence_breaks(term, w):
     gt, init, kwargs = _two_segment_problem()
     n_half = len(gt) // 2
-    w = RefineWeights(temporal=5.0, temporal_huber_mm=200.0)
     # without the hand model: its motion-adaptive temporal weight would also let the jump survive
     kwargs["hand_model"] = False
     cut = refine(init, sequence_breaks=[n_half], weights=w, iterations=30, **kwargs)
@@ -177,23 +183,55 @@ def test_temporal_term_does_not_cross_sequence_breaks():
     assert np.linalg.norm(cut.joints_mm - gt, axis=-1).mean() < 4.0
     # ... while the same problem without the break smooths across it (the test can fail)
     assert gap(joined.joints_mm) < 100.0
-    assert cut.terms["temporal"] < joined.terms["temporal"]
+    assert cut.terms[term] < joined.terms[term]
 
 
-def test_banded_storage_matches_dense():
+def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
+    """A hand moving 12 mm/frame with references only in the middle: the constant-velocity prior
+    leaves the motion before and after them alone, a velocity prior drags those frames towards
+    the references' poses (what made refinement worse than its start on real fast motion)."""
+    gt, _, kwargs = _two_segment_problem(jump_mm=0.0, n_half=12)
+    n = len(gt)
+    gt = gt + (np.arange(n) - n / 2)[:, None, None] * np.array([12.0, 0.0, 0.0])
+    refs = np.array([10, 14])
+    depth = np.zeros((MSRA_CAMERA.height, MSRA_CAMERA.width), np.float32)
+    kwargs["crops"] = np.ones((n, 32, 32), np.float16)
+    kwargs["centres_mm"] = gt[:, 0] + np.array([0.0, -50.0, 0.0])
+    kwargs["boxes"] = crop_boxes(kwargs["centres_mm"], MSRA_CAMERA, size=32)
+    kwargs["reference_frames"] = refs
+    kwargs["reference_annotations"] = {
+        int(r): simulate_annotation(gt[r], depth, MSRA_CAMERA, MSRA21) for r in refs
+    }
+    kwargs["closest_reference"] = np.where(np.arange(n) < 12, 10, 14)
+    kwargs["hand_model"] = False
+    err = lambda x: np.linalg.norm(x - gt, axis=-1).mean()  # noqa: E731
+    acc = refine(gt, weights=RefineWeights(), iterations=30, **kwargs)
+    vel = refine(gt, weights=RefineWeights(temporal=1.0, acceleration=0.0), iterations=30, **kwargs)
+    assert acc.terms["acceleration"] < 1e-6
+    assert err(acc.joints_mm) < 0.5
+    assert err(vel.joints_mm) > 5.0 * max(err(acc.joints_mm), 0.5)
+
+
+@pytest.mark.parametrize("second", [False, True])
+def test_banded_storage_matches_dense(second):
     rng = np.random.default_rng(1)
-    n, p = 4, 3
+    n, p = 5, 3
     diag = rng.normal(size=(n, p, p))
     diag = diag + diag.transpose(0, 2, 1)
     off = rng.normal(size=(n - 1, p, p))
+    off2 = rng.normal(size=(n - 2, p, p)) if second else None
     dense = np.zeros((n * p, n * p))
     for i in range(n):
         dense[i * p : (i + 1) * p, i * p : (i + 1) * p] = diag[i]
     for i in range(n - 1):
         dense[i * p : (i + 1) * p, (i + 1) * p : (i + 2) * p] = off[i]
         dense[(i + 1) * p : (i + 2) * p, i * p : (i + 1) * p] = off[i].T
-    ab = _banded(diag, off)
-    u = 2 * p - 1
+    for i in range(n - 2 if second else 0):
+        dense[i * p : (i + 1) * p, (i + 2) * p : (i + 3) * p] = off2[i]
+        dense[(i + 2) * p : (i + 3) * p, i * p : (i + 1) * p] = off2[i].T
+    ab = _banded(diag, off, off2)
+    u = (3 if second else 2) * p - 1
+    assert ab.shape == (u + 1, n * p)
     rebuilt = np.zeros_like(dense)
     for c in range(n * p):
         for r in range(max(0, c - u), c + 1):

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from review_session import build_review_session
 
-from app.review_state import (
+from app.control.jobs import PARTIAL_FILE, ReviewRunner
+from app.control.live import LiveResults
+from handanno_core.camera import CameraIntrinsics
+from handanno_core.review import (
     OFF_HAND_MM,
-    PARTIAL_FILE,
-    LiveResults,
-    ReviewRunner,
     bone_anomaly,
     correction_command,
     depth_residuals,
@@ -25,7 +25,6 @@ from app.review_state import (
     temporal_jump,
     worst_order,
 )
-from handanno_core.camera import CameraIntrinsics
 from handanno_core.session import (
     JOURNAL_FILE,
     RESULTS_FILE,

@@ -279,6 +279,24 @@ def test_single_dataset_keeps_todays_json(monkeypatch, tmp_path):
     assert not (tmp_path / "b.datasets").exists()
 
 
+def test_bench_over_datasets_keeps_one_work_folder_per_dataset(monkeypatch, tmp_path):
+    seen = []
+
+    def fake(dataset, **kwargs):
+        seen.append(kwargs.get("work_dir"))
+        return {"dataset": str(dataset), "frames": 1, "runs": []}
+
+    monkeypatch.setattr(bench, "run_bench", fake)
+    bench.run_bench_datasets(
+        [tmp_path / "a", tmp_path / "b"],
+        json_out=tmp_path / "b.json",
+        work_dir=tmp_path / "work",
+        quiet=True,
+    )
+    # a shared folder would leave only the last dataset's sessions to inspect
+    assert seen == [tmp_path / "work" / "a", tmp_path / "work" / "b"]
+
+
 @pytest.mark.slow
 def test_bench_over_two_datasets_end_to_end(tmp_path):
     paths = []

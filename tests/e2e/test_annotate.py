@@ -38,7 +38,7 @@ from viser_helpers import (
     wait_until,
 )
 
-from app.server import AnnoServer, serve
+from app.ui.server import AnnoServer, serve
 from handanno_core.session import Session
 
 
@@ -55,7 +55,7 @@ class Ctx:
 
     @property
     def view(self):
-        views = self.app.annotate_views()
+        views = self.app.annotate_panels()
         assert len(views) == 1, f"expected one connected browser, got {len(views)}"
         return views[0]
 
@@ -69,19 +69,19 @@ class Ctx:
         view = self.view
         view.flush()
         sync_browser(self.page, view.client)
-        for handle in (view.joints, view.handles2d, view.image):
+        for handle in (view.hand.joints, view.hand.handles2d, view.hand.image):
             wait_drawn(self.page, handle)
         wait_camera_still(self.page)
 
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""
-        geo = self.view._frame_data.geometry
-        return screen_of(self.page, "/annotate", geo.pixel_to_scene(np.asarray(uv, float)))
+        geo = self.view.frame_data.geometry
+        return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def joint_point(self, k: int) -> tuple[float, float]:
         """Page position of joint ``k``'s sphere where the browser draws it."""
         return screen_of(
-            self.page, "/annotate/joints", drawn(self.page, "/annotate/joints")["instances"][k]
+            self.page, "/hand/joints", drawn(self.page, "/hand/joints")["instances"][k]
         )
 
     def click_image(self, uv) -> None:
@@ -94,7 +94,7 @@ def ctx(session_folder):
     try:
         with browser() as b:
             page = open_app(b, app.url)
-            wait_until(lambda: app.annotate_views(), what="the view of the browser")
+            wait_until(lambda: app.annotate_panels(), what="the view of the browser")
             ctx = Ctx(app, page, session_folder)
             ctx.settle()
             yield ctx
@@ -104,10 +104,10 @@ def ctx(session_folder):
 
 def hand_pixels(ctx: Ctx) -> tuple[np.ndarray, np.ndarray]:
     """Two pixels on the hand: its centre and one 25 px to the side that has depth."""
-    geo = ctx.view._frame_data.geometry
+    geo = ctx.view.frame_data.geometry
     cam = ctx.app.session.camera
     centre = cam.project(geo.centre_mm)
-    depth = ctx.view._frame_data.depth
+    depth = ctx.view.frame_data.depth
     for du in (25, -25, 0):
         for dv in (0, 20, -20):
             uv = np.round(centre + (du, dv))
@@ -147,10 +147,10 @@ def test_annotate_flow(ctx: Ctx):
     # it (these two clicks are no hand, so the lift does not reproject exactly onto them), 25 px
     # to the right: the 2D position moves by the drag, not to the point where the ring was grabbed.
     def ring_band() -> tuple[float, float]:
-        ring = drawn(page, "/annotate/handles2d")["instances"][1]
-        centre = np.asarray(screen_of(page, "/annotate/handles2d", ring))
-        outer_m = float(view.handles2d.batched_scales[1])
-        edge = screen_of(page, "/annotate/handles2d", ring + [outer_m, 0, 0])
+        ring = drawn(page, "/hand/handles2d")["instances"][1]
+        centre = np.asarray(screen_of(page, "/hand/handles2d", ring))
+        outer_m = float(view.hand.handles2d.batched_scales[1])
+        edge = screen_of(page, "/hand/handles2d", ring + [outer_m, 0, 0])
         outer = np.linalg.norm(np.asarray(edge) - centre)
         away = centre - np.asarray(ctx.joint_point(1))
         away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
@@ -173,7 +173,7 @@ def test_annotate_flow(ctx: Ctx):
 
     def settle_and_remember() -> None:
         ctx.settle()  # the lift moves the joint spheres
-        before["xyz"] = view._joint_positions_mm()[0].copy()
+        before["xyz"] = view.joint_positions_mm()[0].copy()
 
     drag_gesture(page, lambda: ctx.joint_point(0), (60, 0), settle=settle_and_remember)
     entries = wait_until(
@@ -265,7 +265,7 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx, tmp_path):
     gt = seq.ground_truth.joints_mm[frame]
     err = np.linalg.norm(view._lifted.joints_mm - gt, axis=1)
     assert np.median(err) < 15.0, f"lifted skeleton far from ground truth: {err}"
-    view.reset_camera()  # as the "Sensor view" button does
+    view.hand.reset_camera()  # as the "Sensor view" button does
     ctx.settle()
     close_notifications(ctx.page)
     shot = readme_screenshot(ctx.page, "annotate.png", tmp_path)
@@ -274,8 +274,8 @@ def test_other_client_edit_refreshes_and_screenshot(ctx: Ctx, tmp_path):
 
 def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
     """A frame whose depth cannot be read shows a message in the page; the view keeps working."""
-    from app.frames import FrameData
-    from app.geometry import empty_geometry
+    from app.control.frames import FrameData
+    from app.control.geometry import empty_geometry
 
     app, view, page = ctx.app, ctx.view, ctx.page
     real_get = app.frames.get
@@ -290,15 +290,20 @@ def test_frame_without_depth_shows_message(ctx: Ctx, monkeypatch):
     view.go_to_index(view.state.frames.index(20))
     view.flush()
     wait_until(lambda: page.get_by_text("⚠ frame 20: no depth").is_visible(), what="the message")
+    # the lift status is about the shown frame (or empty), never the previous frame's lift
+    lift_text = view.w.lift_md.content
+    assert lift_text == "" or "frame 20" in lift_text, lift_text
     assert (
-        view.click_image(view._frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0]))
+        view.clicks.on_image_click(
+            view.frame_data.geometry.sensor_position, np.array([0.0, 0.0, 1.0])
+        )
         is None
     )
     view.go_to_index(view.state.frames.index(30))  # and the next frame is fine again
     wait_until(
         lambda: not page.get_by_text("⚠ frame 20: no depth").is_visible(), what="message gone"
     )
-    assert view._frame_data.depth is not None
+    assert view.frame_data.depth is not None
 
 
 def test_undo_survives_a_page_reload(ctx: Ctx):
@@ -314,14 +319,16 @@ def test_undo_survives_a_page_reload(ctx: Ctx):
     edit = journal(folder)[-1]
     assert edit["command"]["kind"] == "set_visible" and edit["client"].startswith("browser-")
     page.reload()
-    wait_for_node(page, "/annotate/joints")
+    wait_for_node(page, "/hand/joints")
     dismiss_webgl_toast(page)
     wait_until(
-        lambda: (views := ctx.app.annotate_views()) and views[0] is not old and len(views) == 1,
+        lambda: (views := ctx.app.annotate_panels()) and views[0] is not old and len(views) == 1,
         what="the reloaded page's view",
     )
     new = ctx.view
     assert new.state.client == edit["client"]
+    # the reloaded page says its earlier edits are saved (not "no edits yet")
+    wait_until(lambda: "undo available" in new.w.saved_md.content, what="the saved status")
     ctx.settle()  # the page has the new view's hotkey bindings
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("Control+z")

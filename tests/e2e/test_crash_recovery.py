@@ -23,18 +23,19 @@ from viser_helpers import (
     wait_until,
 )
 
-from app.frames import FrameStore
+from app.control.frames import FrameStore
+from app.ui.watchdog import GONE_TITLE
 from handanno_core.session import Session
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def start_server(folder: Path, port: int, log: Path) -> subprocess.Popen:
-    """``python -m app.server`` on ``port``, its output into ``log`` (a pipe nobody reads could
+    """``python -m app.ui.server`` on ``port``, its output into ``log`` (a pipe nobody reads could
     fill up and block the server); returns once it answers HTTP."""
     with open(log, "ab") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "app.server", str(folder), "--port", str(port)],
+            [sys.executable, "-m", "app.ui.server", str(folder), "--port", str(port)],
             cwd=REPO,
             stdout=out,
             stderr=subprocess.STDOUT,
@@ -60,7 +61,7 @@ def wait_sensor_view(page, geo, camera) -> None:
     fov_deg = float(np.degrees(2.0 * np.arctan(camera.height / 2.0 / camera.fy)))
     wait_until(
         lambda: (
-            (d := drawn(page, "/annotate/image")) is not None
+            (d := drawn(page, "/hand/image")) is not None
             and np.allclose(d["position"], geo.image_position, atol=1e-5)
             and abs(camera_state(page)[7] - fov_deg) < 1e-3
         ),
@@ -82,7 +83,7 @@ def test_sigkill_loses_no_acknowledged_edit(session_folder: Path, tmp_path: Path
             page = open_app(b, f"http://127.0.0.1:{port}/")
             click_gesture(  # the wrist, 2D
                 page,
-                lambda: screen_of(page, "/annotate", geo.pixel_to_scene(uv)),
+                lambda: screen_of(page, "/hand", geo.pixel_to_scene(uv)),
                 settle=lambda: wait_sensor_view(page, geo, camera),
             )
             wait_until(lambda: page.get_by_text("(edit #1)").is_visible(), what="saved #1")
@@ -93,10 +94,15 @@ def test_sigkill_loses_no_acknowledged_edit(session_folder: Path, tmp_path: Path
             os.kill(proc.pid, signal.SIGKILL)  # no chance to snapshot or close anything
             proc.wait(90)
             assert proc.returncode == -signal.SIGKILL
+            # the page says so, clearly, instead of looking alive
+            banner = page.locator("#handanno-server-gone")
+            banner.wait_for(timeout=30_000)
+            assert GONE_TITLE in banner.inner_text() and "saved" in banner.inner_text()
             kinds = [e["command"]["kind"] for e in journal(session_folder)]
             assert kinds == ["set_2d", "set_visible", "set_depth_order"]
 
             proc = start_server(session_folder, port, log)  # the restart replays the journal
+            wait_until(lambda: "reload this page" in banner.inner_text(), what="'server back'")
             reopened = Session.open(session_folder)
             ann = reopened.annotation(0)
             assert np.allclose(ann.uv_px[0], uv, atol=1.5)

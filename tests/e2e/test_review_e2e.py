@@ -34,8 +34,8 @@ from viser_helpers import (
     wait_until,
 )
 
-from app.review_state import next_worst
-from app.server import AnnoServer, serve
+from app.control.review import ReviewState
+from app.ui.server import AnnoServer, serve
 from handanno_core.session import JOURNAL_FILE, Session
 
 
@@ -91,7 +91,7 @@ class Ctx:
 
     def view(self, index: int = 0):
         views = sorted(
-            (v["Review"] for v in self.app.views.values() if "Review" in v),
+            self.app.review_panels(),
             key=lambda v: v.client.client_id,
         )
         return views[index]
@@ -99,29 +99,32 @@ class Ctx:
     def settle(self, page, view) -> None:
         """Wait until the review scene of ``page`` holds still: no job queued or running, the
         views re-rendered after the last one, the browser drawing what the server has."""
-        runner = self.app.review_hub.runner
+        runner = self.app.ctx.runner
         wait_until(
             lambda: runner.wait_idle(0.5) and len(self.finished) >= len(runner.history),
             what="the review runner to finish and the views to redraw",
         )
         sync_browser(page, view.client)
-        wait_drawn(page, view.joints)
+        wait_drawn(page, view.hand.joints)
         wait_camera_still(page)
 
 
 @pytest.fixture(scope="module")
 def ctx(synthetic_data, tmp_path_factory):
     folder = build_review_session(tmp_path_factory.mktemp("e2e-review") / "sess", synthetic_data)
-    app = serve(folder, port=free_port(), block=False, lift_fn=FastLift())
-    app.review_runner_kwargs = {"propagate_fn": slowed_propagate(0.12), "debounce_s": 0.3}
+    app = serve(
+        folder,
+        port=free_port(),
+        block=False,
+        lift_fn=FastLift(),
+        review_options={"propagate_fn": slowed_propagate(0.12), "debounce_s": 0.3},
+    )
     try:
         with browser() as b:
             page = open_app(b, app.url)
-            wait_until(
-                lambda: any("Review" in v for v in app.views.values()), what="the review view"
-            )
+            wait_until(lambda: app.review_panels(), what="the review view")
             finished = []
-            app.review_hub.runner.listeners.append(
+            app.ctx.runner.listeners.append(
                 lambda event, runner, frame: finished.append(frame) if event == "finished" else None
             )
             open_review_tab(page)
@@ -210,12 +213,18 @@ def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
     page, view, folder = ctx.page, ctx.view(), ctx.folder
     before = Session.open(folder).load_results()
     assert np.isfinite(before["init_mm"][15]).all(), "needs the previous test's run"
-    scores = view.live.scores().score
     refs = set(range(0, 40, STEP))
-    expected = next_worst(scores, view.frame, refs)
+    probe = ReviewState(view.session, view.live, view.runner, "probe")  # the walk, headless
+    probe.walked = list(view.state.walked)
+    expected = probe.next_worst()
     page.get_by_role("button", name="Next worst frame").click()
     wait_until(lambda: view.frame == expected, what=f"the worst frame {expected}")
     frame = view.frame
+    # the shown frame is one marker point on the priority plot (no line that looks like data)
+    wait_until(
+        lambda: np.flatnonzero(np.isfinite(view.w.plot.data[2])).tolist() == [frame],
+        what="the plot's marker on the shown frame",
+    )
     assert frame not in refs
     wait_until(
         lambda: page.get_by_text(f"Review frame {frame} (").is_visible(), what="the frame text"
@@ -275,9 +284,9 @@ def test_worst_frame_fix_becomes_reference_and_only_dependents_change(ctx: Ctx):
 def pick_joint(page, view, k: int | None = None) -> tuple[int, tuple[float, float]]:
     """The joint farthest (on screen) from every other joint (or joint ``k``), and its page
     position, where the browser draws it."""
-    shown = np.asarray(view.joints.batched_scales) > 0
+    shown = np.asarray(view.hand.joints.batched_scales) > 0
     pts = np.array(
-        [screen_of(page, "/review/joints", p) for p in drawn(page, "/review/joints")["instances"]]
+        [screen_of(page, "/hand/joints", p) for p in drawn(page, "/hand/joints")["instances"]]
     )
     pts[~shown] = 1e6
     d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
@@ -292,13 +301,13 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
     try:
         open_review_tab(page_b)
         wait_until(
-            lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 2,
+            lambda: len(ctx.app.review_panels()) == 2,
             what="second view",
         )
         view_a, view_b = ctx.view(0), ctx.view(1)
         frame = 24  # a propagated frame both pages go to via the slider... set from the server side
         for page, view in ((page_a, view_a), (page_b, view_b)):
-            view.activate_scene()
+            view.ui.show("review")
             view.show_frame(frame)
             wait_until(
                 lambda p=page: p.get_by_text(f"Review frame {frame} (").is_visible(),
@@ -341,13 +350,11 @@ def test_two_pages_edit_the_same_frame_and_nothing_is_lost(ctx: Ctx):
         assert np.allclose(ann.xyz_mm[other], np.asarray(a_seed["xyz_mm"], float)[other], atol=0.01)
         assert frame in reopened.model.corrections
         reopened.close()
-        wait_until(
-            lambda: ctx.app.review_hub.runner.wait_idle(0.1), timeout_s=120, what="re-propagation"
-        )
+        wait_until(lambda: ctx.app.ctx.runner.wait_idle(0.1), timeout_s=120, what="re-propagation")
     finally:
         page_b.close()
         wait_until(
-            lambda: len([v for v in ctx.app.views.values() if "Review" in v]) == 1,
+            lambda: len(ctx.app.review_panels()) == 1,
             what="page B gone",
         )
 
@@ -404,8 +411,8 @@ def test_annotate_hotkeys_pause_while_the_review_scene_is_shown(ctx: Ctx):
     """viser's hotkeys are page-wide: with the Review scene shown, V or arrow keys must not edit
     or move the hidden annotate frame. Using the Annotate panel brings its scene (and keys) back."""
     page, view, folder = ctx.page, ctx.view(), ctx.folder
-    annotate = ctx.app.views[view.client.client_id]["Annotate"]
-    view.activate_scene()
+    annotate = view.ui.annotate
+    view.ui.show("review")
     assert view.scene_active
     joint, entries = annotate.state.joint, len(journal(folder))
     shown = len(notifications_seen(page))
@@ -423,3 +430,23 @@ def test_annotate_hotkeys_pause_while_the_review_scene_is_shown(ctx: Ctx):
     # the keys pressed before reached the server before this one, and did nothing
     assert annotate.state.joint == joint + 1 and len(journal(folder)) == entries
     page.get_by_role("tab", name="Review").click()
+
+
+def test_review_scene_shows_labels_and_the_depth_image(ctx: Ctx):
+    """Issue 15: the Review scene can show the joint labels and the depth image (both off by
+    default: the cloud and the skeleton are what a reviewer checks)."""
+    page, view = ctx.page, ctx.view()
+    page.get_by_role("tab", name="Review").click()
+    page.get_by_role("button", name="Next worst frame").click()
+    wait_until(lambda: view.scene_active, what="the review scene")
+    view.ui.flush()
+    hand = view.hand
+    assert not hand.image.visible and not any(label.visible for label in hand.labels)
+    page.get_by_role("checkbox", name="Show labels").check()
+    page.get_by_role("checkbox", name="Show depth image").check()
+    shown = np.all(np.isfinite(view.live.frame(view.frame)[0]), axis=1)
+    wait_until(
+        lambda: hand.image.visible and all(hand.labels[k].visible for k in np.flatnonzero(shown)),
+        what="labels and depth image on the review scene",
+    )
+    assert shown.any()

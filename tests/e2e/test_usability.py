@@ -35,7 +35,7 @@ from viser_helpers import (
     wait_until,
 )
 
-from app.server import AnnoServer, serve
+from app.ui.server import AnnoServer, serve
 
 REPO = Path(__file__).resolve().parents[2]
 THUMB_IP, THUMB_TIP = 19, 20
@@ -66,7 +66,7 @@ class Ctx:
 
     @property
     def view(self):
-        views = self.app.annotate_views()
+        views = self.app.annotate_panels()
         assert len(views) == 1, f"expected one connected browser, got {len(views)}"
         return views[0]
 
@@ -76,12 +76,12 @@ class Ctx:
 
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""
-        geo = self.view._frame_data.geometry
-        return screen_of(self.page, "/annotate", geo.pixel_to_scene(np.asarray(uv, float)))
+        geo = self.view.frame_data.geometry
+        return screen_of(self.page, "/hand", geo.pixel_to_scene(np.asarray(uv, float)))
 
     def drawn_point(self, node: str, k: int) -> tuple[float, float]:
         """Page position of joint ``k`` as drawn in ``node`` (joints or guesses)."""
-        return screen_of(self.page, node, self.view._joint_positions_scene()[k])
+        return screen_of(self.page, node, self.view.joint_positions_scene()[k])
 
     def edits(self, kind: str | None = None, since: int = 0) -> list[dict]:
         """Journal entries after index ``since`` (of one command kind)."""
@@ -139,8 +139,8 @@ def ctx(session_folder):
     try:
         with browser() as b:
             page = open_app(b, app.url)
-            wait_until(lambda: app.annotate_views(), what="the view of the browser")
-            app.annotate_views()[0].flush()
+            wait_until(lambda: app.annotate_panels(), what="the view of the browser")
+            app.annotate_panels()[0].flush()
             wait_camera_still(page)
             yield Ctx(app, page, session_folder, gt)
     finally:
@@ -169,11 +169,13 @@ def annotate_by_clicks(ctx: Ctx, frame: int) -> list[dict]:
         if k > 0:
             # the live lift's guess of joint k is drawn (small, not clickable) right there
             wait_until(
-                lambda k=k: view.guesses.batched_scales[k] > 0 and not view._annotation.has_2d[k],
+                lambda k=k: (
+                    view.hand.guesses.batched_scales[k] > 0 and not view._annotation.has_2d[k]
+                ),
                 what=f"the guess of joint {k}",
             )
             view.flush()
-            assert np.allclose(ctx.drawn_point("/annotate/guesses", k), target, atol=1.0)
+            assert np.allclose(ctx.drawn_point("/hand/guesses", k), target, atol=1.0)
         page.mouse.click(*target)
         wait_until(
             lambda k=k: len(ctx.edits("set_2d", since=start)) == k + 1,
@@ -195,9 +197,9 @@ def test_clicks_on_guessed_joints_place_the_selected_joint(ctx: Ctx):
     err = np.linalg.norm(uv - ctx.gt_uv(frame), axis=1)
     assert err.max() < 1.5, f"2D placements off the clicked pixels by {err.max():.2f} px"
     # guesses look different from placed joints: smaller, and faded
-    wait_until(lambda: not np.any(view.guesses.batched_scales), what="no guess left")
-    assert np.all(view.joints.batched_scales > 0)  # every joint placed
-    assert float(np.max(view.guesses.batched_opacities)) < 0.5
+    wait_until(lambda: not np.any(view.hand.guesses.batched_scales), what="no guess left")
+    assert np.all(view.hand.joints.batched_scales > 0)  # every joint placed
+    assert float(np.max(view.hand.guesses.batched_opacities)) < 0.5
     screenshot(ctx, "annotate.png")
 
 
@@ -211,7 +213,7 @@ def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     assert app.session.model.bone_lengths_mm is None
     page.get_by_role("tab", name="Review").click()
     page.get_by_role("button", name="Propagate & refine").click()
-    runner = app.review_hub.runner
+    runner = app.ctx.runner
     wait_until(
         lambda: (
             runner.status.phase in ("done", "failed", "cancelled") and not runner.status.running
@@ -233,7 +235,7 @@ def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     page.get_by_text("done: ").first.wait_for(timeout=10_000)
     screenshot(ctx, "review.png")
     # review hotkeys on the Review scene: W next worst, A accept (and advance), N next frame
-    review = next(iter(app.review_hub.views))
+    (review,) = app.review_panels()
     wait_until(lambda: review.scene_active, what="the review scene")
     ctx.blur()
     shown = review.frame
@@ -252,7 +254,7 @@ def test_propagate_and_refine_on_a_browser_annotated_session(ctx: Ctx):
     # back to the annotate scene and tab for the next tests
     page.get_by_role("button", name="Show annotate scene").click()
     page.get_by_role("tab", name="Annotate").click()
-    wait_until(lambda: not app.review_hub.views or not list(app.review_hub.views)[0].scene_active)
+    wait_until(lambda: not review.scene_active, what="the annotate scene back")
 
 
 def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
@@ -279,7 +281,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
     view.flush()
 
     start = len(journal(ctx.folder))
-    page.mouse.click(*ctx.drawn_point("/annotate/joints", THUMB_IP))
+    page.mouse.click(*ctx.drawn_point("/hand/joints", THUMB_IP))
     wait_until(lambda: view.state.joint == THUMB_IP, what="thumb_ip selected by its click")
     page.keyboard.press("v")  # an edit on the selected joint: proves the order of events
     wait_until(lambda: ctx.edits(since=start), what="the visibility edit")
@@ -299,7 +301,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
     wait_until(lambda: app.worker.wait_idle(1) and view._stale == {}, what="the re-lift")
     view.flush()
     start = len(journal(ctx.folder))
-    p0 = ctx.drawn_point("/annotate/joints", 0)
+    p0 = ctx.drawn_point("/hand/joints", 0)
     ctx.drag(p0, (p0[0] + 60, p0[1]))
     wait_until(lambda: view.state.joint == 0, what="the wrist selected by the drag")
     page.keyboard.press("v")
@@ -308,7 +310,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
     # ... and dragging it again, now selected, moves it
     view.flush()
     start = len(journal(ctx.folder))
-    p0 = ctx.drawn_point("/annotate/joints", 0)
+    p0 = ctx.drawn_point("/hand/joints", 0)
     ctx.drag(p0, (p0[0] + 60, p0[1]))
     entries = wait_until(lambda: ctx.edits("set_3d", since=start), what="the wrist drag")
     assert entries[0]["command"]["joint"] == 0
@@ -319,7 +321,7 @@ def test_3d_mode_click_on_a_sphere_selects_and_never_moves_it(ctx: Ctx):
 def cloud_pixel_away_from_joints(ctx: Ctx, frame: int, depth: np.ndarray):
     """A hand pixel (with depth) as far as possible from every drawn joint, and its 3D point."""
     cam = ctx.app.session.camera
-    joints_uv = cam.project(ctx.view._display_mm(ctx.view._joint_positions_mm()))
+    joints_uv = cam.project(ctx.view.hand.display_mm(ctx.view.joint_positions_mm()))
     centre = joints_uv.mean(axis=0)
     rows, cols = np.nonzero(depth > 0)
     uv = np.stack([cols, rows], axis=1).astype(np.float64)
@@ -377,6 +379,33 @@ def test_hotkeys_never_move_the_camera(ctx: Ctx):
     start = len(journal(ctx.folder))
     page.keyboard.press("v")
     wait_until(lambda: ctx.edits(since=start), what="a hotkey edit after the number box")
+    # ... or without Enter, a press on the 3D scene leaves the box (viser's canvas keeps focus
+    # where it is otherwise); a right-button press edits nothing
+    box.click()
+    box.press("End")
+    assert page.evaluate("() => document.activeElement.tagName") == "INPUT"
+    canvas = page.locator("canvas").first.bounding_box()
+    page.mouse.click(canvas["x"] + 10, canvas["y"] + canvas["height"] - 10, button="right")
+    assert page.evaluate("() => document.activeElement.tagName") != "INPUT"
+    start = len(journal(ctx.folder))
+    page.keyboard.press("v")
+    wait_until(lambda: ctx.edits(since=start), what="a hotkey edit after a press on the scene")
+
+
+def test_sensor_view_is_square_on(ctx: Ctx):
+    """Issue 15: *Sensor view* looks along the depth camera's optical axis (the image plane is
+    seen square-on, as the sensor sees it), from the sensor position."""
+    page, view = ctx.page, ctx.view
+    page.get_by_role("button", name="Sensor view").click()
+    geo = view.frame_data.geometry
+    cam = view.client.camera
+    wait_until(
+        lambda: np.allclose(cam.position, geo.sensor_position, atol=1e-4),
+        what="the browser camera at the sensor",
+    )
+    wait_camera_still(page)
+    forward = np.asarray(cam.look_at) - np.asarray(cam.position)
+    assert np.allclose(forward / np.linalg.norm(forward), [0.0, 0.0, 1.0], atol=1e-3)
 
 
 def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
@@ -392,7 +421,7 @@ def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
         page.mouse.click(*ctx.image_point(uv[k]))
         wait_until(lambda k=k: len(ctx.edits("set_2d", since=start)) == k + 1, what="2D edit")
         wait_until(lambda k=k: view.state.joint == k + 1, what="auto-advance")
-    wait_until(lambda: view.guesses.batched_scales[5] > 0, what="the guessed skeleton")
+    wait_until(lambda: view.hand.guesses.batched_scales[5] > 0, what="the guessed skeleton")
     ctx.blur()
     for n in (1, 2):
         page.keyboard.press("Control+z")
@@ -403,19 +432,19 @@ def test_undoing_every_joint_clears_the_skeleton(ctx: Ctx):
     wait_until(
         lambda: (
             view._lifted is None
-            and not np.any(view.joints.batched_scales)
-            and not np.any(view.handles2d.batched_scales)
+            and not np.any(view.hand.joints.batched_scales)
+            and not np.any(view.hand.handles2d.batched_scales)
         ),
         what="the skeleton cleared",
     )
     assert view.state.joint == 0  # undo selected the undone joint
     view.flush()
     if view._prefill is None:
-        assert not np.any(view.guesses.batched_scales)
-        assert not any(label.visible for label in view.labels)
+        assert not np.any(view.hand.guesses.batched_scales)
+        assert not any(label.visible for label in view.hand.labels)
     else:  # what is left is the frame's pre-fill, as when it was opened: guesses only
-        drawn = view._frame_data.geometry.to_scene(view._display_mm(view._prefill))
-        assert np.allclose(view.guesses.batched_positions, drawn, atol=1e-4)
+        drawn = view.frame_data.geometry.to_scene(view.hand.display_mm(view._prefill))
+        assert np.allclose(view.hand.guesses.batched_positions, drawn, atol=1e-4)
     start = len(journal(ctx.folder))
     page.mouse.click(*ctx.image_point(uv[5]))
     entries = wait_until(lambda: ctx.edits("set_2d", since=start), what="a 2D edit")
@@ -454,13 +483,13 @@ def test_accept_guesses_places_the_prefill_in_one_undoable_edit(ctx: Ctx):
     nearest frame with joints); G accepts them as ONE journaled edit; Ctrl+Z undoes all of it."""
     app, page, view = ctx.app, ctx.page, ctx.view
     frame = 30
-    if app.prefill(frame) is None:  # run alone: give the session one frame with joints
+    if app.ctx.prefill(frame) is None:  # run alone: give the session one frame with joints
         lifted = app.session.load_results()["lifted_mm"]
         lifted[20] = ctx.gt_mm[20]
         app.session.save_results(lifted_mm=lifted)
     ctx.go_to(frame)
     wait_until(
-        lambda: view._prefill is not None and np.all(view.guesses.batched_scales > 0),
+        lambda: view._prefill is not None and np.all(view.hand.guesses.batched_scales > 0),
         timeout_s=60,
         what="the pre-filled guesses",
     )

@@ -124,7 +124,7 @@ def browser() -> Iterator[object]:
             b.close()
 
 
-def open_app(b, url: str, node: str = "/annotate/joints", timeout_s: float = DEADLINE_S):
+def open_app(b, url: str, node: str = "/hand/joints", timeout_s: float = DEADLINE_S):
     """New 1280x720 page on ``url``, connected and with ``node`` in the scene."""
     page = b.new_page(viewport=VIEWPORT)
     page.add_init_script(_NOTIFICATION_RECORDER)

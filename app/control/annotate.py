@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 
 from handanno_core.annotation import FrameAnnotation
+from handanno_core.camera import CameraIntrinsics
 from handanno_core.session import (
     Batch,
     JournalEntry,
@@ -22,6 +23,9 @@ from handanno_core.session import (
     SetJoint3D,
     SetVisibility,
 )
+from handanno_core.skeleton import Skeleton
+
+from .events import entry_frame
 
 ClickMode = Literal["2d", "3d"]
 #: the order "D" cycles depth order through.
@@ -204,26 +208,64 @@ class AnnotateState:
         return vis, DEPTH_ORDER_TEXT[int(ann.depth_order[self.joint])]
 
 
-def edited_joints(entry: JournalEntry, num_joints: int) -> list[int]:
-    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
-    cmds = [entry.command]
-    if entry.command.get("kind") == "batch":
-        cmds = list(entry.command.get("commands", []))
-    out: set[int] = set()
-    for c in cmds:
-        kind = c.get("kind")
-        if kind in ("set_2d", "set_3d"):
-            out.add(int(c["joint"]))
-        elif kind == "set_frame":
-            out.update(range(num_joints))
-    return sorted(out)
+def display_joints(
+    annotation: FrameAnnotation,
+    camera: CameraIntrinsics,
+    depth: np.ndarray | None,
+    centre_mm: np.ndarray,
+    *,
+    lifted_mm: np.ndarray | None = None,
+    stale: list[int] | tuple[int, ...] = (),
+    prefill_mm: np.ndarray | None = None,
+) -> np.ndarray:
+    """(J, 3) mm where the annotate panel draws each joint; NaN = unknown.
+
+    The lifted joints ``lifted_mm`` (J, 3) (joints in ``stale``, edited after that lift, follow
+    their annotation at once: instant feedback until the next lift), else the pre-fill
+    ``prefill_mm`` for joints not placed; then for every joint still unknown its placed 3D point,
+    else its 2D point on the depth surface ``depth`` (H, W) mm (at the hand centre's depth
+    ``centre_mm[2]`` where the depth has a hole).
+    """
+    ann = annotation
+    out = np.full((len(ann.annotated), 3), np.nan)
+    if lifted_mm is not None:
+        out[:] = lifted_mm
+        stale_placed = [j for j in stale if ann.annotated[j]]
+        out[stale_placed] = np.nan
+    elif prefill_mm is not None:  # before the first lift: the pre-filled pose
+        out[:] = prefill_mm
+        out[ann.annotated] = np.nan  # placed joints are drawn where they were placed
+    missing = ~np.all(np.isfinite(out), axis=1)
+    out[missing & ann.has_3d] = ann.xyz_mm[missing & ann.has_3d]
+    only2d = missing & ~ann.has_3d & ann.has_2d
+    if only2d.any():
+        uv = ann.uv_px[only2d]
+        z = np.full(len(uv), float(centre_mm[2]))
+        if depth is not None:
+            col = np.clip(np.round(uv[:, 0]).astype(int), 0, camera.width - 1)
+            row = np.clip(np.round(uv[:, 1]).astype(int), 0, camera.height - 1)
+            d = depth[row, col]
+            z = np.where(d > 0, d, z)
+        out[only2d] = camera.backproject(uv, z)
+    return out
 
 
-def entry_frame(entry: JournalEntry) -> int:
-    """The frame a journal entry edits (-1 if none)."""
-    from handanno_core.session import parse_command
+def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
+    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
+    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
+    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
+    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
+    from handanno_core.skeleton import MSRA21
+    from handanno_core.synth import (
+        GESTURES,
+        build_hand_model,
+        forward_kinematics,
+        rotation_matrices,
+    )
 
-    try:
-        return int(parse_command(entry.command).frame)
-    except Exception:
-        return -1
+    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
+        return None
+    model = build_hand_model(np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64))
+    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
+    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
+    return hand[0] - hand[0].mean(axis=0) + np.asarray(centre_mm, dtype=np.float64)

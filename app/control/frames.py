@@ -34,6 +34,7 @@ class FrameStore:
         self._cache: OrderedDict[int, FrameData] = OrderedDict()
         self._lock = threading.Lock()
         self._centres = self._load_centres()
+        self._names: list[str] | None = None
 
     def _load_centres(self) -> np.ndarray | None:
         """Hand centres (N,3) mm from the crop cache, if the pipeline computed them."""
@@ -50,6 +51,16 @@ class FrameStore:
         except (OSError, ValueError):
             return None
         return None
+
+    def source_name(self, frame: int) -> str | None:
+        """The dataset's name of ``frame``'s depth file (``sequence.frame_names``, relative to the
+        dataset folder), None where the format names none or the dataset cannot be opened."""
+        if self._names is None:
+            try:
+                self._names = list(self.session.open_sequence().frame_names or [])
+            except Exception:  # SessionError, OSError: the panel simply shows no name
+                self._names = []
+        return self._names[frame] if 0 <= frame < len(self._names) else None
 
     def centre_of(self, frame: int, depth: np.ndarray) -> np.ndarray:
         if self._centres is not None and np.all(np.isfinite(self._centres[frame])):

@@ -7,6 +7,8 @@ changes; the buttons in the panel keep working either way.
 
 from __future__ import annotations
 
+import html
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,7 +38,7 @@ class Hotkey:
         return mod.get(self.modifier, f"{self.modifier} + ") + key
 
 
-#: viser's keyboard camera keys, which the app turns off (app/server.py KEYBOARD_SHIM): the
+#: viser's keyboard camera keys, which the app turns off (KEYBOARD_SHIM below): the
 #: hotkeys D and the arrows would otherwise also move the camera and break the image alignment.
 CAMERA_KEYS_TEXT = "W A S D Q E, ← → ↑ ↓"
 CAMERA_KEYS_NOTE = (
@@ -146,3 +148,38 @@ def hotkey_table_markdown() -> str:
     rows += [f"| {hk.keys_text} | {hk.label} | {hk.description} |" for hk in REVIEW_HOTKEYS]
     rows.append(f"| {CAMERA_KEYS_TEXT} | Camera | {CAMERA_KEYS_NOTE} |")
     return "\n".join(rows)
+
+
+#: viser's own keyboard camera keys (``CAMERA_MOVEMENT_KEYS`` in its client, 1.1.x), by
+#: ``KeyboardEvent.code``. viser 1.1 has no setting to turn them off (viser issue #366), and the
+#: app's hotkeys D and arrows would move the camera and break the image alignment.
+CAMERA_KEYS = ("KeyW", "KeyA", "KeyS", "KeyD", "KeyQ", "KeyE") + tuple(
+    f"Arrow{d}" for d in ("Up", "Down", "Left", "Right")
+)
+#: Added to every page as a GUI HTML element (viser runs no <script>, an inline error handler
+#: runs once). Key events of CAMERA_KEYS stop at <html>: the command palette's hotkeys listen
+#: there and still fire, viser's camera listener on ``document`` never sees them. Enter or Escape
+#: in a text or number box, or a press on the 3D scene, leaves the box, so the hotkeys (ignored while a box has focus) work
+#: again. tests/e2e/test_usability.py presses D and the arrows and checks the camera.
+_KEYBOARD_JS = """
+if (!window.__handannoKeys) {
+  window.__handannoKeys = true;
+  const cam = new Set(CAMERA_KEYS_JSON);
+  const stop = (e) => { if (cam.has(e.code)) e.stopPropagation(); };
+  document.documentElement.addEventListener("keydown", stop);
+  document.documentElement.addEventListener("keyup", stop);
+  document.addEventListener("keydown", (e) => {
+    const t = e.target;
+    if ((e.key === "Enter" || e.key === "Escape") && t && t.tagName === "INPUT") t.blur();
+  }, true);
+  document.addEventListener("pointerdown", (e) => {
+    const a = document.activeElement;
+    if (e.target && e.target.tagName === "CANVAS" && a && a.tagName === "INPUT") a.blur();
+  }, true);
+}
+""".replace("CAMERA_KEYS_JSON", json.dumps(CAMERA_KEYS))
+KEYBOARD_SHIM = (
+    '<img alt="" src="data:," style="display:none" onerror="'
+    + html.escape(" ".join(_KEYBOARD_JS.split()))
+    + '">'
+)

@@ -1,0 +1,123 @@
+"""Refinement's temporal prior compared on the benchmark suite, on identical initializations.
+
+Runs ``handanno_core.refine.refine`` with several weight sets on the sessions a suite bench left
+in its work folder (``handanno bench SUITE --part P --work-dir WORK ...``: one folder per dataset,
+``WORK/<dataset>/<strategy>-<fraction>``), so every variant starts from the same lift and
+propagation. The constants are chosen on the suite's tune part and reported on its report part.
+
+    handanno suite /tmp/suite --frames-scale 0.5
+    handanno bench /tmp/suite --part tune --ref-fraction 0.05 --strategy forest --work-dir /tmp/w
+    .venv/bin/python benchmarks/bench_refine_temporal.py /tmp/w --json tune.json
+
+Prints one line per dataset (mean / max mm of the initialization and of every variant) and the
+mean of means; writes the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from handanno_core import pipeline
+from handanno_core.bench import machine_description
+from handanno_core.refine import RefineWeights, refine
+from handanno_core.session import Session
+
+VARIANTS = {
+    "none": RefineWeights(temporal=0.0, acceleration=0.0),
+    "velocity": RefineWeights(temporal=1.0, acceleration=0.0),  # the default until 2026-11
+    "acceleration": RefineWeights(),
+    "acceleration x3": RefineWeights(acceleration=3.0),
+}
+
+
+def _errors(pred: np.ndarray, gt: np.ndarray) -> list[float]:
+    e = np.linalg.norm(pred - gt, axis=-1)
+    return [round(float(np.nanmean(e)), 3), round(float(np.nanmax(e)), 2)]
+
+
+def run_session(folder: Path, variants: dict[str, RefineWeights]) -> dict:
+    """Initialization and final errors (mean, max mm) of every variant on one bench session."""
+    session = Session.open(folder)
+    try:
+        gt = session.open_sequence().ground_truth.joints_mm
+        crops, centres, boxes = pipeline.ensure_crops(session, quiet=True)
+        results = session.load_results()
+        init = np.array(results["init_mm"], dtype=np.float64)
+        refs = session.reference_frames
+        lifted = refs[np.all(np.isfinite(results["lifted_mm"][refs]), axis=(1, 2))]
+        init[lifted] = results["lifted_mm"][lifted]
+        row = {"frames": session.num_frames, "init": _errors(init, gt), "variants": {}}
+        for name, weights in variants.items():
+            t = time.perf_counter()
+            out = refine(
+                init,
+                crops=crops,
+                boxes=boxes,
+                centres_mm=centres,
+                depth_of=None,
+                camera=session.camera,
+                skeleton=session.skeleton,
+                bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
+                reference_frames=refs,
+                reference_annotations=session.annotations(refs),
+                closest_reference=pipeline.root_reference(session.parent),
+                sequence_breaks=session.model.sequence_breaks,
+                cube_mm=session.model.settings.cube_mm,
+                weights=weights,
+            )
+            row["variants"][name] = {
+                "final": _errors(out.joints_mm, gt),
+                "time_s": round(time.perf_counter() - t, 1),
+            }
+        return row
+    finally:
+        session.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("work", type=Path, help="work folder of a suite bench (--work-dir)")
+    ap.add_argument("--run", default="forest-0.05", help="session folder inside each dataset")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names")
+    ap.add_argument("--json", type=Path, required=True)
+    args = ap.parse_args()
+    variants = {name: VARIANTS[name] for name in args.variants.split(",")}
+    doc = {"machine": machine_description(), "run": args.run, "datasets": {}}
+    for folder in sorted(args.work.glob(f"*/{args.run}")):
+        load = os.getloadavg()[0]
+        row = run_session(folder, variants)
+        row["load_avg_1m"] = round(load, 1)
+        doc["datasets"][folder.parent.name] = row
+        cells = "  ".join(
+            f"{k} {v['final'][0]:6.2f}/{v['final'][1]:5.0f}" for k, v in row["variants"].items()
+        )
+        print(
+            f"{folder.parent.name:32s} init {row['init'][0]:6.2f}/{row['init'][1]:5.0f}  {cells}",
+            flush=True,
+        )
+        args.json.write_text(json.dumps(doc, indent=2))
+    rows = list(doc["datasets"].values())
+    doc["mean_of_means"] = {
+        "init": round(float(np.mean([r["init"][0] for r in rows])), 3),
+        **{
+            k: round(float(np.mean([r["variants"][k]["final"][0] for r in rows])), 3)
+            for k in variants
+        },
+    }
+    doc["worse_than_init"] = {
+        k: [n for n, r in doc["datasets"].items() if r["variants"][k]["final"][0] > r["init"][0]]
+        for k in variants
+    }
+    args.json.write_text(json.dumps(doc, indent=2))
+    print("mean of means:", doc["mean_of_means"])
+    print("worse than the initialization:", doc["worse_than_init"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,263 @@
+"""The application layer without a browser (app.control): topics of journal entries, the review
+walk and review edits as journal entries, the context's options, the drawn joints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from review_session import STEP, build_review_session
+
+from app.control.annotate import AnnotateState, display_joints
+from app.control.context import AppContext
+from app.control.events import EventBus, Update, UpdateTopic, entry_update
+from app.control.jobs import ReviewRunner
+from app.control.live import LiveResults
+from app.control.review import NEIGHBOUR_RADIUS, ReviewState
+from handanno_core.annotation import FrameAnnotation
+from handanno_core.camera import CameraIntrinsics
+from handanno_core.results import Stage, update_lifted
+from handanno_core.review import rank_priority
+from handanno_core.session import Session, SetJoint2D, SetReview
+
+FRAMES = 40
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    from handanno_core.synth import generate_sequence
+
+    out = tmp_path_factory.mktemp("control-data") / "data"
+    generate_sequence(out, frames=FRAMES, seed=2, progress=False)
+    return out
+
+
+@pytest.fixture()
+def session(data_dir, tmp_path):
+    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
+    yield s
+    s.close()
+
+
+@pytest.fixture()
+def review(session):
+    """A ReviewState over propagated-looking results: every frame has the ground truth, shifted
+    by ``f`` mm on odd frames so frames differ; priority replaced by a known ramp."""
+    gt = session.open_sequence().ground_truth.joints_mm
+    session.save_results(init_mm=gt + 0.0, confidence=np.ones(gt.shape[:2]))
+    live = LiveResults(session)
+    runner = ReviewRunner(session, live, propagate_fn=lambda *a, **k: None, debounce_s=3600)
+    state = ReviewState(session, live, runner, client="tester")
+    yield state
+    runner.stop()
+
+
+def set_priority(state: ReviewState, priority: np.ndarray) -> None:
+    state.live.priority = lambda: priority  # type: ignore[method-assign]
+
+
+# ------------------------------------------------------------------------------------------ events
+def test_entry_topics_frame_and_joints(session):
+    e = session.execute(SetJoint2D(frame=0, joint=3, uv_px=(10.0, 20.0)), client="a")
+    u = entry_update(e, session.skeleton.num_joints)
+    assert u.topics == {UpdateTopic.ANNOTATION} and u.frame == 0 and u.joints == (3,)
+    assert u.client == "a" and u.seq == e.seq
+    r = entry_update(session.execute(SetReview(frame=5, status="flagged"), client="a"), 21)
+    assert r.topics == {UpdateTopic.REVIEW} and r.frame == 5 and r.joints == ()
+
+
+def test_bus_keeps_publishing_when_a_subscriber_fails():
+    bus, got = EventBus(), []
+    bus.subscribe(lambda u: 1 / 0)
+    unsubscribe = bus.subscribe(got.append)
+    bus.publish(Update(frozenset({UpdateTopic.JOB})))
+    unsubscribe()
+    bus.publish(Update(frozenset({UpdateTopic.JOB})))
+    assert len(got) == 1
+
+
+def test_context_takes_runner_options_and_publishes_edits(session):
+    ctx = AppContext(session, lift_fn=None, review_options={"debounce_s": 0.25, "workers": 2})
+    try:
+        assert ctx.runner.debounce_s == 0.25 and ctx.runner.workers == 2
+        got: list[Update] = []
+        ctx.bus.subscribe(got.append)
+        session.execute(SetJoint2D(frame=10, joint=1, uv_px=(50.0, 60.0)), client="b")
+        edits = [u for u in got if UpdateTopic.ANNOTATION in u.topics]
+        assert [(u.frame, u.joints, u.client) for u in edits] == [(10, (1,), "b")]
+    finally:
+        ctx.stop()  # also closes the session (the fixture's close is then a no-op)
+
+
+# ------------------------------------------------------------------------------------------ review
+def test_next_worst_skips_references_reviewed_walked_and_neighbours(review):
+    n = review.session.num_frames
+    priority = np.linspace(0.0, 1.0, n)  # the last frame is the worst
+    set_priority(review, priority)
+    review.session.execute(SetReview(frame=n - 1, status="accepted"), client="x")
+    review.session.execute(SetReview(frame=n - 2, status="flagged"), client="x")
+    first = review.next_worst()
+    assert first == n - 3  # not a reviewed frame (accepted or flagged), not a reference
+    second = review.next_worst()
+    assert second == n - 3 - NEIGHBOUR_RADIUS - 1  # neighbours of the frame just shown wait
+    refs = set(range(0, n, STEP))
+    walk = [first, second] + [review.next_worst() for _ in range(n)]
+    shown = [f for f in walk if f is not None]
+    assert not refs & set(shown) and len(shown) == len(set(shown))  # never twice, no reference
+    assert len(shown) == n - len(refs) - 2  # neighbours come once nothing else is left
+    assert walk[-1] is None
+
+
+def test_accept_journals_and_advances(review):
+    set_priority(review, np.linspace(0.0, 1.0, review.session.num_frames))
+    review.go_to(13)
+    entry = review.accept()
+    assert entry.command == {"frame": 13, "kind": "set_review", "status": "accepted"}
+    assert review.frame != 13 and review.session.model.review["13"] == "accepted"
+
+
+def test_a_correction_unflags_the_frame_in_the_same_entry(review):
+    session = review.session
+    review.go_to(15)
+    review.flag()
+    shown, _ = review.live.frame(15)
+    target = shown[4] + [5.0, 0.0, 0.0]
+    entry = review.move_joint(4, target, shown, None)
+    assert "15" not in session.model.review, "a corrected frame is still flagged"
+    assert 15 in session.reference_frames
+    assert np.allclose(session.annotation(15).xyz_mm[4], target, atol=0.01)
+    session.undo("tester")  # one undo step brings the flag back and the reference away
+    assert session.model.review.get("15") == "flagged" and 15 not in session.reference_frames
+    assert entry.command["kind"] == "batch"
+
+
+def test_a_frame_without_skeleton_cannot_be_corrected(review):
+    with pytest.raises(ValueError, match="no skeleton"):
+        review.move_joint(0, np.zeros(3), np.full((21, 3), np.nan), None)
+
+
+def test_live_priority_is_the_engines_evidence_ranking(review):
+    session = review.session
+    expected = rank_priority("evidence", session, session.load_results(), None)
+    np.testing.assert_allclose(review.live.priority(), expected, equal_nan=True)
+
+
+# ------------------------------------------------------------------------------------------ results
+def test_update_lifted_writes_only_the_given_frames(session):
+    before = session.load_results()
+    joints = np.full((21, 3), 7.0)
+    update_lifted(session, {3: (joints, None)})
+    after = session.load_results()
+    assert np.all(after["lifted_mm"][3] == 7.0) and np.all(after["confidence"][3] == 1.0)
+    np.testing.assert_array_equal(after["lifted_mm"][:3], before["lifted_mm"][:3])
+    assert Stage.REFINED > Stage.PROPAGATED > Stage.LIFTED > Stage.NONE == 0
+
+
+# ------------------------------------------------------------------------------------------ annotate
+def test_undo_selects_the_undone_joint(session):
+    state = AnnotateState(session, client="u")
+    state.place_2d(np.array([100.0, 100.0]))
+    placed = state.joint - 1
+    state.select_joint(10)
+    state.undo()
+    assert state.joint == placed
+
+
+def test_display_joints_edited_joints_follow_their_annotation():
+    camera = CameraIntrinsics(fx=200.0, fy=200.0, cx=64.0, cy=64.0, width=128, height=128)
+    ann = FrameAnnotation.empty(3)
+    ann.xyz_mm[1] = (0.0, 0.0, 400.0)
+    ann.uv_px[2] = (64.0, 64.0)
+    lifted = np.array([[1.0, 1.0, 300.0], [2.0, 2.0, 300.0], [3.0, 3.0, 300.0]])
+    depth = np.full((128, 128), 350.0, np.float32)
+    out = display_joints(ann, camera, depth, np.array([0, 0, 300.0]), lifted_mm=lifted, stale=[1])
+    assert np.allclose(out[0], lifted[0]) and np.allclose(out[2], lifted[2])
+    assert np.allclose(out[1], (0.0, 0.0, 400.0))  # edited after the lift: its annotation
+    first = display_joints(ann, camera, depth, np.array([0, 0, 300.0]))
+    assert np.allclose(first[2], (0.0, 0.0, 350.0))  # 2D only: on the depth surface
+    assert np.all(np.isnan(first[0]))
+
+
+def test_first_guess_of_a_fresh_session_is_hand_shaped(data_dir, tmp_path):
+    """Nothing in the session has joints: the first guess is a template hand at the frame's hand
+    centre (bone lengths of the template, spread in 2D), not joints hung off the wrist in a line."""
+    from handanno_core.pipeline import new_session
+
+    session = new_session(tmp_path / "fresh", data_dir, format="msra", overwrite=True)
+    ctx = AppContext(session, lift_fn=None)
+    try:
+        guess = ctx.prefill(0)
+        centre = ctx.frames.get(0).geometry.centre_mm
+    finally:
+        ctx.stop()
+    assert guess is not None and guess.shape == (21, 3)
+    sk = session.skeleton
+    np.testing.assert_allclose(
+        sk.bone_lengths(guess), np.asarray(sk.template_bone_lengths_mm), rtol=1e-6
+    )
+    s = np.linalg.svd(guess - guess.mean(axis=0), compute_uv=False)
+    assert s[1] > 0.3 * s[0], f"a column, not a hand: singular values {s}"
+    np.testing.assert_allclose(guess.mean(axis=0), centre, atol=1e-6)
+
+
+def test_lift_warns_about_incomplete_references(session, capsys):
+    from app.cli import warn_incomplete_references
+    from handanno_core.session import SetFrameAnnotation
+
+    assert warn_incomplete_references(session) == []  # every reference fully annotated
+    session.execute(SetJoint2D(frame=10, joint=5, uv_px=None), client="t")
+    empty = FrameAnnotation.empty(21).to_json()
+    session.execute(SetFrameAnnotation(frame=20, annotation=empty), client="t")
+    lines = warn_incomplete_references(session)
+    assert len(lines) == 2
+    assert "1 of 4 reference frames are only partly annotated (frames 10)" in lines[0]
+    assert "(frames 20): they are not lifted" in lines[1]
+    assert "handanno: warning: 1 of 4" in capsys.readouterr().err
+
+
+def test_frame_store_names_the_source_file(session):
+    from app.control.frames import FrameStore
+
+    store = FrameStore(session)
+    name = store.source_name(3)
+    assert name == session.open_sequence().frame_names[3]
+    assert (Path(session.model.dataset.path) / name).is_file()
+    assert store.source_name(session.num_frames) is None
+
+
+def test_joint_legend_shows_placed_occluded_and_selected():
+    from app.ui.theme import joint_legend
+
+    ann = FrameAnnotation.empty(3)
+    ann.uv_px[0] = (1.0, 2.0)
+    ann.visible[1] = False
+    colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255]], np.uint8)
+    html = joint_legend(["wrist", "index_mcp", "index_tip"], colours, ann, selected=2)
+    rows = html.split("<tr")[1:]
+    assert "●" in rows[0] and "○" in rows[1] and "○" in rows[2]  # placed / not placed
+    assert "occluded" in rows[1] and "opacity" in rows[1] and "occluded" not in rows[0]
+    assert "font-weight:bold" in rows[2] and "rgb(0,0,255)" in rows[2]
+    assert "I-tip" in rows[2]
+
+
+def test_hand_diagram_draws_every_joint_and_bone_placed_filled():
+    from app.control.annotate import template_hand
+    from app.ui.theme import hand_diagram_svg, joint_colours, load_colours
+    from handanno_core.skeleton import MSRA21
+
+    xy = template_hand(MSRA21, np.zeros(3))[:, :2]
+    ann = FrameAnnotation.empty(21)
+    ann.uv_px[[0, 4]] = 1.0
+    ann.visible[7] = False
+    colours = joint_colours(MSRA21.parent_array, load_colours())
+    svg = hand_diagram_svg(xy, MSRA21.bones, colours, ann, selected=4)
+    assert svg.count("<line") == len(MSRA21.bones)
+    joints = [c for c in svg.split("<circle")[1:] if 'class="joint-' in c]
+    assert len(joints) == 21
+    filled = [k for k, c in enumerate(joints) if 'fill="none"' not in c]
+    assert filled == [0, 4]
+    assert 'opacity="0.4"' in joints[7] and 'opacity="1"' in joints[6]
+    # the fingertips spread across the diagram (a hand, not a column)
+    tips = xy[[4, 8, 12, 16, 20]]
+    assert np.ptp(tips[:, 0]) > 30.0

@@ -1,8 +1,8 @@
 """End-to-end on real sensor frames: an SR305 session (../shared/data/real-sr305, 640x480, the
 person's head and body in view) in real Chromium.
 
-What the browser draws is what is asserted: the hand's point cloud (``/annotate/cloud``, read back
-from three.js) and the joints (``/annotate/joints``), both in the scene's frame (metres, camera
+What the browser draws is what is asserted: the hand's point cloud (``/hand/cloud``, read back
+from three.js) and the joints (``/hand/joints``), both in the scene's frame (metres, camera
 axes). After the wrist and the index knuckle are clicked on the depth image (pixels chosen by eye on
 frame 0 of ``20210326-231615``: arm from below, fingers up) and the frame is shown again, the
 lifted skeleton's wrist plane cuts the forearm out of the cloud, and the hand fills most of the view (the sensor view frames the
@@ -35,7 +35,7 @@ from viser_helpers import (
     wait_until,
 )
 
-from app.server import serve
+from app.ui.server import serve
 from handanno_core.pipeline import new_session
 from handanno_core.skeleton import MSRA21
 
@@ -73,10 +73,10 @@ def sr305_session(tmp_path: Path) -> Path:
 def image_point(page, uv) -> tuple[float, float]:
     """Page position of depth-image pixel ``uv`` on the image plane the browser draws (viser draws
     row 0 at local -y, column 0 at local -x)."""
-    props = node_props(page, "/annotate/image")
+    props = node_props(page, "/hand/image")
     x = ((uv[0] + 0.5) / WIDTH - 0.5) * props["render_width"]
     y = ((uv[1] + 0.5) / HEIGHT - 0.5) * props["render_height"]
-    return screen_of(page, "/annotate/image", (x, y, 0.0))
+    return screen_of(page, "/hand/image", (x, y, 0.0))
 
 
 def beyond_wrist(cloud_m: np.ndarray, joints_m: np.ndarray) -> np.ndarray:
@@ -99,7 +99,7 @@ def test_sr305_hand_fills_the_view_and_the_cloud_stops_at_the_wrist(tmp_path):
             settle = lambda: wait_camera_still(page)  # noqa: E731
 
             def first_cloud():
-                p = drawn_points(page, "/annotate/cloud")
+                p = drawn_points(page, "/hand/cloud")
                 return (p,) if p is not None and len(p) > 1000 else None
 
             (before,) = wait_until(first_cloud, what="the hand's cloud")
@@ -125,8 +125,8 @@ def test_sr305_hand_fills_the_view_and_the_cloud_stops_at_the_wrist(tmp_path):
             wait_until(page.get_by_text("(frame 1 of 11)").is_visible, what="frame 0 shown")
 
             def cut_cloud():
-                joints = drawn(page, "/annotate/joints")
-                cloud = drawn_points(page, "/annotate/cloud")
+                joints = drawn(page, "/hand/joints")
+                cloud = drawn_points(page, "/hand/cloud")
                 if joints is None or joints["instances"] is None or cloud is None:
                     return None
                 inst = joints["instances"]
@@ -143,7 +143,7 @@ def test_sr305_hand_fills_the_view_and_the_cloud_stops_at_the_wrist(tmp_path):
             assert len(after) > 0.5 * (~cut).sum(), (len(after), (~cut).sum())
             # the hand fills most of the view (sensor view framing the crop, not the whole image)
             settle()
-            uv, rect = screen_of_points(page, "/annotate/cloud", after)
+            uv, rect = screen_of_points(page, "/hand/cloud", after)
             lo, hi = np.percentile(uv, [1, 99], axis=0)
             span = (hi - lo) / np.array([rect["width"], rect["height"]])
             assert span.max() > 0.5, f"hand spans {span.round(2)} of the view"

@@ -13,10 +13,14 @@ Figures (printed and written to benchmarks/results/crops.json):
   the cube, not more than a cube in front), median/p90 distance crop centre to the joints'
   centroid, localization ms/frame, for the TUNE and REPORT cases; with ``--baseline DIR`` (a
   checkout of another commit, e.g. main) also its ``crops.locate_hands`` at a 220 mm cube.
+- benchmark suite (``--suite DIR --part tune|report``, a folder written by ``handanno suite``):
+  per sequence the same scores, with the centres and session cube the pipeline makes
+  (:func:`handanno_core.crops.locate_crops`), before (``--baseline``) and after.
 - synthetic sequence and memory (``--sequence``): as before, ``locate_hands`` + ``compute_crops``
   ms/frame and peak RSS at 2,000 vs 20,000 frames.
 
-Run: ``.venv/bin/python benchmarks/bench_crops.py [--baseline DIR] [--sequence] [--quick]``.
+Run: ``.venv/bin/python benchmarks/bench_crops.py [--suite DIR] [--part tune|report|all]
+[--baseline DIR] [--no-forearm] [--no-real] [--out FILE] [--sequence] [--quick]``.
 Timings are wall clock on whatever machine runs it (on the shared 2-core dev box they are under
 load from other jobs: the load average is recorded).
 """
@@ -45,12 +49,12 @@ from handanno_core.crops import (  # noqa: E402
     crop_boxes,
     crop_depth,
     image_to_crop,
+    locate_crops,
     locate_hands,
 )
 from handanno_core.datasets.base import BadFrameReport, DepthSequence  # noqa: E402
 from handanno_core.localize import (  # noqa: E402
     locate_hand_region,
-    locate_hands_with_extent,
     session_cube_mm,
 )
 from handanno_core.skeleton import MSRA21  # noqa: E402
@@ -139,7 +143,9 @@ def bench_real() -> dict:
 
 # ---------------------------------------------------------------------------- forearm fixture
 def _load_baseline(path: Path):
-    """``crops`` module of another checkout's handanno_core, loaded as package ``baseline_core``."""
+    """``crops`` module of another checkout's handanno_core, loaded as package ``baseline_core``
+    (its ``locate_crops`` if it has one, else its localize's cube loop or ``locate_hands`` at 220 mm
+    is what :func:`baseline_locate` runs)."""
     import importlib.util
 
     init = path / "handanno_core" / "__init__.py"
@@ -154,8 +160,33 @@ def _load_baseline(path: Path):
     return importlib.import_module("baseline_core.crops")
 
 
+def baseline_locate(baseline, seq) -> tuple[np.ndarray, float]:
+    """Centres ``(N, 3)`` and cube (mm) of another checkout, as its pipeline would crop ``seq``."""
+    if hasattr(baseline, "locate_crops"):
+        centres, spec = baseline.locate_crops(seq)
+        return centres, spec.cube_mm
+    import importlib
+
+    loc = importlib.import_module("baseline_core.localize")
+    if not hasattr(loc, "session_cube_mm"):
+        return baseline.locate_hands(seq), 220.0
+    cube = 220.0
+    centres, half = loc.locate_hands_with_extent(seq, cube_mm=cube)
+    while (grown := loc.session_cube_mm(half, cube)) != cube:
+        cube = grown
+        centres, half = loc.locate_hands_with_extent(seq, cube_mm=cube)
+    return centres, cube
+
+
 def crop_scores(seq, centres: np.ndarray, cube: float, size: int = 128) -> dict:
-    """Per-sequence scores of crop centres ``(N, 3)`` against the fixture's ground truth."""
+    """Per-sequence scores of crop centres ``(N, 3)`` against the sequence's ground truth.
+
+    A joint is inside in x, y when its projection is within the half cube less 8 mm of the crop
+    centre (crop pixels converted at the cube's scale); in depth (``xyz``) when it is also not
+    behind the cube and at most a cube in front of the centre (the crop keeps surface up to half a
+    cube in front of the cube as foreground, clamped to -1); ``cube`` (strict) when within the
+    cube itself (``|dz| <= cube / 2``).
+    """
     gt = seq.ground_truth.joints_mm
     boxes = crop_boxes(centres, seq.camera, cube, size)
     xy = image_to_crop(seq.camera.project(gt), boxes[:, None, :])
@@ -163,12 +194,75 @@ def crop_scores(seq, centres: np.ndarray, cube: float, size: int = 128) -> dict:
     ok_xy = np.all(np.abs(mm) <= cube / 2 - 8.0, axis=(1, 2))
     dz = gt[..., 2] - centres[:, None, 2]
     ok_z = np.all((dz <= cube / 2) & (dz >= -cube), axis=1)
+    ok_cube = np.all(np.abs(dz) <= cube / 2, axis=1)
     d = np.linalg.norm(centres - gt.mean(axis=1), axis=1)
     return {
+        "frames": len(gt),
         "inside_xy_pct": 100.0 * float(ok_xy.mean()),
         "inside_xyz_pct": 100.0 * float((ok_xy & ok_z).mean()),
+        "inside_cube_pct": 100.0 * float((ok_xy & ok_cube).mean()),
+        "frames_out": np.flatnonzero(~(ok_xy & ok_z)).tolist()[:50],
         "centre_to_centroid_median_mm": float(np.median(d)),
         "centre_to_centroid_p90_mm": float(np.percentile(d, 90)),
+    }
+
+
+def bench_suite(folder: Path, part: str, baseline=None) -> dict:
+    """Crop coverage on every sequence of a benchmark suite folder (``handanno suite``), ``part``
+    tune or report: centres and cube as the pipeline makes them (:func:`locate_crops`)."""
+    from handanno_core.datasets import open_sequence
+    from handanno_core.suite import read_suite
+
+    rows = []
+    for name, _, path in read_suite(folder, part):
+        seq = open_sequence(path)
+        t0 = time.perf_counter()
+        centres, spec = locate_crops(seq)
+        ms = 1e3 * (time.perf_counter() - t0) / len(seq)
+        row = {"sequence": name, "after": {**crop_scores(seq, centres, spec.cube_mm)}}
+        row["after"].update(cube_mm=spec.cube_mm, ms_per_frame=ms)
+        if baseline is not None:
+            t0 = time.perf_counter()
+            old, cube = baseline_locate(baseline, seq)
+            ms = 1e3 * (time.perf_counter() - t0) / len(seq)
+            row["before"] = {**crop_scores(seq, old, cube), "cube_mm": cube, "ms_per_frame": ms}
+        rows.append(row)
+        _print_row(name, row)
+    return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}
+
+
+def _print_row(name: str, row: dict) -> None:
+    a, b = row["after"], row.get("before")
+    print(
+        f"  {name:28s} inside {a['inside_xy_pct']:5.1f}% (depth too {a['inside_xyz_pct']:5.1f}%, "
+        f"in cube {a['inside_cube_pct']:5.1f}%) centre-centroid "
+        f"{a['centre_to_centroid_median_mm']:5.1f}/{a['centre_to_centroid_p90_mm']:5.1f} mm "
+        f"cube {a['cube_mm']:.0f} {a['ms_per_frame']:5.1f} ms/f"
+        + (
+            f" | before {b['inside_xy_pct']:5.1f}% ({b['inside_xyz_pct']:5.1f}%) cube "
+            f"{b['cube_mm']:.0f}"
+            if b
+            else ""
+        ),
+        flush=True,
+    )
+
+
+def _total(rows: list[dict], key: str) -> dict | None:
+    sel = [r[key] for r in rows if key in r]
+    if not sel:
+        return None
+    keys = ("inside_xy_pct", "inside_xyz_pct", "inside_cube_pct")
+    return {
+        k: float(np.mean([x[k] for x in sel]))
+        for k in (*keys, "centre_to_centroid_median_mm", "ms_per_frame")
+    } | {
+        "sequences_at_100pct": sum(x["inside_xyz_pct"] == 100.0 for x in sel),
+        "sequences_at_100pct_xy": sum(x["inside_xy_pct"] == 100.0 for x in sel),
+        "frames": sum(x["frames"] for x in sel),
+        "frames_inside_xyz_pct": float(
+            sum(x["inside_xyz_pct"] * x["frames"] for x in sel) / sum(x["frames"] for x in sel)
+        ),
     }
 
 
@@ -177,47 +271,22 @@ def bench_forearm(cases, baseline=None) -> dict:
     for case in cases:
         seq = case_sequence(case)
         t0 = time.perf_counter()
-        centres, half = locate_hands_with_extent(seq)
+        centres, spec = locate_crops(seq)
         ms = 1e3 * (time.perf_counter() - t0) / len(seq)
-        cube = session_cube_mm(half, 220.0)
         row = {"case": case.name, "theta_deg": case.theta_deg, "sleeve": case.sleeve}
-        row["after"] = {**crop_scores(seq, centres, cube), "cube_mm": cube, "ms_per_frame": ms}
+        row["after"] = {
+            **crop_scores(seq, centres, spec.cube_mm),
+            "cube_mm": spec.cube_mm,
+            "ms_per_frame": ms,
+        }
         if baseline is not None:
             t0 = time.perf_counter()
-            old = baseline.locate_hands(seq)
+            old, cube = baseline_locate(baseline, seq)
             ms = 1e3 * (time.perf_counter() - t0) / len(seq)
-            row["before"] = {**crop_scores(seq, old, 220.0), "cube_mm": 220.0, "ms_per_frame": ms}
+            row["before"] = {**crop_scores(seq, old, cube), "cube_mm": cube, "ms_per_frame": ms}
         rows.append(row)
-        a = row["after"]
-        b = row.get("before")
-        print(
-            f"  {case.name:26s} inside {a['inside_xy_pct']:5.1f}% (depth too {a['inside_xyz_pct']:5.1f}%) "
-            f"centre-centroid {a['centre_to_centroid_median_mm']:5.1f}/{a['centre_to_centroid_p90_mm']:5.1f} mm "
-            f"cube {a['cube_mm']:.0f} {a['ms_per_frame']:5.1f} ms/f"
-            + (
-                f" | before {b['inside_xy_pct']:5.1f}% {b['centre_to_centroid_median_mm']:5.1f}/"
-                f"{b['centre_to_centroid_p90_mm']:5.1f} mm"
-                if b
-                else ""
-            ),
-            flush=True,
-        )
-
-    def total(key):
-        sel = [r[key] for r in rows if key in r]
-        if not sel:
-            return None
-        return {
-            k: float(np.mean([x[k] for x in sel]))
-            for k in (
-                "inside_xy_pct",
-                "inside_xyz_pct",
-                "centre_to_centroid_median_mm",
-                "ms_per_frame",
-            )
-        } | {"sequences_at_100pct": sum(x["inside_xy_pct"] == 100.0 for x in sel)}
-
-    return {"rows": rows, "after": total("after"), "before": total("before")}
+        _print_row(case.name, row)
+    return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}
 
 
 # ---------------------------------------------------------------------------- synthetic timing
@@ -366,12 +435,39 @@ def bench_memory(sizes: list[int]) -> list[dict]:
     return rows
 
 
+def _summary(name: str, res: dict) -> None:
+    for key in ("after", "before"):
+        t = res[key]
+        if t:
+            print(
+                f"  {name} {key}: frames inside {t['frames_inside_xyz_pct']:.1f}% (x, y and depth; "
+                f"mean of sequences {t['inside_xyz_pct']:.1f}%, x, y only {t['inside_xy_pct']:.1f}%, "
+                f"in the cube {t['inside_cube_pct']:.1f}%), {t['sequences_at_100pct']} of "
+                f"{len(res['rows'])} sequences at 100% ({t['sequences_at_100pct_xy']} in x, y), "
+                f"centre-centroid median {t['centre_to_centroid_median_mm']:.1f} mm, "
+                f"{t['ms_per_frame']:.1f} ms/frame",
+                flush=True,
+            )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     ap.add_argument("--frames", type=int, default=None, help="synthetic sequence length")
-    ap.add_argument("--baseline", type=Path, help="checkout whose crops.locate_hands to compare")
+    ap.add_argument("--baseline", type=Path, help="checkout whose crops to compare (before)")
     ap.add_argument("--sequence", action="store_true", help="also the sequence and memory runs")
+    ap.add_argument(
+        "--suite", type=Path, help="suite folder (handanno suite): coverage per sequence"
+    )
+    ap.add_argument(
+        "--part",
+        default="all",
+        choices=("tune", "report", "all"),
+        help="suite and forearm-fixture part",
+    )
+    ap.add_argument("--no-forearm", action="store_true", help="skip the forearm fixture")
+    ap.add_argument("--no-real", action="store_true", help="skip the real frames")
+    ap.add_argument("--out", type=Path, default=RESULTS / "crops.json", help="JSON to write")
     ap.add_argument("--memory-child", nargs=2, metavar=("N", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_child:
@@ -383,7 +479,7 @@ def main() -> None:
         "machine_note": "wall clock; shared 2-core dev box under load from other jobs unless stated",
         "load_average_start": list(os.getloadavg()),
     }
-    if DATA is not None:
+    if DATA is not None and not args.no_real:
         res["real_frames"] = bench_real()
         s = res["real_frames"]
         print(
@@ -391,18 +487,18 @@ def main() -> None:
             f"(max {s['locate_ms_max']:.1f}); images: {', '.join(s['images'])}"
         )
     baseline = _load_baseline(args.baseline) if args.baseline else None
-    for part, cases in (("forearm_tune", TUNE_CASES), ("forearm_report", REPORT_CASES)):
-        print(f"{part}:")
-        res[part] = bench_forearm(cases[:4] if args.quick else cases, baseline)
-        for key in ("after", "before"):
-            t = res[part][key]
-            if t:
-                print(
-                    f"  {key}: mean inside {t['inside_xy_pct']:.1f}% (depth too {t['inside_xyz_pct']:.1f}%), "
-                    f"{t['sequences_at_100pct']} of {len(res[part]['rows'])} sequences at 100%, "
-                    f"centre-centroid median {t['centre_to_centroid_median_mm']:.1f} mm, "
-                    f"{t['ms_per_frame']:.1f} ms/frame"
-                )
+    if args.suite:
+        for part in ("tune", "report") if args.part == "all" else (args.part,):
+            print(f"suite {part}:", flush=True)
+            res[f"suite_{part}"] = bench_suite(args.suite, part, baseline)
+            _summary(f"suite {part}", res[f"suite_{part}"])
+    if not args.no_forearm:
+        for part, cases in (("forearm_tune", TUNE_CASES), ("forearm_report", REPORT_CASES)):
+            if args.part != "all" and not part.endswith(args.part):
+                continue
+            print(f"{part}:")
+            res[part] = bench_forearm(cases[:4] if args.quick else cases, baseline)
+            _summary(part, res[part])
     if args.sequence:
         res["sequence"] = bench_sequence(frames)
         q = res["sequence"]
@@ -418,9 +514,9 @@ def main() -> None:
                 f"locate {m['locate_hands_ms_per_frame']:.2f} ms/f"
             )
     res["load_average_end"] = list(os.getloadavg())
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "crops.json").write_text(json.dumps(res, indent=1))
-    print(f"wrote {RESULTS / 'crops.json'}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=1))
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,10 @@ Crops are a cube of ``cube_mm`` around the centre, projected to an image box and
 - far in front (``d < z_c - cube``): ``+1``, treated as background: flying pixels or an unrelated
   occluder, not hand.
 
+Everything a crop's geometry depends on is one frozen :class:`CropSpec` (cube edge, pixel size;
+the background value and test); :func:`locate_crops` finds a session's centres and grows its spec
+until the hand fits.
+
 Crop geometry (``boxes (N, 4)`` = ``[u_left, v_top, sx, sy]``): crop pixel ``(x, y)`` covers image
 pixel ``u = u_left + (x + 0.5) * sx - 0.5``, ``v = v_top + (y + 0.5) * sy - 0.5`` with
 ``sx = fx * cube_mm / z_c / size`` image px per crop px; the centre's projection maps to crop
@@ -22,7 +26,9 @@ pixel ``u = u_left + (x + 0.5) * sx - 0.5``, ``v = v_top + (y + 0.5) * sy - 0.5`
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -32,6 +38,9 @@ from .datasets.base import BadFrameReport, DepthSequence, FrameError
 from .localize import locate_hand, locate_hands, smooth_centres
 
 __all__ = [
+    "CropSpec",
+    "DEFAULT_CROP",
+    "locate_crops",
     "locate_hand",
     "locate_hands",
     "smooth_centres",
@@ -46,8 +55,54 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 # crop geometry
 # ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CropSpec:
+    """The one home of crop geometry: a cube of ``cube_mm`` (edge, mm) around each frame's centre,
+    resampled to ``size x size`` pixels, depth normalized to ``(d - z_c) / half_mm``.
+
+    ``BACKGROUND`` (+1) is the value of every crop pixel that is not hand (no depth, behind the
+    cube, far in front of it); :meth:`is_background` is the one test for it. A session's spec is
+    :meth:`of` its settings; :func:`locate_crops` may grow the cube (a larger hand).
+    """
+
+    cube_mm: float = 220.0
+    size: int = 128
+    BACKGROUND: ClassVar[float] = 1.0
+
+    @property
+    def half_mm(self) -> float:
+        """Half the cube edge (mm): a normalized crop value of 1 is this far behind the centre."""
+        return 0.5 * self.cube_mm
+
+    @classmethod
+    def of(cls, settings) -> CropSpec:
+        """The spec of session ``settings`` (anything with ``cube_mm`` and ``crop_size``)."""
+        return cls(float(settings.cube_mm), int(settings.crop_size))
+
+    def with_cube(self, cube_mm: float) -> CropSpec:
+        return replace(self, cube_mm=float(cube_mm))
+
+    @staticmethod
+    def is_background(values: np.ndarray) -> np.ndarray:
+        """Boolean mask of background crop values (``>= BACKGROUND``, float16-safe)."""
+        return np.asarray(values) >= CropSpec.BACKGROUND - 1e-3
+
+    def depth_mm(self, values: np.ndarray, centre_z_mm: np.ndarray) -> np.ndarray:
+        """Camera depth (mm) of normalized crop ``values`` for centres at depth ``centre_z_mm``
+        (broadcast); background values are meaningless here (mask them with
+        :meth:`is_background`)."""
+        return np.asarray(centre_z_mm, np.float64) + np.asarray(values, np.float64) * self.half_mm
+
+
+#: the default spec (new sessions start from it).
+DEFAULT_CROP = CropSpec()
+
+
 def crop_boxes(
-    centres_mm: np.ndarray, camera: CameraIntrinsics, cube_mm: float = 220.0, size: int = 128
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+    size: int = DEFAULT_CROP.size,
 ) -> np.ndarray:
     """Image boxes ``(..., 4)`` float64 ``[u_left, v_top, sx, sy]`` for centres ``(..., 3)`` mm.
 
@@ -87,8 +142,8 @@ def crop_depth(
     depth: np.ndarray,
     camera: CameraIntrinsics,
     centre_mm: np.ndarray,
-    cube_mm: float = 220.0,
-    size: int = 128,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+    size: int = DEFAULT_CROP.size,
 ) -> np.ndarray:
     """Normalized ``(size, size)`` float32 crop of ``depth (H, W)`` mm around ``centre_mm (3,)``.
 
@@ -98,7 +153,7 @@ def crop_depth(
     """
     c = np.asarray(centre_mm, dtype=np.float64)
     if not np.all(np.isfinite(c)) or c[2] <= 0:
-        return np.ones((size, size), np.float32)
+        return np.full((size, size), CropSpec.BACKGROUND, np.float32)
     u_left, v_top, sx, sy = crop_boxes(c, camera, cube_mm, size)
     # dst (x, y) -> src (u, v) = (sx * x + u0, sy * y + v0)
     m = np.array(
@@ -116,7 +171,7 @@ def crop_depth(
     zc = float(c[2])
     out = np.clip((d - zc) / half, -1.0, 1.0).astype(np.float32)
     background = (d <= 0) | (d > zc + half) | (d < zc - 2.0 * half)
-    out[background] = 1.0
+    out[background] = CropSpec.BACKGROUND
     return out
 
 
@@ -124,8 +179,8 @@ def compute_crops(
     sequence: DepthSequence,
     centres_mm: np.ndarray,
     out_path: str | Path | None = None,
-    cube_mm: float = 220.0,
-    size: int = 128,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+    size: int = DEFAULT_CROP.size,
     report: BadFrameReport | None = None,
     progress: bool = False,
     chunk_frames: int = 256,
@@ -144,7 +199,7 @@ def compute_crops(
         raise ValueError(f"centres must be ({n}, 3), got {centres.shape}")
     frame_shape = (size, size)
     if out_path is None:
-        out = np.ones((n, *frame_shape), np.float16)
+        out = np.full((n, *frame_shape), CropSpec.BACKGROUND, np.float16)
         target = out
         offset = None
     else:
@@ -176,7 +231,7 @@ def compute_crops(
             base = a
         else:
             base = 0
-        buf = np.ones((b - a, *frame_shape), np.float16)
+        buf = np.full((b - a, *frame_shape), CropSpec.BACKGROUND, np.float16)
         for i in range(a, b):
             if not np.all(np.isfinite(centres[i])):
                 continue
@@ -201,3 +256,32 @@ def compute_crops(
         return out
     tmp.replace(out_path)
     return np.load(out_path, mmap_mode="r")
+
+
+# ---------------------------------------------------------------------------------------------
+# a session's crops: centres and the cube the hand needs
+# ---------------------------------------------------------------------------------------------
+def locate_crops(
+    sequence: DepthSequence,
+    spec: CropSpec = DEFAULT_CROP,
+    report: BadFrameReport | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, CropSpec]:
+    """Crop centres ``(N, 3)`` mm of every frame and the spec they hold the hand in.
+
+    :func:`handanno_core.localize.locate_hands_with_extent` at ``spec``'s cube; when the hand does
+    not fit (:func:`handanno_core.localize.session_cube_mm`) the cube grows and the frames are
+    located again (centres and extents depend on the cube), until the cube stops growing, so a
+    rebuilt cache gives the same crops. Bad frames go to ``report`` on the first pass only.
+    """
+    from .localize import locate_hands_with_extent, session_cube_mm
+
+    centres, half = locate_hands_with_extent(
+        sequence, report=report, cube_mm=spec.cube_mm, progress=progress
+    )
+    while (cube := session_cube_mm(half, spec.cube_mm)) != spec.cube_mm:
+        spec = spec.with_cube(cube)
+        centres, half = locate_hands_with_extent(
+            sequence, report=BadFrameReport(), cube_mm=spec.cube_mm, progress=progress
+        )
+    return centres, spec

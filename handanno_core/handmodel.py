@@ -51,7 +51,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
 from .camera import CameraIntrinsics
-from .crops import crop_to_image, image_to_crop
+from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .skeleton import Skeleton
 
 __all__ = [
@@ -410,7 +410,7 @@ def observe(
     centres_mm: np.ndarray,
     camera: CameraIntrinsics,
     *,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     max_points: int = 512,
 ) -> FrameObservations:
     """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1).

@@ -34,20 +34,25 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
    the end are the hand. Without an attachment (a hand alone, or with a short forearm floating
    free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
-   seed's nearest points refined by mean shift within ``0.4 * cube_mm`` (the densest surface,
-   palm and fingers), as before.
+   seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
+   surface, palm and fingers); its extent is that of the points within
+   ``FREE_EXTENT_RADIUS_MM`` (fixed radii: an extent that grew with the cube grew the cube again).
 
 The centre is the middle of the hand's extent in ray angle (so the crop, a projection, holds its
-outermost pixels) and in depth, moved back if needed so the farthest hand surface is
-``BACK_MARGIN_MM`` inside the cube (surface in front of the cube stays foreground in a crop,
-surface behind it does not). The half extent (mm at the centre's depth) sizes the crop: see
+outermost pixels) and in depth, moved back if needed so that the cube's back is
+``HIDDEN_DEPTH_MM`` behind the farthest visible hand surface: what the sensor does not see of the
+hand (fingers pointing away behind the palm or the back of the hand, joint centres under the skin)
+lies behind what it sees; surface in front of the cube stays foreground in a crop, surface behind
+it does not. The half extent (mm at the centre's depth) sizes the crop: see
 :func:`session_cube_mm` and the smoothing bound in :func:`locate_hands_with_extent`.
 
 Constants were chosen on ``tests/forearm_scenes.TUNE_CASES`` (synthetic hand + long arm, seeds
-1-2, arm angles 15-165 deg in 30 deg steps) and by looking at the real frames in
-``../shared/data`` (the solidity rule was written for the HANDS 2017 frame, whose arm ends inside
-the image); benchmarks/bench_crops.py reports on ``REPORT_CASES`` (seeds 11-13, arm angles 0-180
-deg in 30 deg steps, other azimuths).
+1-2, arm angles 15-165 deg in 30 deg steps), ``HIDDEN_DEPTH_MM`` on the benchmark suite's tune
+part as well (``benchmarks/bench_crops.py --suite DIR --part tune``; 25, 70 and 100 mm tried), and
+by looking at the real frames in ``../shared/data`` (the solidity rule was written for the HANDS
+2017 frame, whose arm ends inside the image); benchmarks/bench_crops.py reports on
+``REPORT_CASES`` (seeds 11-13, arm angles 0-180 deg in 30 deg steps, other azimuths) and the
+suite's report part.
 """
 
 from __future__ import annotations
@@ -103,8 +108,9 @@ MIN_BEHIND_AREA_MM2 = 500.0
 MAX_HAND_AREA_MM2 = 30000.0
 #: the arm's far end: nodes within this geodesic distance (mm) of its farthest.
 END_MM = 40.0
-#: the crop's depth range keeps the hand's farthest surface this far (mm) inside its back.
-BACK_MARGIN_MM = 25.0
+#: the hand's hidden side (fingers pointing away behind the palm, joint centres under the skin)
+#: lies at most this far (mm) behind its farthest visible surface: the cube's back is there.
+HIDDEN_DEPTH_MM = 70.0
 #: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
 MAX_ARM_AREA_MM2 = 100000.0
 #: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
@@ -120,6 +126,12 @@ WRIST_ALLOWANCE_MM = 15.0
 HAND_LENGTH_MM = 200.0
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
+#: without an arm end, the hand is the mean shift mode of the seed's points within this radius
+#: (mm; the palm and fingers) ...
+MEAN_SHIFT_RADIUS_MM = 88.0
+#: ... and its extent that of the points within this radius (mm) of it: a hand length, whatever
+#: the cube (an extent that grew with the cube would grow the cube again, with more forearm).
+FREE_EXTENT_RADIUS_MM = 110.0
 
 
 @dataclass(frozen=True)
@@ -448,13 +460,13 @@ def _free_blob(
     z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
 ) -> HandLocation:
     """No attachment: mean shift from the seed's nearest points (see module docstring); the
-    extent is that of the seed's points within ``cube_mm / 2`` of the centre (hand and whatever
-    of the forearm is that close: without an arm end the two are not told apart)."""
+    extent is that of the seed's points within ``FREE_EXTENT_RADIUS_MM`` of the centre (hand and
+    whatever of the forearm is that close: without an arm end the two are not told apart)."""
     rows, cols = np.nonzero(mask)
     zc = z[rows, cols].astype(np.float64)
     pts = camera.backproject(np.stack([cols, rows], axis=-1).astype(np.float64), zc)
     centre = pts[zc <= zc.min() + front_mm].mean(axis=0)
-    r2 = (0.4 * cube_mm) ** 2
+    r2 = MEAN_SHIFT_RADIUS_MM**2
     for _ in range(8):
         inside = np.sum((pts - centre) ** 2, axis=1) <= r2
         if not inside.any():
@@ -464,7 +476,7 @@ def _free_blob(
         centre = new
         if done:
             break
-    near = pts[np.sum((pts - centre) ** 2, axis=1) <= (0.5 * cube_mm) ** 2]
+    near = pts[np.sum((pts - centre) ** 2, axis=1) <= FREE_EXTENT_RADIUS_MM**2]
     return _box_of(near, "free-blob", cube_mm, centre)
 
 
@@ -583,9 +595,9 @@ def _box_of(
     """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
 
     Centre (``centre_mm`` if given, only moved back along its ray): the middle of their extent in ray angle (x/z, y/z);
-    in depth the middle of their 0.2-99.8th percentiles, moved back if needed so the farthest is
-    ``BACK_MARGIN_MM`` inside the cube (a crop keeps surface in front of the cube as foreground,
-    -1, but drops what is behind it). With ``wrist_mm`` (the hand's wrist side) the centre moves
+    in depth the middle of their 0.2-99.8th percentiles, moved back if needed so that the cube's
+    back is ``HIDDEN_DEPTH_MM`` behind the farthest (a crop keeps surface in front of the cube as
+    foreground, -1, but drops what is behind it). With ``wrist_mm`` (the hand's wrist side) the centre moves
     ``WRIST_SHIFT`` of the slack (``cube_mm / 2 - CROP_MARGIN_MM - half extent``) towards it.
     Half extent (with ``wrist_mm``, plus ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand
     region ends ``HAND_LENGTH_MM`` from the fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
@@ -596,11 +608,11 @@ def _box_of(
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
     z_lo, z_hi = np.percentile(z, [0.2, 99.8])
     if centre_mm is None:
-        zc = max(0.5 * (z_lo + z_hi), z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        zc = max(0.5 * (z_lo + z_hi), z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])
     else:
         centre = np.asarray(centre_mm, dtype=np.float64)
-        zc = max(centre[2], z_hi + BACK_MARGIN_MM - 0.5 * cube_mm)
+        zc = max(centre[2], z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = centre * (zc / centre[2])  # same ray, moved back if needed
     ac = centre[:2] / zc
     allowance = np.zeros(2)

@@ -171,8 +171,7 @@ def ensure_crops(
     session: Session, *, quiet: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session."""
-    from .crops import compute_crops, crop_boxes
-    from .localize import locate_hands_with_extent, session_cube_mm
+    from .crops import CropSpec, compute_crops, crop_boxes, locate_crops
 
     s = session.model.settings
     crops_path = session.folder / CROPS_FILE
@@ -185,31 +184,22 @@ def ensure_crops(
     sequence = session.open_sequence()
     report = BadFrameReport()
     t0 = time.perf_counter()
-    centres, half_extent = locate_hands_with_extent(
-        sequence, report=report, cube_mm=s.cube_mm, progress=not quiet
-    )
-    # The hand does not fit: grow the session's cube (all stages use it). Centres and extents
-    # depend on the cube (the slack shift towards the wrist), so locate again until the cube stops
-    # growing: a rebuilt cache of this session then gives the same crops as this first build.
-    grown = False
-    while (cube := session_cube_mm(half_extent, s.cube_mm)) != s.cube_mm:
-        grown = True
+    # The hand may not fit the session's cube: locate_crops grows it (all stages use it).
+    spec = CropSpec.of(s)
+    centres, grown = locate_crops(sequence, spec, report=report, progress=not quiet)
+    if grown != spec:
         with session.lock:
-            s.cube_mm = cube
+            s.cube_mm = grown.cube_mm
             session.save()
-        centres, half_extent = locate_hands_with_extent(
-            sequence, report=BadFrameReport(), cube_mm=s.cube_mm, progress=not quiet
-        )
-    if grown:
         _log(f"crops: hand larger than the cube, cube grown to {s.cube_mm:g} mm", quiet)
-    boxes = crop_boxes(centres, sequence.camera, cube_mm=s.cube_mm, size=s.crop_size)
+    boxes = crop_boxes(centres, sequence.camera, cube_mm=grown.cube_mm, size=grown.size)
     # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
     compute_crops(
         sequence,
         centres,
         out_path=crops_path,
-        cube_mm=s.cube_mm,
-        size=s.crop_size,
+        cube_mm=grown.cube_mm,
+        size=grown.size,
         report=BadFrameReport(),
         progress=not quiet,
     )
@@ -217,8 +207,8 @@ def ensure_crops(
         meta_path,
         {
             "frames": np.asarray(session.num_frames),
-            "cube_mm": np.asarray(s.cube_mm),
-            "size": np.asarray(s.crop_size),
+            "cube_mm": np.asarray(grown.cube_mm),
+            "size": np.asarray(grown.size),
             "centres_mm": centres,
             "boxes": boxes,
             "crops_fingerprint": np.asarray(crops_fingerprint(crops_path)),
@@ -293,10 +283,12 @@ def usable_frames(session: Session, crops: np.ndarray) -> tuple[np.ndarray, dict
     all zero (the crop stage leaves such frames at background) or nothing was in the hand's cube.
     Reads the crops in chunks (``crops`` may be a memory map of any length).
     """
+    from .crops import CropSpec
+
     n = len(crops)
     usable = np.zeros(n, dtype=bool)
     for a in range(0, n, 4096):
-        usable[a : a + 4096] = np.any(np.asarray(crops[a : a + 4096]) < 1.0, axis=(1, 2))
+        usable[a : a + 4096] = np.any(~CropSpec.is_background(crops[a : a + 4096]), axis=(1, 2))
     reasons: dict[int, str] = {}
     bad = np.flatnonzero(~usable)
     sequence = session.open_sequence() if len(bad) else None

@@ -66,7 +66,7 @@ import numpy as np
 
 from . import handmodel as hm
 from .camera import CameraIntrinsics
-from .crops import crop_to_image, image_to_crop
+from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
 from .skeleton import Skeleton
@@ -88,7 +88,7 @@ DEFAULT_ALIGNER = "dis"
 class PropagationSettings:
     """Tunable constants of one propagation step (units in the names)."""
 
-    cube_mm: float = 220.0  #: crop cube edge; converts normalized crop values to mm
+    cube_mm: float = DEFAULT_CROP.cube_mm  #: crop cube edge; converts normalized crop values to mm
     sample_radius: int = 1  #: flow sampled as the median over a (2r+1)^2 window (crop px)
     depth_window_px: int = 3  #: nearest valid depth pixel searched within this radius (image px)
     near_surface_mm: float = 20.0  #: parent joint counts as on its surface within this (mm)

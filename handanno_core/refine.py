@@ -64,6 +64,7 @@ from . import handmodel as hmod
 from .annotation import FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
+from .crops import DEFAULT_CROP
 from .handmodel import Kinematics as _Kinematics
 from .handmodel import angle_jacobian, angle_violation
 from .skeleton import Skeleton
@@ -631,7 +632,7 @@ def refine(
     iterations: int = 25,
     progress: Callable[[int, float], None] | None = None,
     fixed_frames: Iterable[int] | None = None,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     tol: float = 1e-5,
     chunk_frames: int = 256,
     hand_model: bool | hmod.HandModel = False,

@@ -47,6 +47,7 @@ from pydantic import BaseModel, Field, TypeAdapter, ValidationError
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .crops import DEFAULT_CROP
 from .fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
 from .results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
 from .skeleton import Skeleton, get_skeleton
@@ -81,8 +82,8 @@ class DatasetSpec(BaseModel):
 
 
 class Settings(BaseModel):
-    cube_mm: float = 220.0
-    crop_size: int = 128
+    cube_mm: float = DEFAULT_CROP.cube_mm
+    crop_size: int = DEFAULT_CROP.size
     descriptor: str = "downsampled"
     eps_mm: float = 15.0
     angle_limits: bool = True

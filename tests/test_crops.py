@@ -452,3 +452,81 @@ def test_session_cube_grows_only_for_hands_that_do_not_fit():
     assert session_cube_mm(half) == 240.0
     assert session_cube_mm(np.full((3, 3), np.nan)) == 220.0
     assert session_cube_mm(np.tile([300.0, 300.0, 0.0], (5, 1))) == 400.0  # capped
+
+
+def test_crop_spec_is_the_one_home_of_crop_geometry():
+    from types import SimpleNamespace
+
+    from handanno_core.crops import DEFAULT_CROP, CropSpec
+
+    spec = CropSpec.of(SimpleNamespace(cube_mm=260, crop_size=64))
+    assert spec == CropSpec(260.0, 64) and spec.half_mm == 130.0
+    assert spec.with_cube(300).cube_mm == 300.0 and spec.cube_mm == 260.0  # frozen
+    with pytest.raises(AttributeError):
+        spec.cube_mm = 1.0
+    vals = np.array([1.0, 0.9995, 0.5, -1.0], np.float16)
+    np.testing.assert_array_equal(CropSpec.is_background(vals), [True, True, False, False])
+    np.testing.assert_allclose(spec.depth_mm([0.5, -1.0], 400.0), [465.0, 270.0])
+    # the functions' defaults come from the spec, and background is the spec's value
+    crop = crop_depth(np.zeros((240, 320), np.float32), MSRA_CAMERA, np.array([0, 0, 300.0]))
+    assert crop.shape == (DEFAULT_CROP.size,) * 2 and np.all(crop == CropSpec.BACKGROUND)
+
+
+def _bar_frame(length_mm: float = 420.0, width_mm: float = 45.0, z: float = 500.0):
+    """A depth map (MSRA camera) of a flat bar floating in view, both ends alike (no arm end)."""
+    cam = MSRA_CAMERA
+    vv, uu = np.mgrid[0 : cam.height, 0 : cam.width]
+    x = (uu - cam.cx) * z / cam.fx
+    y = (vv - cam.cy) * z / cam.fy
+    depth = np.where((np.abs(x) <= length_mm / 2) & (np.abs(y) <= width_mm / 2), z, 0.0)
+    return depth.astype(np.float32), cam
+
+
+def test_free_blob_extent_does_not_grow_with_the_cube():
+    """Without an arm end the extent is that of the surface within a fixed radius: locating with
+    a larger cube must not report a larger hand (which would grow the session's cube again)."""
+    from handanno_core.localize import FREE_EXTENT_RADIUS_MM, locate_hand_region
+
+    depth, cam = _bar_frame()
+    small = locate_hand_region(depth, cam, cube_mm=220.0)
+    large = locate_hand_region(depth, cam, cube_mm=320.0)
+    assert small.method == large.method == "free-blob"
+    np.testing.assert_allclose(small.half_extent_mm[:2], large.half_extent_mm[:2], atol=2.0)
+    assert small.half_extent_mm[0] <= FREE_EXTENT_RADIUS_MM + 5.0  # not the whole 210 mm
+
+
+def test_cube_back_lies_behind_the_farthest_visible_surface():
+    """A plate tilted 45 deg away (depth 450..560 mm): the hand's hidden side lies behind what the
+    sensor sees, so the cube's back is HIDDEN_DEPTH_MM behind its farthest visible point."""
+    from handanno_core.localize import HIDDEN_DEPTH_MM, locate_hand_region
+
+    cam = MSRA_CAMERA
+    vv, uu = np.mgrid[0 : cam.height, 0 : cam.width]
+    ry = (vv - cam.cy) / cam.fy
+    rx = (uu - cam.cx) / cam.fx
+    z = 500.0 / (1.0 - ry)  # the plane z = 500 + y (45 deg), along each ray
+    y = ry * z
+    x = rx * z
+    depth = np.where((np.abs(x) <= 45.0) & (np.abs(y) <= 55.0), z, 0.0).astype(np.float32)
+    loc = locate_hand_region(depth, cam, cube_mm=220.0)
+    z_far = float(np.percentile(depth[depth > 0], 99.8))
+    assert loc.centre_mm[2] + 110.0 == pytest.approx(z_far + HIDDEN_DEPTH_MM, abs=8.0)
+    # the nearest surface is still inside the cube (or just in front: foreground, -1)
+    assert depth[depth > 0].min() >= loc.centre_mm[2] - 220.0
+
+
+def test_locate_crops_grows_the_cube_to_a_fixed_point():
+    """A hand too large for the cube: locate_crops returns a grown spec at which locating again
+    would not grow it further (a rebuilt cache gives the same crops)."""
+    from handanno_core.crops import CropSpec, locate_crops
+    from handanno_core.localize import locate_hands_with_extent, session_cube_mm
+    from tests.forearm_scenes import ForearmCase, case_sequence
+
+    seq = case_sequence(ForearmCase(1, 105.0, 100.0, False, frames=4))
+    centres, spec = locate_crops(seq, CropSpec(160.0, 64))
+    assert spec.size == 64 and 160.0 < spec.cube_mm <= 400.0
+    again, half = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)
+    assert session_cube_mm(half, spec.cube_mm) == spec.cube_mm
+    np.testing.assert_allclose(again, centres)
+    same, unchanged = locate_crops(seq, spec)
+    assert unchanged == spec

@@ -242,6 +242,78 @@ def drawn(page, node: str) -> dict | None:
     return out
 
 
+_POINTS_JS = """(name) => {
+    const m = window.__viserMutable;
+    const obj = m && m.nodeRefFromName[name];
+    if (!obj) return null;
+    obj.updateMatrixWorld(true);
+    const inv = obj.matrixWorld.clone().invert();
+    let out = null;
+    obj.traverse((c) => {
+        if (out !== null || !c.isPoints || !c.visible) return;
+        const a = c.geometry.getAttribute('position');
+        out = [];
+        const v = m.camera.position.clone();
+        for (let i = 0; i < a.count; i++) {
+            v.fromBufferAttribute(a, i);
+            c.localToWorld(v).applyMatrix4(inv);
+            out.push(v.x, v.y, v.z);
+        }
+    });
+    return out;
+}"""
+
+
+def drawn_points(page, node: str) -> np.ndarray | None:
+    """The points the browser draws for point cloud ``node``: ``(M, 3)`` in the node's frame, or
+    None if the node is missing or hidden."""
+    out = page.evaluate(_POINTS_JS, node)
+    return None if out is None else np.asarray(out, dtype=np.float64).reshape(-1, 3)
+
+
+def node_props(page, node: str) -> dict | None:
+    """The props the browser holds for ``node`` (e.g. an image's ``render_width``), or None."""
+    return page.evaluate(
+        """(name) => {
+            const t = window.__viserSceneTree;
+            const n = t && t.getState()[name];
+            if (!n) return null;
+            const out = {};
+            for (const [k, v] of Object.entries(n.message.props))
+                if (typeof v === 'number' || typeof v === 'boolean' || typeof v === 'string')
+                    out[k] = v;
+            return out;
+        }""",
+        node,
+    )
+
+
+def screen_of_points(page, node: str, local_xyz) -> tuple[np.ndarray, dict]:
+    """Page pixels ``(M, 2)`` of points ``(M, 3)`` in ``node``'s local frame (as
+    :func:`screen_of`), and the canvas rectangle ``{left, top, width, height}``."""
+    pts = np.asarray(local_xyz, dtype=np.float64).reshape(-1, 3)
+    out = page.evaluate(
+        """([name, flat]) => {
+            const m = window.__viserMutable;
+            const obj = m.nodeRefFromName[name];
+            obj.updateMatrixWorld(true);
+            m.camera.updateMatrixWorld(true);
+            const r = m.canvas.getBoundingClientRect();
+            const v = m.camera.position.clone();
+            const uv = [];
+            for (let i = 0; i < flat.length; i += 3) {
+                v.set(flat[i], flat[i + 1], flat[i + 2]);
+                obj.localToWorld(v);
+                v.project(m.camera);
+                uv.push(r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height);
+            }
+            return {uv, rect: {left: r.left, top: r.top, width: r.width, height: r.height}};
+        }""",
+        [node, pts.ravel().tolist()],
+    )
+    return np.asarray(out["uv"], dtype=np.float64).reshape(-1, 2), out["rect"]
+
+
 def wait_drawn(page, handle, atol: float = 1e-5, timeout_s: float = DEADLINE_S) -> dict:
     """Wait until the browser draws ``handle`` (a server-side scene handle) where the server has
     put it: its position and, for a batched mesh, every instance position. Returns :func:`drawn`."""

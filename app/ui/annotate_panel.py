@@ -363,6 +363,9 @@ class AnnotatePanel:
             return
         self._lifted = outcome
         self._stale = {j: seq for j, seq in self._stale.items() if seq > outcome.journal_seq}
+        if self.frame_data is not None and outcome.frame == self._shown_frame:
+            # the forearm is cut at the wrist plane as soon as a lift places the wrist
+            self.hand.show_cloud(self.frame_data, outcome.joints_mm)
         self._render(lift=outcome)
 
     # ================================================================== drawing

@@ -239,24 +239,31 @@ class HandScene:
         """Load ``data``'s cloud (cleaned by :func:`~handanno_core.cloud.clean_hand_cloud`, with
         ``wrist_mm`` (J, 3) nothing past the wrist plane) and depth image into the nodes."""
         geo = data.geometry
-        keep, _ = clean_hand_cloud(
-            geo.cloud_mm, geo.camera, joints_mm=wrist_mm, skeleton=self.skeleton
-        )
-        pts, rgb = geo.cloud_mm[keep], geo.cloud_rgb[keep]
         with self.lock, self.client.atomic():
             self.data = data
-            self.cloud.points = geo.to_scene(pts if len(pts) else geo.centre_mm[None]).astype(
-                np.float32
-            )
-            self.cloud.colors = rgb if len(pts) else np.zeros((1, 3), np.uint8)
-            self.cloud.point_size = float(1.6 * geo.centre_mm[2] / geo.camera.fx / 1000.0)
-            self.cloud.visible = len(pts) > 0
+            self.show_cloud(data, wrist_mm)
             rw, rh = geo.image_render_size
             self.image.image = geo.image_rgb
             self.image.render_width = rw
             self.image.render_height = rh
             self.image.position = geo.image_position
             self.image.visible = image and data.depth is not None
+
+    def show_cloud(self, data: FrameData, wrist_mm: np.ndarray | None) -> None:
+        """Load ``data``'s cloud, cleaned by :func:`~handanno_core.cloud.clean_hand_cloud` (with
+        ``wrist_mm`` (J, 3): nothing past the wrist plane), into the cloud node."""
+        geo = data.geometry
+        keep, _ = clean_hand_cloud(
+            geo.cloud_mm, geo.camera, joints_mm=wrist_mm, skeleton=self.skeleton
+        )
+        pts, rgb = geo.cloud_mm[keep], geo.cloud_rgb[keep]
+        with self.lock, self.client.atomic():
+            self.cloud.points = geo.to_scene(pts if len(pts) else geo.centre_mm[None]).astype(
+                np.float32
+            )
+            self.cloud.colors = rgb if len(pts) else np.zeros((1, 3), np.uint8)
+            self.cloud.point_size = float(1.6 * geo.centre_mm[2] / geo.camera.fx / 1000.0)
+            self.cloud.visible = len(pts) > 0
 
     def show_image(self, visible: bool) -> None:
         self.image.visible = visible and self.data is not None and self.data.depth is not None

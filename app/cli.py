@@ -158,8 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
     session_arg(p)
     p.add_argument(
         "--strategy",
-        default="forest",
-        help="forest (ours), chain, chain-step, coverage, uniform",
+        default="uniform",  # handanno_core.select.DEFAULT_STRATEGY (tests/test_cli.py checks)
+        help="uniform, forest (cosine-distance parent forest), chain, chain-step, coverage",
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument(

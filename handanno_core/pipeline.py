@@ -227,15 +227,16 @@ def ensure_crops(
 def select(
     session: Session,
     *,
-    strategy: str = "forest",
+    strategy: str | None = None,
     ref_fraction: float | None = None,
     rho: float | None = None,
     figures: bool = True,
     quiet: bool = False,
 ):
-    """Select reference frames and the parent forest; store them in ``session.json``."""
+    """Select reference frames and the parent forest; store them in ``session.json``
+    (``strategy`` None: :data:`handanno_core.select.DEFAULT_STRATEGY`)."""
     from .descriptors import compute_descriptors
-    from .select import select_references
+    from .select import DEFAULT_STRATEGY, select_references
 
     crops, _, _ = ensure_crops(session, quiet=quiet)
     usable, reasons = usable_frames(session, crops)
@@ -253,7 +254,7 @@ def select(
     breaks = np.searchsorted(index, np.asarray(session.model.sequence_breaks, dtype=np.int64))
     sub = select_references(
         descriptors[index],
-        strategy,
+        strategy or DEFAULT_STRATEGY,
         ref_fraction=None
         if ref_fraction is None
         else min(1.0, ref_fraction * len(usable) / len(index)),
@@ -550,6 +551,6 @@ def ensure_demo_session(
         _log(f"generating a {frames}-frame synthetic sequence in {data} ...", quiet)
         generate_sequence(data, frames=frames, seed=seed, progress=not quiet)
     session = new_session(folder, data, format="msra", overwrite=True)
-    select(session, strategy="forest", ref_fraction=0.05, figures=False, quiet=quiet)
+    select(session, ref_fraction=0.05, figures=False, quiet=quiet)
     session.close()
     return folder

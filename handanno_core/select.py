@@ -65,7 +65,9 @@ from typing import Any
 import numpy as np
 
 STRATEGIES = ("chain", "chain-step", "coverage", "uniform", "forest")
-DEFAULT_STRATEGY = "forest"
+# chosen on the benchmark suite's tune part (README, "Default selection strategy"): uniform beat the
+# forest there on 5 of 7 sequences and on the mean, as on the report part
+DEFAULT_STRATEGY = "uniform"
 BUDGET_TOLERANCE = 0.02  # |K - round(F N)| <= 2 % of round(F N)
 
 

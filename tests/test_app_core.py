@@ -525,6 +525,6 @@ def test_cli_every_option_has_help_and_select_defaults_to_5_percent(monkeypatch,
     monkeypatch.setattr(pipeline, "select", fake_select)
     # --sessions-dir is accepted after the command as well
     assert cli.main(["select", "sess", "--sessions-dir", str(tmp_path)]) == 0
-    assert seen == {"strategy": "forest", "ref_fraction": 0.05, "rho": None}
+    assert seen == {"strategy": "uniform", "ref_fraction": 0.05, "rho": None}
     assert cli.main(["--sessions-dir", str(tmp_path), "select", "sess", "--rho", "0.3"]) == 0
     assert seen["ref_fraction"] is None and seen["rho"] == 0.3

@@ -148,3 +148,11 @@ def test_demo_creates_the_session_once_and_serves_it(tmp_path, monkeypatch):
         served
     ) == 2
     assert Session.open(folder).model.selection == session.model.selection
+
+
+def test_select_defaults_to_the_engine_default_strategy():
+    from app.cli import build_parser
+    from handanno_core.select import DEFAULT_STRATEGY
+
+    args = build_parser().parse_args(["select", "s"])
+    assert args.strategy == DEFAULT_STRATEGY

@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from .annotation import FrameAnnotation
+from .sampling import visible_by_depth
 from .session import (
     Batch,
     Session,
@@ -30,7 +31,6 @@ from .session import (
 )
 
 EXPORT_FORMATS = ("json", "npz", "msra")
-_VISIBILITY_MARGIN_MM = 10.0
 
 
 def best_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -45,9 +45,9 @@ def best_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]
 
 
 def _visibility(session: Session, joints_mm: np.ndarray) -> np.ndarray:
-    """Depth test per frame and joint: visible when nothing is much closer than the joint's surface."""
+    """``(N, J)`` visibility of the exported joints by :func:`sampling.visible_by_depth` (False
+    where a frame has no estimate or its depth cannot be read)."""
     sequence = session.open_sequence()
-    camera = sequence.camera
     offsets = np.asarray(session.skeleton.surface_offsets_mm)
     visible = np.zeros(joints_mm.shape[:2], dtype=bool)
     for i in np.flatnonzero(np.all(np.isfinite(joints_mm), axis=(1, 2))):
@@ -55,16 +55,7 @@ def _visibility(session: Session, joints_mm: np.ndarray) -> np.ndarray:
             depth = sequence.depth(int(i))
         except ValueError:
             continue
-        uv = np.rint(camera.project(joints_mm[i])).astype(np.int64)
-        inside = (
-            (uv[:, 0] >= 0)
-            & (uv[:, 0] < camera.width)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < camera.height)
-        )
-        d = np.zeros(len(uv))
-        d[inside] = depth[uv[inside, 1], uv[inside, 0]]
-        visible[i] = inside & (d > 0) & (d >= joints_mm[i, :, 2] - offsets - _VISIBILITY_MARGIN_MM)
+        visible[i] = visible_by_depth(joints_mm[i], depth, sequence.camera, offsets)
     return visible
 
 

@@ -109,6 +109,7 @@ from scipy.optimize import minimize
 from .annotation import AnnotationError, FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
+from .sampling import depth_at
 from .skeleton import Skeleton
 
 __all__ = [
@@ -181,40 +182,9 @@ class LiftSet:
 def observed_depth(
     depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3, near_px: int = 1
 ) -> np.ndarray:
-    """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: the closest valid surface in the 3x3
-    pixels around the rounded point (robust to sensor dropout at silhouette edges, and the same
-    test the simulated annotator uses for visibility); if none, the nearest valid pixel within
-    ``window`` px. NaN where none. ``near_px`` is the half-size of the block that counts as
-    distance 0 (1 = 3x3; 2 = 5x5 tolerates 2D points a pixel or two off a thin finger, which would
-    otherwise read the surface behind it)."""
-    depth = np.asarray(depth_mm)
-    h, w = depth.shape
-    uv = np.asarray(uv_px, dtype=np.float64)
-    out = np.full(len(uv), np.nan)
-    ok = np.all(np.isfinite(uv), axis=1)
-    if not np.any(ok):
-        return out
-    window = max(window, near_px)
-    r = np.arange(-window, window + 1)
-    dv, du = np.meshgrid(r, r, indexing="ij")
-    dist2 = (du**2 + dv**2).ravel().astype(np.float64)
-    cu = np.rint(uv[ok, 0]).astype(np.int64)
-    cv = np.rint(uv[ok, 1]).astype(np.int64)
-    uu = cu[:, None] + du.ravel()[None, :]
-    vv = cv[:, None] + dv.ravel()[None, :]
-    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-    vals = np.zeros(uu.shape, dtype=np.float64)
-    vals[inside] = depth[vv[inside], uu[inside]]
-    valid = inside & np.isfinite(vals) & (vals > 0)
-    # nearest valid pixel; among equally near ones the closer surface (depth breaks ties)
-    cheb = np.maximum(np.abs(du), np.abs(dv)).ravel()
-    ring = np.where(cheb <= near_px, 0.0, dist2)  # the (2 near_px + 1)^2 block is distance 0
-    key = np.where(valid, ring[None, :] * 1e6 + vals, np.inf)
-    best = np.argmin(key, axis=1)
-    found = np.isfinite(key[np.arange(len(best)), best])
-    res = np.where(found, vals[np.arange(len(best)), best], np.nan)
-    out[np.flatnonzero(ok)] = res
-    return out
+    """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: :func:`handanno_core.sampling.depth_at`
+    (closest surface in the 3x3 block, else the nearest valid pixel within ``window`` px)."""
+    return depth_at(depth_mm, uv_px, window=window, near_px=near_px)
 
 
 def _drop_inconsistent_depths(

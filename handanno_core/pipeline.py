@@ -519,7 +519,6 @@ def refine(
         crops=crops,
         boxes=boxes,
         centres_mm=centres,
-        depth_of=None,  # the observed depth is read from the crops
         camera=session.camera,
         skeleton=session.skeleton,
         bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),

@@ -61,6 +61,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,6 +70,8 @@ from .camera import CameraIntrinsics
 from .crops import crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
+from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
+from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
 __all__ = [
@@ -267,46 +270,6 @@ class _Task:
     seeds: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]]
 
 
-def _robust_depth(depth: np.ndarray, uv: np.ndarray, window: int) -> np.ndarray:
-    """Depth ``(P,)`` mm at ``uv (P, 2)``: nearest valid pixel within ``window`` px, NaN if none."""
-    h, w = depth.shape
-    out = np.full(len(uv), np.nan)
-    ok = np.all(np.isfinite(uv), axis=1)
-    if not ok.any():
-        return out
-    r = np.arange(-window, window + 1)
-    dv, du = np.meshgrid(r, r, indexing="ij")
-    dist2 = (du**2 + dv**2).ravel().astype(np.float64)
-    cu = np.rint(uv[ok, 0]).astype(np.int64)[:, None] + du.ravel()[None]
-    cv = np.rint(uv[ok, 1]).astype(np.int64)[:, None] + dv.ravel()[None]
-    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
-    vals = np.zeros(cu.shape)
-    vals[inside] = depth[cv[inside], cu[inside]]
-    valid = inside & np.isfinite(vals) & (vals > 0)
-    key = np.where(valid, dist2[None] * 1e6 + vals, np.inf)
-    best = np.argmin(key, axis=1)
-    rows = np.arange(len(best))
-    out[np.flatnonzero(ok)] = np.where(np.isfinite(key[rows, best]), vals[rows, best], np.nan)
-    return out
-
-
-def _bilinear(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image (H, W)`` at ``pts (P, 2)`` (border replicated)."""
-    h, w = image.shape
-    x = np.clip(np.nan_to_num(pts[:, 0]), 0, w - 1)
-    y = np.clip(np.nan_to_num(pts[:, 1]), 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(int), w - 2)
-    y0 = np.minimum(np.floor(y).astype(int), h - 2)
-    fx, fy = x - x0, y - y0
-    img = image.astype(np.float64)
-    return (
-        img[y0, x0] * (1 - fx) * (1 - fy)
-        + img[y0, x0 + 1] * fx * (1 - fy)
-        + img[y0 + 1, x0] * (1 - fx) * fy
-        + img[y0 + 1, x0 + 1] * fx * fy
-    )
-
-
 def _align(ctx: _Context, crop_s: np.ndarray, crop_f: np.ndarray, xy_s: np.ndarray):
     """Displacement ``(J, 2)`` crop px of points ``xy_s`` and forward-backward error ``(J,)``."""
     st = ctx.settings
@@ -322,6 +285,15 @@ def _align(ctx: _Context, crop_s: np.ndarray, crop_f: np.ndarray, xy_s: np.ndarr
     bwd = fn(crop_f, crop_s, **ctx.aligner_kwargs)
     back = sample_flow(bwd, xy_s + disp, radius=st.sample_radius)
     return disp, np.linalg.norm(disp + back, axis=1)
+
+
+class _FitEval(NamedTuple):
+    """Residual groups (2D u, 2D v, depth, bone, angle), bone vectors and lengths, cost."""
+
+    res: tuple[np.ndarray, ...]
+    vec: np.ndarray
+    ln: np.ndarray
+    cost: float
 
 
 def _fit(
@@ -358,7 +330,7 @@ def _fit(
     eps = 1e-3 * np.eye(n).reshape(n, j, 3) if na else None
     jac_a = None
 
-    def residuals(x):
+    def residuals(x) -> _FitEval:
         z = np.maximum(x[:, 2], 1.0)
         r_u = (fx * x[:, 0] / z + cx - uv[:, 0]) / sigma_uv
         r_v = (fy * x[:, 1] / z + cy - uv[:, 1]) / sigma_uv
@@ -374,13 +346,11 @@ def _fit(
             + np.einsum("i,i->", r_b, r_b)
             + np.einsum("i,i->", r_a, r_a)
         )
-        return (r_u, r_v, r_z, r_b, r_a), vec, ln, cost
+        return _FitEval((r_u, r_v, r_z, r_b, r_a), vec, ln, cost)
 
-    x = x0.copy()
-    res, vec, ln, cost = residuals(x)
-    lam = 1e-4
-    for it in range(iterations):
-        r_u, r_v, r_z, r_b, r_a = res
+    def normal_equations(x, ev: _FitEval) -> NormalEquations:
+        nonlocal jac_a
+        r_u, r_v, r_z, r_b, r_a = ev.res
         z = np.maximum(x[:, 2], 1.0)
         s = 1.0 / (z * sigma_uv)
         pu = np.zeros((j, 3))
@@ -392,7 +362,7 @@ def _fit(
         blocks[idx, idx, 2, 2] += inv_z**2
         grad = pu * r_u[:, None] + pv * r_v[:, None]
         grad[:, 2] += inv_z * r_z
-        unit = vec / (np.maximum(ln, 1e-9)[:, None] * sigma_bone)
+        unit = ev.vec / (np.maximum(ev.ln, 1e-9)[:, None] * sigma_bone)
         uu = unit[:, :, None] * unit[:, None, :]
         np.add.at(blocks, (bc, bc), uu)
         np.add.at(blocks, (bp, bp), uu)
@@ -403,27 +373,24 @@ def _fit(
         jtj = blocks.transpose(0, 2, 1, 3).reshape(n, n)
         g = grad.ravel()
         if na:
-            if it == 0:
+            if jac_a is None:  # kept from the first iteration
                 jac_a = ((angles(x[None] + eps) - r_a) / 1e-3).T  # (A, 3J)
             jtj = jtj + np.einsum("ai,aj->ij", jac_a, jac_a)
             g = g + np.einsum("ai,a->i", jac_a, r_a)
-        diag = np.diag(jtj).copy() + 1e-9
-        accepted = small = False
-        for _ in range(5):
-            m = jtj.copy()
-            m[np.diag_indices(n)] += lam * diag
-            step = np.linalg.solve(m, -g)
-            xn = x + step.reshape(j, 3)
-            rn, vn, lnn, cn = residuals(xn)
-            if cn < cost:
-                accepted = True
-                small = cost - cn < 1e-8 * cost + 1e-12
-                x, res, vec, ln, cost, lam = xn, rn, vn, lnn, cn, max(lam * 0.1, 1e-9)
-                break
-            lam *= 10.0
-        if not accepted or small:
-            break
-    return x
+        return NormalEquations(jtj, g, np.diag(jtj).copy() + 1e-9)
+
+    fit = levenberg_marquardt(
+        residuals,
+        x0.copy(),
+        normal_equations=normal_equations,
+        solve=solve_dense,
+        damping=Marquardt(lam=1e-4, up=10.0, down=0.1, floor=1e-9),
+        max_iter=iterations,
+        max_tries=5,
+        rtol=1e-8,
+        atol=1e-12,
+    )
+    return fit.x
 
 
 def _angle_hinge(sk: Skeleton, sigma_deg: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -448,7 +415,9 @@ def _surface_offsets_at_source(ctx: _Context, frame: int, joints: np.ndarray) ->
         depth = ctx.depth_of(frame)
     except FrameError:
         return np.full(len(joints), np.nan)
-    surf = _robust_depth(depth, ctx.camera.project(joints), ctx.settings.depth_window_px)
+    surf = depth_at(
+        depth, ctx.camera.project(joints), window=ctx.settings.depth_window_px, near_px=0
+    )
     delta = joints[:, 2] - surf
     with np.errstate(invalid="ignore"):
         near = np.abs(delta - offsets) < ctx.settings.near_surface_mm
@@ -512,7 +481,7 @@ def _step(
 
     # the joint keeps its depth below the surface from the source (the reference's lift), kept
     # within +-carry_band_mm of the skeleton's offset
-    surf = _robust_depth(depth, uv_f, st.depth_window_px)
+    surf = depth_at(depth, uv_f, window=st.depth_window_px, near_px=0)
     vis_s = np.isfinite(delta_s)
     below = np.where(
         vis_s,
@@ -552,7 +521,8 @@ def _step(
     # confidence
     half = 0.5 * st.cube_mm
     # matched points should show the same centre-relative depth in both crops
-    app_res = np.abs(_bilinear(crop_s, xy_s) - _bilinear(crop_f, xy_f)) * half
+    app_s = bilinear(crop_s, xy_s[:, 0], xy_s[:, 1])
+    app_res = np.abs(app_s - bilinear(crop_f, xy_f[:, 0], xy_f[:, 1])) * half
     bone_viol = np.zeros(len(x))
     bone_viol[bones[:, 1]] = np.abs(len0 - lengths) / np.maximum(lengths, 1e-6)
     depth_res = np.where(visible, np.abs(x[:, 2] - z_t), st.depth_scale_mm * 0.6)

@@ -70,6 +70,7 @@ from .camera import CameraIntrinsics
 from .crops import crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
+from .forest import descendants, propagation_order
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
@@ -159,54 +160,6 @@ class PropagationResult:
 # ---------------------------------------------------------------------------------------------
 # forest helpers
 # ---------------------------------------------------------------------------------------------
-def _children_csr(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CSR children lists: children of ``i`` are ``kids[start[i]:start[i+1]]`` (ascending)."""
-    n = len(parent)
-    has = parent >= 0
-    kids = np.flatnonzero(has)
-    kids = kids[np.argsort(parent[kids], kind="stable")]
-    counts = np.bincount(parent[has], minlength=n)
-    start = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(counts, out=start[1:])
-    return kids, start
-
-
-def descendants(parent: np.ndarray, frames) -> np.ndarray:
-    """All frames whose parent chain passes through any of ``frames`` (the frames included).
-
-    ``parent``: ``(N,)`` int, -1 at references. Returns a sorted int64 array. After a reference
-    (or any frame) changes, these are the frames to re-propagate.
-    """
-    parent = np.asarray(parent, dtype=np.int64)
-    kids, start = _children_csr(parent)
-    mark = np.zeros(len(parent), dtype=bool)
-    front = np.unique(np.asarray(frames, dtype=np.int64).ravel())
-    mark[front] = True
-    while front.size:
-        nxt = (
-            np.concatenate([kids[start[i] : start[i + 1]] for i in front]) if front.size else front
-        )
-        nxt = nxt[~mark[nxt]]
-        mark[nxt] = True
-        front = nxt
-    return np.flatnonzero(mark)
-
-
-def propagation_order(parent: np.ndarray, roots) -> list[np.ndarray]:
-    """Breadth-first frames below each root (roots excluded): one array per root, parents first."""
-    parent = np.asarray(parent, dtype=np.int64)
-    kids, start = _children_csr(parent)
-    out = []
-    for r in np.asarray(roots, dtype=np.int64).ravel():
-        order: list[np.ndarray] = []
-        front = kids[start[r] : start[r + 1]]
-        while front.size:
-            order.append(front)
-            front = np.concatenate([kids[start[i] : start[i + 1]] for i in front])
-        out.append(np.concatenate(order) if order else np.zeros(0, dtype=np.int64))
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # the per-frame step (runs in workers)
 # ---------------------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ from pydantic import BaseModel, Field, TypeAdapter, ValidationError
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
+from .forest import NO_SELECTION
 from .results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
 from .skeleton import Skeleton, get_skeleton
 
@@ -766,8 +767,12 @@ class Session:
 
     @property
     def parent(self) -> np.ndarray:
+        """``(N,)`` int64 parent forest (:mod:`forest`); all :data:`forest.NO_SELECTION` before a
+        selection."""
         p = self.model.selection.parent
-        return np.asarray(p, dtype=np.int64) if p else np.full(self.num_frames, -2, dtype=np.int64)
+        if not p:
+            return np.full(self.num_frames, NO_SELECTION, dtype=np.int64)
+        return np.asarray(p, dtype=np.int64)
 
     def annotation(self, frame: int) -> FrameAnnotation | None:
         data = self.model.annotations.get(str(frame))

@@ -430,6 +430,7 @@ def propagate(
 ):
     """Propagate lifted references to every frame along the selection's parent forest
     (``use_model``: fit the personalized hand model to every frame, see ``handmodel``)."""
+    from .propagate import PropagationSettings
     from .propagate import propagate as run_propagation
 
     sequence = session.open_sequence()
@@ -456,6 +457,7 @@ def propagate(
         initial_confidence=results["confidence"] if frames is not None else None,
         progress=progress,
         on_result=on_result,
+        settings=PropagationSettings.from_session(session.model.settings),
         hand_model=use_model,
     )
     computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))

@@ -234,7 +234,7 @@ def test_analytic_derivatives_match_finite_differences(frames):
         soft_bones=0.1,
         right_hand=True,
     )
-    prob.set_elastic(True)
+    prob = prob.with_start(x0, x0[:, 2], elastic=True)
     x = np.random.default_rng(0).normal(0, 0.5, prob.n_var)
     x[63:] = np.abs(x[63:])
 

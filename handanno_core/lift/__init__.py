@@ -97,11 +97,12 @@ the template could only be fitted to its clicks by stretching it.
 from ..annotation import AnnotationError
 from .initial import initial_bone_lengths, initial_pose, observed_depth
 from .references import LiftSet, lift_references, surface_correction
-from .solve import LiftResult, lift_frame
+from .solve import LiftResult, WarmStart, lift_frame
 
 __all__ = [
     "LiftResult",
     "LiftSet",
+    "WarmStart",
     "initial_bone_lengths",
     "initial_pose",
     "lift_frame",

@@ -4,6 +4,8 @@ rows, in scaled variables ``x = (X - x0) / scale``.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from ..annotation import FrameAnnotation
@@ -46,7 +48,6 @@ class _Problem(_AngleRows):
         w_angle_inner: float = 0.0,
     ):
         self.cam = camera
-        self.sk = skeleton
         self.j = skeleton.num_joints
         self.x0 = np.asarray(x0_mm, dtype=np.float64)
         self.bones = skeleton.bones
@@ -127,16 +128,35 @@ class _Problem(_AngleRows):
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
             self._setup_angle_levels()
-        self.nfev = 0
         self.sc3 = np.array([_SCALE_XY, _SCALE_XY, _SCALE_Z])
         self._cache: dict = {}
         self.elastic = False
         self.iv_lo = np.flatnonzero(np.isfinite(lo))  # joints with a lower / upper depth bound
         self.iv_hi = np.flatnonzero(np.isfinite(hi))
         self.w_elastic = 1.0
-        self.set_elastic(False)
+        self._set_elastic(False)
 
-    def set_elastic(self, on: bool, weight: float = 1.0, joints: np.ndarray | None = None) -> None:
+    def with_start(
+        self,
+        x0_mm: np.ndarray,
+        z_inside_mm: np.ndarray,
+        *,
+        elastic: bool = False,
+        weight: float = 1.0,
+        joints: np.ndarray | None = None,
+    ) -> _Problem:
+        """The problem of one solve (this one is left unchanged): variables relative to
+        ``x0_mm`` (J, 3) mm, where joints without an elastic slack start at depth ``z_inside_mm``
+        (J,) (inside their hard interval); hard, or elastic (see :meth:`_set_elastic`)."""
+        p = copy.copy(self)
+        p._cache = {}
+        p._set_elastic(elastic, weight, joints)
+        x0 = np.array(x0_mm, dtype=np.float64)
+        x0[:, 2] = np.where(p.slot < 0, z_inside_mm, x0[:, 2])
+        p.x0 = x0
+        return p
+
+    def _set_elastic(self, on: bool, weight: float = 1.0, joints: np.ndarray | None = None) -> None:
         """Elastic mode: depth intervals become ``z >= lo - s``, ``z <= hi + s`` with slacks
         ``s >= 0`` (one per joint with an interval) costing ``weight`` px^2 per mm (exact L1
         penalty: intervals that can be met are met exactly). ``joints``: only these joints get
@@ -163,7 +183,7 @@ class _Problem(_AngleRows):
     def n_var(self) -> int:
         return 3 * self.j + self.n_slack
 
-    # -- variables: x (3J [+ S],) = (X - x0) / 1 cm [, slacks / 1 cm]
+    # -- variables: x (3J [+ S],) = (X - x0) / (1.5, 1.5, 10) mm [, slacks / 10 mm]
     def pose(self, x: np.ndarray) -> np.ndarray:
         return self.x0 + self.sc3 * x[: 3 * self.j].reshape(self.j, 3)
 
@@ -186,7 +206,6 @@ class _Problem(_AngleRows):
 
     # -- objective
     def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
-        self.nfev += 1
         X = self.pose(x)
         g = np.zeros((self.j, 3))
         f = 0.0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from scipy.optimize import minimize
@@ -53,14 +54,37 @@ def _check_inputs(annotation: FrameAnnotation, skeleton: Skeleton, bone_lengths_
     if not isinstance(annotation, FrameAnnotation):
         raise AnnotationError(f"expected a FrameAnnotation, got {type(annotation).__name__}")
     annotation.validate(skeleton.num_joints)
-    if np.any(np.isnan(annotation.uv_px).any(axis=1) & annotation.has_3d):
-        pass  # 3D-only joints are fine
     d = np.asarray(bone_lengths_mm, dtype=np.float64)
     if d.shape != (len(skeleton.bones),) or not np.all(np.isfinite(d)) or np.any(d <= 0):
         raise ValueError(
             f"bone_lengths_mm must be {len(skeleton.bones)} positive finite lengths, got {d!r}"
         )
     return d
+
+
+#: scipy SLSQP's exit status "Iteration limit reached"
+_SLSQP_ITERATION_LIMIT = 9
+#: constraints (bones, rows) met to this (mm) count as met; slacks above it as used
+_FEASIBLE_MM = 0.5
+#: weight (px^2/mm^2) pulling unannotated joints towards their start (keeps them defined)
+_W_FREE = 1e-3
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """How the app's live re-lift starts a solve (none of it is a parameter of the problem).
+
+    ``init_mm``: ``(J, 3)`` mm start pose (NaN rows: the annotation's own start), e.g. the previous
+    solution while a joint is dragged. ``start_elastic``: solve the elastic problem first instead of
+    only after the hard one failed (a frame whose previous lift needed slack: the hard solve would
+    spend its iterations failing again); an elastic solution whose slacks are all zero meets every
+    hard constraint and is reported as such (``elastic=False``). ``elastic_joints``: with
+    ``start_elastic``, give slacks only to these joints (the previous lift's ``slack_joints``); if
+    the other intervals cannot be met either, every joint gets one."""
+
+    init_mm: np.ndarray | None = None
+    start_elastic: bool = False
+    elastic_joints: np.ndarray | None = None
 
 
 def lift_frame(
@@ -88,24 +112,20 @@ def lift_frame(
     elastic_joints: np.ndarray | None = None,
     max_iter: int = 200,
     tol: float = 1e-6,
+    warm: WarmStart | None = None,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
 
     annotation: the frame's :class:`FrameAnnotation` (J joints; validated, AnnotationError if bad).
     depth: ``(H, W)`` mm, 0 = invalid. bone_lengths_mm: ``(B,)`` mm, bone ``b`` = ``skeleton.bones[b]``.
     eps_mm: width of a visible joint's interval behind ``D + o``. angle_limits: thesis Eq. 5 limits.
-    init_mm: ``(J, 3)`` warm start (e.g. the previous solution while a joint is dragged).
     order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
     w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
     w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
-    (used for bone-length estimation). start_elastic: solve the elastic problem first instead of
-    only after the hard one failed (live re-lifts of a frame whose previous lift needed slack: the
-    hard solve would spend its iterations failing again); an elastic solution whose slacks are all
-    zero meets every hard constraint and is reported as such (``elastic=False``).
-    elastic_joints: with ``start_elastic``, give slacks only to these joints (the previous lift's
-    ``slack_joints``); if the other intervals cannot be met either, every joint gets one.
+    (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
+    ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
     Returns a :class:`LiftResult`.
     """
     t0 = time.perf_counter()
@@ -116,12 +136,16 @@ def lift_frame(
     x0_pose, d_obs = initial_pose(
         annotation, depth, camera, skeleton, d, depth_near_px=depth_near_px
     )
-    if init_mm is not None:
-        init = np.asarray(init_mm, dtype=np.float64)
+    if warm is None:
+        warm = WarmStart(init_mm, start_elastic, elastic_joints)
+    elif init_mm is not None or start_elastic or elastic_joints is not None:
+        raise ValueError("pass the warm start either as warm= or as its fields, not both")
+    if warm.init_mm is not None:
+        init = np.asarray(warm.init_mm, dtype=np.float64)
         if init.shape != x0_pose.shape:
             raise ValueError(f"init_mm must be {x0_pose.shape}, got {init.shape}")
         x0_pose = np.where(np.isfinite(init), init, x0_pose)
-    prob = _Problem(
+    base = _Problem(
         annotation,
         d_obs,
         camera,
@@ -137,16 +161,15 @@ def lift_frame(
         w_flat=w_flat,
         w_angle=w_angle,
         w_angle_inner=w_angle_inner,
-        w_free=1e-3,
+        w_free=_W_FREE,
         soft_bones=soft_bones,
         right_hand=right_hand,
     )
     hard_bones = soft_bones is None
     # start inside the depth bounds
-    z0 = np.clip(x0_pose[:, 2], prob.z_lo, prob.z_hi)
-    res = None
-    if not start_elastic:
-        res = _solve_hard(prob, x0_pose, z0, hard_bones, max_iter, tol)
+    z0 = np.clip(x0_pose[:, 2], base.z_lo, base.z_hi)
+    solve = partial(_solve_from, base, x0_pose, z0, hard_bones, max_iter, tol)
+    res, prob = (None, base) if warm.start_elastic else solve()
     slack_joints = np.zeros(0, dtype=np.int64)
     if res is None or not (
         _acceptable(res, prob, hard_bones)
@@ -157,22 +180,17 @@ def lift_frame(
         # infeasible or failed: the observed depth under some joint is probably wrong (2D on
         # the wrong surface). Re-solve in elastic mode from the original start.
         res2 = None
-        if start_elastic and elastic_joints is not None and len(elastic_joints):
-            res2 = _solve_elastic(
-                prob, x0_pose, z0, hard_bones, elastic_weight, max_iter, tol, elastic_joints
-            )
-            if not _feasible(res2, prob, hard_bones):
+        if warm.start_elastic and warm.elastic_joints is not None and len(warm.elastic_joints):
+            res2, prob2 = solve(elastic=elastic_weight, joints=warm.elastic_joints)
+            if not _feasible(res2, prob2, hard_bones):
                 res2 = None  # another interval cannot be met either: relax them all
         if res2 is None:
-            res2 = _solve_elastic(prob, x0_pose, z0, hard_bones, elastic_weight, max_iter, tol)
+            res2, prob2 = solve(elastic=elastic_weight)
         if np.all(np.isfinite(res2.x)):
-            res = res2
-            slack_joints = prob.el_joints[prob.slacks_mm(res2.x) > 0.5]
+            res, prob = res2, prob2
+            slack_joints = prob.el_joints[prob.slacks_mm(res.x) > _FEASIBLE_MM]
         elif res is None:
-            res = _solve_hard(prob, x0_pose, z0, hard_bones, max_iter, tol)
-        else:
-            prob.set_elastic(False)
-            prob.x0[:, 2] = z0
+            res, prob = solve()
     ok = _acceptable(res, prob, soft_bones is None)  # constraints really hold (SLSQP can claim
     # success in elastic mode with violated angle rows; report that as not converged)
     X = prob.pose(res.x)
@@ -196,36 +214,24 @@ def lift_frame(
     )
 
 
-#: scipy SLSQP's exit status "Iteration limit reached"
-_SLSQP_ITERATION_LIMIT = 9
-
-
-def _solve_hard(
-    prob: _Problem, x0_pose: np.ndarray, z0: np.ndarray, hard_bones: bool, max_iter: int, tol: float
-):
-    """Solve with hard depth intervals (bounds) from ``x0_pose`` moved inside them (``z0``)."""
-    prob.set_elastic(False)
-    prob.x0 = x0_pose.copy()
-    prob.x0[:, 2] = z0
-    return _solve(prob, hard_bones, max_iter, tol)
-
-
-def _solve_elastic(
-    prob: _Problem,
+def _solve_from(
+    base: _Problem,
     x0_pose: np.ndarray,
     z0: np.ndarray,
     hard_bones: bool,
-    weight: float,
     max_iter: int,
     tol: float,
+    elastic: float | None = None,
     joints: np.ndarray | None = None,
 ):
-    """Solve with slacks on the depth intervals of ``joints`` (all when None) from ``x0_pose``;
-    joints without a slack start inside their interval (``z0``)."""
-    prob.set_elastic(True, weight, joints)
-    prob.x0 = x0_pose.copy()
-    prob.x0[:, 2] = np.where(prob.slot < 0, z0, x0_pose[:, 2])
-    return _solve(prob, hard_bones, max_iter, tol)
+    """Solve ``base`` from ``x0_pose`` (joints without a slack moved inside their interval,
+    ``z0``): with hard depth intervals, or in elastic mode (slack weight ``elastic``) with slacks
+    on the intervals of ``joints`` (all when None). Returns ``(scipy result, problem solved)``."""
+    if elastic is None:
+        prob = base.with_start(x0_pose, z0)
+    else:
+        prob = base.with_start(x0_pose, z0, elastic=True, weight=elastic, joints=joints)
+    return _solve(prob, hard_bones, max_iter, tol), prob
 
 
 def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
@@ -285,7 +291,7 @@ def _violation_mm(prob: _Problem, x: np.ndarray, hard_bones: bool) -> float:
 
 def _feasible(res, prob: _Problem, hard_bones: bool) -> bool:
     """Bones and inequality rows hold to 0.5 mm at ``res.x`` (bounds hold by construction)."""
-    return _violation_mm(prob, res.x, hard_bones) <= 0.5
+    return _violation_mm(prob, res.x, hard_bones) <= _FEASIBLE_MM
 
 
 def _acceptable(res, prob: _Problem, hard_bones: bool) -> bool:

@@ -477,8 +477,8 @@ def dis_flow(
 
     The crops are scaled from ``value_range`` to uint8. ``finest_scale=1`` (patches matched at
     half resolution, then variational refinement at full resolution) was both faster and more
-    accurate than 0 on the synthetic benchmark (6.1 vs 6.6 mm propagated, 3 vs 14 ms per call). Returns ``(H, W, 2)`` float32 px with the
-    module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
+    accurate than 0 on the synthetic benchmark (``benchmarks/results/design_measurements.md``).
+    Returns ``(H, W, 2)`` float32 px with the module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
     in :func:`coarse_to_fine` (each level initialized with the upsampled flow).
     """
     key = (

@@ -80,22 +80,20 @@ class RefineWeights:
     references) with two initializations: the real propagation (``propagate.propagate`` from a
     5 % / 2 % ``forest`` selection, reference poses = ground truth to skip the lift) and perturbed
     ground truth (smooth 5-10 mm offsets correlated in time, larger at fingertips, 2 % outlier
-    frames of 20-40 mm, bone violations); see ``benchmarks/bench_refine.py``. On 300 frames:
-    propagation 5 % 3.92 -> 2.14 mm mean (max 40.9 -> 19.3), 2 % 10.10 -> 8.03 mm, perturbed
-    8.15 -> 4.04 mm (max 59.9 -> 35.1).
+    frames of 20-40 mm, bone violations); chosen by ``benchmarks/bench_refine.py``, figures in
+    ``benchmarks/results/design_measurements.md``.
 
     * ``appearance`` (per mm² per patch sample; 7×7 samples, 2 crop px apart, per joint): 0.02,
       so one joint's patch weighs about 1/mm², like the temporal term. Samples are robust with
       a redescending Welsch loss of scale ``appearance_scale_mm`` = 10 mm (Huber made silhouette
       mismatches pull joints tens of mm away); relative depths are clipped at ±40 mm so background
       is a constant. Only joints visible in the closest reference use it (an occluded joint's
-      patch shows its occluder). 0.05 and 0.01 were no better.
+      patch shows its occluder).
     * ``temporal`` (per mm² per joint and consecutive-frame pair): 1.0, Huber scale 15 mm (true
       motion on the synthetic data is <= 6 mm/frame; 15 mm still pulls outlier frames in
-      quadratically; 6 mm was 0.1-0.2 mm worse). 0.3-0.5 left more jitter, 3.0 over-smoothed
-      (mean +0.4 mm).
+      quadratically). Lower weights left more jitter, higher ones over-smoothed.
     * ``reprojection`` (per px² on the references' annotated 2D): 20; anchors references to a
-      fraction of a pixel with exact annotations (4 was ~0.1 mm worse); lower it (to about
+      fraction of a pixel with exact annotations; lower it (to about
       1/σ² for σ px of annotation noise) for noisy annotators.
     * ``depth_band`` (per mm² outside Eq. 3's band ``[D + offset, D + offset + eps_mm]``): 1.0 with
       a Welsch loss of scale 10 mm: a joint whose projection falls on a far surface (a fingertip
@@ -105,8 +103,8 @@ class RefineWeights:
       ground truth itself exceeds ``Skeleton.joint_angles`` limits at some DIP joints, so more
       is harmful).
     * ``init`` (per mm² to the initialization, Huber 10 mm): 0.03. Without it joints with little
-      data (occluded, fingertips) drift with their neighbours (mean got *worse*, 3.92 -> 4.18 mm
-      on the propagation); 0.1-0.5 kept too much of the propagation error.
+      data (occluded, fingertips) drift with their neighbours; higher weights kept too much of the
+      propagation error.
     """
 
     appearance: float = 0.02

@@ -39,8 +39,8 @@ Strategies
     Edge weight = cosine distance (times ``temporal_weight`` for temporal edges) + ``hop_cost``.
     Defaults (``graph_k=5, temporal_weight=0.1, hop_cost=0.002``) come from a sweep on the
     synthetic 3040-frame benchmark (benchmarks/bench_select.py): consecutive video frames are the
-    best propagation sources (parent->child pose change 1.6 mm vs 3-6 mm for appearance
-    neighbours), so temporal edges are made cheap, while kNN edges still let a revisited pose reach
+    best propagation sources (smaller parent->child pose change than appearance neighbours), so
+    temporal edges are made cheap, while kNN edges still let a revisited pose reach
     a reference recorded elsewhere in the video; the hop cost keeps trees shallow.
 
 Budget

@@ -23,9 +23,8 @@ noise into centimetres of depth. The pull towards ``D_k + o_k + s`` (``w_surface
 offset surface, median measured on the synthetic sequence) fixes visible joints near where joint
 centres of a hand seen from the front lie. Hidden joints without a depth order only have a lower
 bound; where the two mirror poses of a hidden finger both fit the 2D (bones nearly parallel to the
-image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth. Measured on 152
-synthetic references (estimated bones): exact 2D, worst joint 20 -> 10 mm, mean 1.63 -> 1.68 mm;
-2 px noise, mean 4.91 -> 4.87 mm.
+image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth (figures:
+``benchmarks/results/design_measurements.md``).
 
 Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
 length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the
@@ -54,13 +53,12 @@ slack with an L1 cost (an exact penalty: intervals that can be met are met). A r
 order constraints are still violated by more than 0.5 mm is returned with
 ``converged=False`` and halved confidence. An infeasible hard solve is recognised early: its
 constraint violation stays stuck at its first value, and a callback stops it once the violation
-(> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit
-(measured: 2 px noisy references lift 20 % faster, same errors). A feasible iterate that merely ran
+(> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit. A feasible iterate that merely ran
 out of iterations is kept (not re-solved). The app's live re-lift passes ``start_elastic`` for a
 frame whose previous lift needed slack, skipping the hard attempt altogether, and
 ``elastic_joints`` = the joints that needed it, so only those get slack variables (the others keep
-hard bounds; ~15 ms instead of ~45 ms per solve, same solution where the guess is right, and a
-fallback to slacks on every joint where it is not).
+hard bounds: a smaller problem, the same solution where the guess is right, and a fallback to
+slacks on every joint where it is not); both are :class:`WarmStart` fields.
 
 Speed notes: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
 can be 50x slower, so every solve runs inside :func:`handanno_core.blas.single_blas_thread`.

@@ -13,11 +13,11 @@ from ..camera import CameraIntrinsics
 from ..skeleton import Skeleton
 from .angles import _AngleRows
 
-# Variable scaling (measured): SLSQP starts its quasi-Newton Hessian at the identity, so each
+# Variable scaling: SLSQP starts its quasi-Newton Hessian at the identity, so each
 # unit should move the objective by about the same amount. 1 px of reprojection is ~1.5 mm
 # laterally at hand distance (f = 241 px, z = 350 mm), while depth is only weakly determined
-# (bones, surface tie-breaker) and gets 10 mm units. This halved SLSQP iterations (50 -> 26)
-# compared with uniform 10 mm units.
+# (bones, surface tie-breaker) and gets 10 mm units (fewer SLSQP iterations than uniform 10 mm
+# units: benchmarks/results/design_measurements.md).
 _SCALE_XY = 1.5  # mm per optimisation unit, x and y
 _SCALE_Z = 10.0  # mm per optimisation unit, z (and elastic slacks)
 
@@ -160,8 +160,7 @@ class _Problem(_AngleRows):
         """Elastic mode: depth intervals become ``z >= lo - s``, ``z <= hi + s`` with slacks
         ``s >= 0`` (one per joint with an interval) costing ``weight`` px^2 per mm (exact L1
         penalty: intervals that can be met are met exactly). ``joints``: only these joints get
-        slacks, the others keep their hard bounds (fewer variables and rows: measured 2.5x faster
-        per SLSQP iteration with one slack instead of 21)."""
+        slacks, the others keep their hard bounds (fewer variables and rows, faster iterations)."""
         self.elastic = on
         self.w_elastic = weight
         keep = np.arange(self.j) if joints is None else np.asarray(joints, dtype=np.int64).ravel()

@@ -74,7 +74,7 @@ def _lift_job(args: tuple) -> LiftResult:
     return lift_frame(ann, depth, camera, skeleton, bones, **kwargs)
 
 
-def _run_all(jobs: list[tuple], workers: int, progress, stage: str) -> list[LiftResult]:
+def _run_all(jobs: list[tuple], workers: int, progress) -> list[LiftResult]:
     out: list[LiftResult] = []
     total = len(jobs)
     if workers > 1 and total > 1:
@@ -189,7 +189,7 @@ def lift_references(
                 )
                 for f in frames
             ]
-            res = _run_all(jobs, workers, progress, "bones")
+            res = _run_all(jobs, workers, progress)
             poses = np.stack([r.joints_mm for r in res])
             soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
             new = bones.copy()
@@ -216,13 +216,13 @@ def lift_references(
             offsets = np.asarray(sk.surface_offsets_mm) + corr
             sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
     jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
-    res = _run_all(jobs, workers, progress, "final")
+    res = _run_all(jobs, workers, progress)
     if inits:
         # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
-        # from the cold start and keep the better objective (measured: worst joint 20 -> 10 mm
-        # on the synthetic sequence, at the cost of one more lift per reference)
+        # from the cold start and keep the better objective (one more lift per reference; see
+        # benchmarks/results/design_measurements.md)
         cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
-        cold = _run_all(cold_jobs, workers, None, "final-cold")
+        cold = _run_all(cold_jobs, workers, None)
         res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
     if soft_lengths is not None:
         dev = np.abs(soft_lengths - bones)

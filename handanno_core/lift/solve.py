@@ -258,9 +258,9 @@ class _StallGuard:
     """SLSQP callback that stops a hard solve whose constraint violation is stuck.
 
     On an infeasible frame SLSQP's linearised subproblems are inconsistent and the iterate stops
-    moving: the violation stays at its first value (17-22 mm, measured on live demo edits) until
-    the iteration limit, 100-160 ms wasted before the elastic re-solve. Feasible solves reduce it
-    below 5 mm within 5 iterations (74 of 74 measured). A violation above ``min_mm`` that has not
+    moving: the violation stays at its first value until the iteration limit, time wasted before
+    the elastic re-solve, while feasible solves reduce it below 5 mm within a few iterations
+    (figures: ``benchmarks/results/design_measurements.md``). A violation above ``min_mm`` that has not
     dropped by 1 % over ``window`` iterations ends the solve (scipy's StopIteration protocol).
     """
 

@@ -13,7 +13,7 @@ Every edit is a small command object (SLEAP style) with ``apply`` and an ``inver
 the state it replaces, so undo and redo are journal entries too and a crash at any instant loses no
 acknowledged edit. Writes of whole files are atomic (temporary file + ``os.replace``).
 
-Journal integrity (issue 16): each entry is one ``os.write`` of the whole line, fsynced; a failed
+Journal integrity: each entry is one ``os.write`` of the whole line, fsynced; a failed
 write or fsync truncates the file back to its previous size, so a refused edit never resurfaces.
 Each line carries ``crc`` (CRC-32 of the session id and the canonical JSON of the entry), and the
 sequence numbers must be continuous: replay names ``journal.jsonl:LINE: reason`` for a corrupt,

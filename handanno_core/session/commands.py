@@ -116,7 +116,7 @@ class SetJointState(_JointEdit):
     """Set several fields of one joint at once (the inverse of every single-joint edit).
 
     ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``:
-    a value or ``None`` (unchanged). Entries written before issue 16 set all four.
+    a value or ``None`` (unchanged). Entries written before the journal had checksums set all four.
     """
 
     kind: Literal["set_joint"] = "set_joint"

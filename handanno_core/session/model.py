@@ -75,5 +75,5 @@ class SessionModel(BaseModel):
     corrections: list[int] = Field(default_factory=list)
     journal_seq: int = 0
     #: random id of this session, part of every journal entry's checksum (so an entry copied from
-    #: another session's journal is refused); empty in sessions made before issue 16.
+    #: another session's journal is refused); empty in sessions made before journal checksums.
     session_id: str = ""

@@ -169,7 +169,7 @@ class Session:
                 doc = json.loads(raw)
                 if not isinstance(doc, dict):
                     raise ValueError("not a JSON object")
-                crc = doc.pop("crc", None)  # absent in journals written before issue 16
+                crc = doc.pop("crc", None)  # absent in journals written before checksums
                 if crc is not None and crc != entry_checksum(self.model.session_id, doc):
                     raise ValueError(
                         "checksum mismatch (a damaged line, or an entry copied from another "
@@ -402,7 +402,7 @@ class Session:
         path = self.folder / JOURNAL_FILE
         if self._journal_file is None:
             self.acquire_writer()
-            if not self.model.session_id:  # a session from before issue 16: give it an id first
+            if not self.model.session_id:  # a session from before checksums: give it an id first
                 self.model.session_id = uuid.uuid4().hex
                 self.save()
             try:

@@ -203,3 +203,90 @@ def levenberg_marquardt(
             break
     out.x, out.evaluation, out.lam = x, ev, damping.lam
     return out
+
+
+# ------------------------------------------------------------------------------------------------
+# many small independent problems at once
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class BatchedNormalEquations:
+    """Per-row ``JᵀJ`` ``(M, P, P)``, ``Jᵀr`` ``(M, P)`` and damping: row ``i`` solves
+    ``(JᵀJ_i + (lam_i · scale_i + shift) I) step_i = -Jᵀr_i``."""
+
+    matrix: np.ndarray
+    gradient: np.ndarray
+    scale: np.ndarray
+    shift: float = 0.0
+
+    def solve(self, lam: np.ndarray) -> np.ndarray:
+        eye = np.eye(self.matrix.shape[-1])
+        damp = (lam[:, None] * self.scale + self.shift)[:, :, None] * eye
+        return np.linalg.solve(self.matrix + damp, -self.gradient[..., None])[..., 0]
+
+
+def _where_rows(mask: np.ndarray, new, old):
+    """Row-wise choice between two states (arrays with a leading row axis, or tuples/dicts of
+    them)."""
+    if isinstance(new, tuple):
+        return tuple(_where_rows(mask, a, b) for a, b in zip(new, old, strict=True))
+    if isinstance(new, dict):
+        return {k: _where_rows(mask, new[k], old[k]) for k in new}
+    m = mask.reshape(mask.shape + (1,) * (np.ndim(new) - 1))
+    return np.where(m, new, old)
+
+
+@dataclass
+class BatchedLMResult:
+    """``x``/``evaluation``: each row's last accepted point and evaluation; ``iterations`` run."""
+
+    x: Any
+    evaluation: Any
+    iterations: int
+
+
+def levenberg_marquardt_batched(
+    evaluate: Callable[[Any], Any],
+    x0: Any,
+    *,
+    normal_equations: Callable[[Any, Any], BatchedNormalEquations],
+    retract: Callable[[Any, np.ndarray], Any],
+    max_iter: int,
+    lam0: float = 1e-3,
+    up: float = 10.0,
+    down: float = 0.3,
+    floor: float = 0.0,
+    rtol: float | None = None,
+    max_lam: float | None = None,
+    first: Any = None,
+) -> BatchedLMResult:
+    """Levenberg-Marquardt on ``M`` independent problems at once, one trial step per iteration.
+
+    ``evaluate(x)`` returns an evaluation with ``cost`` ``(M,)`` (and the rest a row-wise state:
+    arrays with a leading ``M`` axis, or tuples/dicts of them); ``x`` likewise. A row's step is
+    kept only where it lowers that row's cost; then its ``lam`` is multiplied by ``down`` (not
+    below ``floor``), else by ``up``. With ``rtol``/``max_lam`` a row stops once an accepted step
+    lowers its cost by less than ``rtol`` (relative) or its ``lam`` reaches ``max_lam``; the loop
+    ends when every row has stopped or after ``max_iter`` iterations."""
+    x = x0
+    ev = first if first is not None else evaluate(x0)
+    lam = np.full(len(ev.cost), lam0)
+    active = np.ones(len(ev.cost), dtype=bool)
+    it = 0
+    for _ in range(max_iter):
+        it += 1
+        step = normal_equations(x, ev).solve(lam)
+        step[~active] = 0.0
+        x_n = retract(x, step)
+        ev_n = evaluate(x_n)
+        better = active & np.isfinite(ev_n.cost) & (ev_n.cost < ev.cost)
+        rel = np.where(better, (ev.cost - ev_n.cost) / np.maximum(ev.cost, 1e-12), 0.0)
+        x = _where_rows(better, x_n, x)
+        ev = type(ev)(**_where_rows(better, vars(ev_n), vars(ev)))
+        lam = np.where(better, np.maximum(lam * down, floor), lam * up)
+        if rtol is not None:
+            active &= ~(better & (rel < rtol))
+        if max_lam is not None:
+            active &= lam < max_lam
+        if not np.any(active):
+            break
+    return BatchedLMResult(x, ev, it)

@@ -111,7 +111,6 @@ class RefineWeights:
     appearance_scale_mm: float = 10.0
     appearance_clip_mm: float = 40.0
     appearance_visible_only: bool = True
-    appearance_robust: str = "welsch"
     temporal: float = 1.0
     temporal_huber_mm: float = 15.0
     reprojection: float = 20.0
@@ -318,7 +317,6 @@ class _Problem:
     # -------------------------------------------------------------------- evaluation
     def evaluate(self, root, u) -> _Evaluation:
         """Energy terms at (root, u) and the X-space normal-equation pieces."""
-        w = self.w
         n, j = self.n, self.j
         x = self.kin.joints(root, u)
         terms = dict.fromkeys(
@@ -326,113 +324,135 @@ class _Problem:
         )
         hd = np.zeros((n, j, 3, 3))
         gx = np.zeros((n, j, 3))
-        clip = w.appearance_clip_mm
-        # ---------------- per-frame terms, chunked over frames (memory ~ chunk·J·G)
+        # per-frame terms, chunked over frames (memory ~ chunk·J·G)
         for a in range(0, n, self.chunk):
             fr = np.arange(a, min(n, a + self.chunk))
-            xc = x[fr]
-            xy, dxy, uv, pj = self._crop_xy(xc, fr)
-            zc = self.zc[fr][:, None]
-            # depth band (observed depth D from the crop at the joint's projection)
-            val, _, _, fg = _sample_crops(
-                self.crops, fr[:, None], xy[..., 0], xy[..., 1], self.size
-            )
-            d_obs = zc + self.half * val
-            lo = d_obs + self.offsets
-            z = xc[..., 2]
-            below = np.where(fg, np.maximum(lo - z, 0.0), 0.0)
-            above = np.where(fg & self.visible[fr], np.maximum(z - (lo + w.eps_mm), 0.0), 0.0)
-            cost_below, w_below = _welsch(below, w.depth_band_scale_mm)
-            cost_above, w_above = _welsch(above, w.depth_band_scale_mm)
-            terms["depth_band"] += w.depth_band * float(np.sum(cost_below) + np.sum(cost_above))
-            # D treated as constant: residual depends on Z only
-            hz = w.depth_band * (w_below * (below > 0) + w_above * (above > 0))
-            gz = w.depth_band * (-w_below * below + w_above * above)
-            hd[fr, :, 2, 2] += hz
-            gx[fr, :, 2] += gz
-            # appearance
-            tpos = self.tmpl_of[fr]
-            has_t = (tpos >= 0)[:, None] & self.tmpl_valid[np.maximum(tpos, 0)]
-            if w.appearance_visible_only:
-                has_t &= self.visible[fr]
-            if w.appearance > 0 and np.any(has_t):
-                px = xy[..., None, 0] + self.grid[:, 0]
-                py = xy[..., None, 1] + self.grid[:, 1]
-                v, vx, vy, _ = _sample_crops(self.crops, fr[:, None, None], px, py, self.size)
-                rel = (zc - z).astype(np.float32)[..., None] + np.float32(self.half) * v
-                inside = np.abs(rel) < clip
-                rel = np.clip(rel, -clip, clip)
-                tm = self.templates[np.maximum(tpos, 0)]
-                r = np.where(has_t[..., None], rel - tm, 0.0)
-                if w.appearance_robust == "welsch":
-                    cost, wr = _welsch(np.abs(r), w.appearance_scale_mm)
-                else:
-                    cost, wr = _huber(np.abs(r), w.appearance_scale_mm)
-                terms["appearance"] += w.appearance * float(np.sum(cost, dtype=np.float64))
-                # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
-                gxy = np.float32(self.half) * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
-                ja = np.matmul(gxy, dxy.astype(np.float32))  # (n,J,G,3)
-                ja[..., 2] -= 1.0
-                ja *= inside[..., None]
-                ww = (w.appearance * wr * has_t[..., None]).astype(np.float32)
-                jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
-                hd[fr] += np.matmul(jw, ja)
-                gx[fr] += np.matmul(jw, r[..., None])[..., 0]
-        # ---------------- hand model fitted to each frame's own depth (θ-space blocks)
-        mod = None
-        if self.model is not None and w.model > 0:
-            terms["model"] = 0.0
-            p = self.kin.num_params
-            mod = (np.zeros((n, p, p)), np.zeros((n, p)))
-            for a in range(0, n, self.model_chunk):
-                fr = np.arange(a, min(n, a + self.model_chunk))
-                e, _, _, extra = hmod.frame_energy(
-                    self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
-                    self.fit_w, None, True,
-                )  # fmt: skip
-                terms["model"] += w.model * float(np.sum(e))
-                mod[0][fr] = w.model * extra[0]
-                mod[1][fr] = w.model * extra[1]
-        # ---------------- reprojection on reference frames
-        if len(self.refs):
-            xr = x[self.refs]
-            uv = self.cam.project(xr)
-            res = np.where(self.ref_has[..., None], uv - self.ref_uv, 0.0)
-            terms["reprojection"] = w.reprojection * 0.5 * float(np.sum(res**2))
-            pj = self.cam.projection_jacobian(xr) * self.ref_has[..., None, None]
-            hd[self.refs] += w.reprojection * np.einsum("nkac,nkad->nkcd", pj, pj)
-            gx[self.refs] += w.reprojection * np.einsum("nkac,nka->nkc", pj, res)
-        # ---------------- optional prior to the initialization
-        if w.init > 0:
-            dvec = x - self.init
-            dn = np.linalg.norm(dvec, axis=-1)
-            cost, wi = _huber(dn, w.init_huber_mm)
-            terms["init"] = w.init * float(np.sum(cost))
-            hd += (w.init * wi)[..., None, None] * np.eye(3)
-            gx += (w.init * wi)[..., None] * dvec
-        # ---------------- temporal smoothness (Huber on the per-joint displacement)
-        wt = None
-        if n > 1 and w.temporal > 0:
-            dvec = x[1:] - x[:-1]
-            dn = np.linalg.norm(dvec, axis=-1)
-            cost, wt = _huber(dn, w.temporal_huber_mm)
-            scale = (self.pair_ok * self.pair_scale)[:, None]
-            wt = w.temporal * wt * scale
-            terms["temporal"] = w.temporal * float(np.sum(cost * scale))
-            eye = np.eye(3)
-            hd[:-1] += wt[..., None, None] * eye
-            hd[1:] += wt[..., None, None] * eye
-            gx[:-1] -= wt[..., None] * dvec
-            gx[1:] += wt[..., None] * dvec
-        # ---------------- joint-angle limits
-        ang = None
-        if w.angle > 0 and self.skel.flexion_limits_deg is not None:
-            viol = self._angle_violation(x)
-            terms["angle"] = w.angle * 0.5 * float(np.sum(viol**2))
-            active = np.flatnonzero(np.any(viol > 0, axis=1))
-            if len(active):
-                ang = (active, *self._angle_jacobian(root[active], u[active]))
+            xy, dxy, _, _ = self._crop_xy(x[fr], fr)
+            terms["depth_band"] += self._depth_band(x[fr], fr, xy, hd, gx)
+            terms["appearance"] += self._appearance(x[fr], fr, xy, dxy, hd, gx)
+        mod = self._model_blocks(root, u, terms)
+        terms["reprojection"] = self._reprojection(x, hd, gx)
+        terms["init"] = self._init_prior(x, hd, gx)
+        terms["temporal"], wt = self._temporal(x, hd, gx)
+        terms["angle"], ang = self._angles(x, root, u)
         return _Evaluation(root, u, terms, x, hd, gx, wt, ang, mod)
+
+    def _depth_band(self, xc, fr, xy, hd, gx) -> float:
+        """Depth band of frames ``fr`` (observed depth D from the crop at the joint's projection,
+        treated as constant: the residual depends on Z only); adds to ``hd``/``gx``."""
+        w = self.w
+        val, _, _, fg = _sample_crops(self.crops, fr[:, None], xy[..., 0], xy[..., 1], self.size)
+        lo = self.zc[fr][:, None] + self.half * val + self.offsets
+        z = xc[..., 2]
+        below = np.where(fg, np.maximum(lo - z, 0.0), 0.0)
+        above = np.where(fg & self.visible[fr], np.maximum(z - (lo + w.eps_mm), 0.0), 0.0)
+        cost_below, w_below = _welsch(below, w.depth_band_scale_mm)
+        cost_above, w_above = _welsch(above, w.depth_band_scale_mm)
+        hd[fr, :, 2, 2] += w.depth_band * (w_below * (below > 0) + w_above * (above > 0))
+        gx[fr, :, 2] += w.depth_band * (-w_below * below + w_above * above)
+        return w.depth_band * float(np.sum(cost_below) + np.sum(cost_above))
+
+    def _appearance(self, xc, fr, xy, dxy, hd, gx) -> float:
+        """Appearance of frames ``fr`` against their reference's template patches."""
+        w = self.w
+        clip = w.appearance_clip_mm
+        tpos = self.tmpl_of[fr]
+        has_t = (tpos >= 0)[:, None] & self.tmpl_valid[np.maximum(tpos, 0)]
+        if w.appearance_visible_only:
+            has_t &= self.visible[fr]
+        if not (w.appearance > 0 and np.any(has_t)):
+            return 0.0
+        px = xy[..., None, 0] + self.grid[:, 0]
+        py = xy[..., None, 1] + self.grid[:, 1]
+        v, vx, vy, _ = _sample_crops(self.crops, fr[:, None, None], px, py, self.size)
+        zc = self.zc[fr][:, None]
+        rel = (zc - xc[..., 2]).astype(np.float32)[..., None] + np.float32(self.half) * v
+        inside = np.abs(rel) < clip
+        rel = np.clip(rel, -clip, clip)
+        tm = self.templates[np.maximum(tpos, 0)]
+        r = np.where(has_t[..., None], rel - tm, 0.0)
+        cost, wr = _welsch(np.abs(r), w.appearance_scale_mm)
+        # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
+        gxy = np.float32(self.half) * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
+        ja = np.matmul(gxy, dxy.astype(np.float32))  # (n,J,G,3)
+        ja[..., 2] -= 1.0
+        ja *= inside[..., None]
+        ww = (w.appearance * wr * has_t[..., None]).astype(np.float32)
+        jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
+        hd[fr] += np.matmul(jw, ja)
+        gx[fr] += np.matmul(jw, r[..., None])[..., 0]
+        return w.appearance * float(np.sum(cost, dtype=np.float64))
+
+    def _model_blocks(self, root, u, terms: dict[str, float]):
+        """Hand model fitted to each frame's own depth: θ-space blocks ``((N,P,P), (N,P))`` (None
+        when off); sets ``terms["model"]``."""
+        w = self.w
+        if self.model is None or w.model <= 0:
+            return None
+        n = self.n
+        terms["model"] = 0.0
+        p = self.kin.num_params
+        mod = (np.zeros((n, p, p)), np.zeros((n, p)))
+        for a in range(0, n, self.model_chunk):
+            fr = np.arange(a, min(n, a + self.model_chunk))
+            e, _, _, extra = hmod.frame_energy(
+                self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
+                self.fit_w, None, True,
+            )  # fmt: skip
+            terms["model"] += w.model * float(np.sum(e))
+            mod[0][fr] = w.model * extra[0]
+            mod[1][fr] = w.model * extra[1]
+        return mod
+
+    def _reprojection(self, x, hd, gx) -> float:
+        """Reprojection on the reference frames' annotated 2D."""
+        if not len(self.refs):
+            return 0.0
+        w = self.w
+        xr = x[self.refs]
+        res = np.where(self.ref_has[..., None], self.cam.project(xr) - self.ref_uv, 0.0)
+        pj = self.cam.projection_jacobian(xr) * self.ref_has[..., None, None]
+        hd[self.refs] += w.reprojection * np.einsum("nkac,nkad->nkcd", pj, pj)
+        gx[self.refs] += w.reprojection * np.einsum("nkac,nka->nkc", pj, res)
+        return w.reprojection * 0.5 * float(np.sum(res**2))
+
+    def _init_prior(self, x, hd, gx) -> float:
+        """Optional Huber prior to the initialization."""
+        w = self.w
+        if w.init <= 0:
+            return 0.0
+        dvec = x - self.init
+        cost, wi = _huber(np.linalg.norm(dvec, axis=-1), w.init_huber_mm)
+        hd += (w.init * wi)[..., None, None] * np.eye(3)
+        gx += (w.init * wi)[..., None] * dvec
+        return w.init * float(np.sum(cost))
+
+    def _temporal(self, x, hd, gx) -> tuple[float, np.ndarray | None]:
+        """Temporal smoothness (Huber on the per-joint displacement); its IRLS weights (N-1, J)."""
+        w = self.w
+        if self.n <= 1 or w.temporal <= 0:
+            return 0.0, None
+        dvec = x[1:] - x[:-1]
+        cost, wt = _huber(np.linalg.norm(dvec, axis=-1), w.temporal_huber_mm)
+        scale = (self.pair_ok * self.pair_scale)[:, None]
+        wt = w.temporal * wt * scale
+        eye = np.eye(3)
+        hd[:-1] += wt[..., None, None] * eye
+        hd[1:] += wt[..., None, None] * eye
+        gx[:-1] -= wt[..., None] * dvec
+        gx[1:] += wt[..., None] * dvec
+        return w.temporal * float(np.sum(cost * scale)), wt
+
+    def _angles(self, x, root, u) -> tuple[float, tuple | None]:
+        """Joint-angle limits: energy and ``(frames, violations, dθ-Jacobian)`` of the frames
+        outside them (None if none)."""
+        w = self.w
+        if w.angle <= 0 or self.skel.flexion_limits_deg is None:
+            return 0.0, None
+        viol = self._angle_violation(x)
+        active = np.flatnonzero(np.any(viol > 0, axis=1))
+        ang = (active, *self._angle_jacobian(root[active], u[active])) if len(active) else None
+        return w.angle * 0.5 * float(np.sum(viol**2)), ang
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""

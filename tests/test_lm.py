@@ -68,3 +68,30 @@ def test_no_descent_direction_stops_without_moving():
     out = levenberg_marquardt(_evaluate, x0, normal_equations=_normal, max_iter=10)
     np.testing.assert_array_equal(out.x, x0)
     assert out.converged and out.iterations == 1 and out.log[0][3] == 0.0
+
+
+def test_batched_rows_are_independent_and_stop_on_their_own():
+    from handanno_core.lm import BatchedNormalEquations, levenberg_marquardt_batched
+
+    @dataclass
+    class _Rows:
+        cost: np.ndarray
+        r: np.ndarray
+
+    def evaluate(x):
+        r = x[:, :1] * np.exp(-x[:, 1:2] * T) + x[:, 2:] - Y
+        return _Rows(np.sum(r * r, axis=1), r)
+
+    def normal(x, ev):
+        e = np.exp(-x[:, 1:2] * T)
+        jac = np.stack([e, -x[:, :1] * T * e, np.ones_like(e)], axis=-1)
+        jtj = np.einsum("mrp,mrq->mpq", jac, jac)
+        return BatchedNormalEquations(jtj, np.einsum("mrp,mr->mp", jac, ev.r), np.ones((len(x), 3)))
+
+    x0 = np.array([[1.0, 0.3, 0.0], [2.5, 1.3, 0.5]])  # the second row starts at the minimum
+    out = levenberg_marquardt_batched(
+        evaluate, x0, normal_equations=normal, retract=lambda x, s: x + s, max_iter=200,
+        rtol=1e-12, max_lam=1e8,
+    )  # fmt: skip
+    np.testing.assert_allclose(out.x[0], [2.5, 1.3, 0.5], atol=1e-5)
+    np.testing.assert_array_equal(out.x[1], x0[1])  # never moved: no step lowered its cost

@@ -59,7 +59,9 @@ def test_bilinear_exact_on_planes_and_gradient():
     np.testing.assert_allclose(s.dx, 3.0, atol=1e-9)
     np.testing.assert_allclose(s.dy, -2.0, atol=1e-9)
     # off the image: the border is replicated
-    np.testing.assert_allclose(bilinear(plane, np.array([-4.0, 40.0]), np.array([0.0, 0.0])), [5, 50])
+    np.testing.assert_allclose(
+        bilinear(plane, np.array([-4.0, 40.0]), np.array([0.0, 0.0])), [5, 50]
+    )
 
 
 def test_bilinear_on_a_stack_reads_the_given_frame():

@@ -70,6 +70,43 @@ def _template_direction(skeleton: Skeleton, joint: int, pose: np.ndarray) -> np.
     return d / n if n > 1e-9 else np.array([0.0, -1.0, 0.0])
 
 
+#: bone length (mm) of a skeleton without template lengths, when none are given
+_FALLBACK_BONE_MM = 40.0
+#: start depth (mm) of a frame without a single valid depth pixel
+_FALLBACK_DEPTH_MM = 400.0
+
+
+def _on_ray(
+    camera: CameraIntrinsics,
+    uv: np.ndarray,
+    parent_mm: np.ndarray,
+    length: float,
+    order: int,
+    z_target: float,
+) -> np.ndarray | None:
+    """The point ``(3,)`` mm on the viewing ray of pixel ``uv`` at ``length`` from the parent:
+    of the two intersections, the one that honours the depth ``order`` (+1 farther, -1 nearer than
+    the parent, 0 any) nearest ``z_target``; the ray's closest point when the sphere misses it.
+    None if that point is not in front of the camera (z <= 1 mm)."""
+    ray = np.array([(uv[0] - camera.cx) / camera.fx, (uv[1] - camera.cy) / camera.fy, 1.0])
+    ray /= np.linalg.norm(ray)
+    rp = float(ray @ parent_mm)
+    disc = rp**2 - float(parent_mm @ parent_mm) + length**2
+    if disc < 0:
+        t = rp
+    else:
+        cands = np.array([rp - np.sqrt(disc), rp + np.sqrt(disc)])
+        zc = cands * ray[2]
+        ok = np.ones(2, dtype=bool)
+        if order != 0:
+            ok = order * (zc - parent_mm[2]) > 0
+            if not ok.any():
+                ok[:] = True
+        cost = np.where(ok, np.abs(zc - z_target), np.inf)
+        t = float(cands[np.argmin(cost)])
+    return t * ray if t * ray[2] > 1.0 else None
+
+
 def initial_pose(
     annotation: FrameAnnotation,
     depth_mm: np.ndarray,
@@ -101,7 +138,9 @@ def initial_pose(
     lengths = (
         np.asarray(bone_lengths_mm, dtype=np.float64)
         if bone_lengths_mm is not None
-        else np.asarray(skeleton.template_bone_lengths_mm or [40.0] * (j - 1), dtype=np.float64)
+        else np.asarray(
+            skeleton.template_bone_lengths_mm or [_FALLBACK_BONE_MM] * (j - 1), dtype=np.float64
+        )
     )
     if depth_check_mm is not None:
         d_obs = _drop_inconsistent_depths(
@@ -112,7 +151,7 @@ def initial_pose(
     ref_depths = np.concatenate([z[known], ann.xyz_mm[has3d, 2]])
     if len(ref_depths) == 0:
         valid = depth_mm[(depth_mm > 0) & np.isfinite(depth_mm)]
-        ref_depths = np.array([np.median(valid)]) if valid.size else np.array([400.0])
+        ref_depths = np.array([np.median(valid)]) if valid.size else np.array([_FALLBACK_DEPTH_MM])
     zmed = float(np.median(ref_depths))
     z = np.where(np.isfinite(z), z, zmed)
     # occluded joints: behind the occluder, at least near the hand's median depth
@@ -120,11 +159,6 @@ def initial_pose(
     pose = np.full((j, 3), np.nan)
     pose[has2d] = camera.backproject(ann.uv_px[has2d], z[has2d])
     pose[has3d] = ann.xyz_mm[has3d]
-    lengths = (
-        np.asarray(bone_lengths_mm, dtype=np.float64)
-        if bone_lengths_mm is not None
-        else np.asarray(skeleton.template_bone_lengths_mm or [40.0] * (j - 1), dtype=np.float64)
-    )
     bone_of_child = np.full(j, -1)
     bone_of_child[skeleton.bones[:, 1]] = np.arange(len(skeleton.bones))
     order = skeleton.topological_order
@@ -147,37 +181,15 @@ def initial_pose(
             pose[k] = pose[p] + length * _template_direction(skeleton, k, pose)
             continue
         # on the joint's viewing ray at bone length from the (already placed) parent
-        ray = np.array(
-            [
-                (ann.uv_px[k, 0] - camera.cx) / camera.fx,
-                (ann.uv_px[k, 1] - camera.cy) / camera.fy,
-                1.0,
-            ]
-        )
-        ray /= np.linalg.norm(ray)
-        rp = float(ray @ pose[p])
-        disc = rp**2 - float(pose[p] @ pose[p]) + length**2
-        if disc < 0:
-            t = rp
-        else:
-            cands = np.array([rp - np.sqrt(disc), rp + np.sqrt(disc)])
-            zc = cands * ray[2]
-            order_k = int(ann.depth_order[k])
-            ok = np.ones(2, dtype=bool)
-            if order_k != 0:
-                ok = order_k * (zc - pose[p, 2]) > 0
-                if not ok.any():
-                    ok[:] = True
-            zt = z[k]
-            if not ann.visible[k]:
-                # hidden joint: its observed depth is only a lower bound (the occluder). Of the
-                # two ray intersections take the one nearer the parent's depth (behind the
-                # occluder): measured to avoid fingers folded towards the camera behind a palm
-                zt = max(pose[p, 2], d_obs[k] + offsets[k] if np.isfinite(d_obs[k]) else -np.inf)
-            cost = np.where(ok, np.abs(zc - zt), np.inf)
-            t = float(cands[np.argmin(cost)])
-        if t * ray[2] > 1.0:
-            pose[k] = t * ray
+        zt = z[k]
+        if not ann.visible[k]:
+            # hidden joint: its observed depth is only a lower bound (the occluder). Of the
+            # two ray intersections take the one nearer the parent's depth (behind the
+            # occluder): avoids fingers folded towards the camera behind a palm
+            zt = max(pose[p, 2], d_obs[k] + offsets[k] if np.isfinite(d_obs[k]) else -np.inf)
+        placed = _on_ray(camera, ann.uv_px[k], pose[p], length, int(ann.depth_order[k]), zt)
+        if placed is not None:
+            pose[k] = placed
     return pose, d_obs
 
 

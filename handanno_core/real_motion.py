@@ -25,6 +25,7 @@ from scipy.sparse import lil_matrix
 
 from . import lm
 from .camera import CameraIntrinsics
+from .skeleton import FPHA_TO_MSRA21 as _FPHA_TO_MSRA21
 from .skeleton import MSRA21
 from .synth import (
     GESTURES,
@@ -53,11 +54,8 @@ def _find_real_motion() -> Path:
 #: the real-motion data (see :func:`_find_real_motion`)
 DEFAULT_REAL_MOTION = _find_real_motion()
 
-#: FPHA joint index of each MSRA21 joint. FPHA: wrist, TMCP, IMCP, MMCP, RMCP, PMCP, then (PIP, DIP,
-#: TIP) of thumb, index, middle, ring, pinky; its thumb "MCP" is the CMC-side joint (MSRA's 17).
-FPHA_TO_MSRA21 = np.array(
-    [0, 2, 9, 10, 11, 3, 12, 13, 14, 4, 15, 16, 17, 5, 18, 19, 20, 1, 6, 7, 8]
-)
+#: FPHA joint index of each MSRA21 joint (:data:`handanno_core.skeleton.FPHA_TO_MSRA21`)
+FPHA_TO_MSRA21 = np.asarray(_FPHA_TO_MSRA21)
 #: FPHA depth camera (Intel RealSense SR300), 640x480
 FPHA_CAMERA = CameraIntrinsics(
     fx=475.065948, fy=475.065948, cx=315.944855, cy=245.287079, width=640, height=480

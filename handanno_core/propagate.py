@@ -49,6 +49,7 @@ live only while their frame is processed.
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 import warnings
@@ -199,6 +200,15 @@ class _Context:
         state["crops_array"] = None
         return state
 
+    def with_model(self, model: hm.HandModel | None, known: dict, reference_joints) -> _Context:
+        """This context with the hand model to fit (None: off) and the references it starts from
+        (the usable ones, sorted, with their lifted joints)."""
+        if model is None:
+            return self
+        refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
+        joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
+        return dataclasses.replace(self, hand_model=model, model_refs=refs, model_ref_joints=joints)
+
 
 _CROPS_CACHE: dict[tuple, np.ndarray] = {}
 
@@ -240,6 +250,36 @@ class _FitEval(NamedTuple):
     cost: float
 
 
+def _fit_blocks(x, ev: _FitEval, camera, sigma_uv, inv_z, bones, sigma_bone):
+    """``JᵀJ`` ``(3J, 3J)`` and ``Jᵀr`` ``(3J,)`` of the 2D, depth and bone residuals of
+    :func:`_fit`, assembled from 3x3 blocks per joint and per bone."""
+    r_u, r_v, r_z, r_b, _ = ev.res
+    j = len(x)
+    fx, fy = camera.fx, camera.fy
+    idx = np.arange(j)
+    bp, bc = bones[:, 0], bones[:, 1]
+    z = np.maximum(x[:, 2], 1.0)
+    s = 1.0 / (z * sigma_uv)
+    pu = np.zeros((j, 3))
+    pv = np.zeros((j, 3))
+    pu[:, 0], pu[:, 2] = fx * s, -fx * x[:, 0] / z * s
+    pv[:, 1], pv[:, 2] = fy * s, -fy * x[:, 1] / z * s
+    blocks = np.zeros((j, j, 3, 3))
+    blocks[idx, idx] = pu[:, :, None] * pu[:, None, :] + pv[:, :, None] * pv[:, None, :]
+    blocks[idx, idx, 2, 2] += inv_z**2
+    grad = pu * r_u[:, None] + pv * r_v[:, None]
+    grad[:, 2] += inv_z * r_z
+    unit = ev.vec / (np.maximum(ev.ln, 1e-9)[:, None] * sigma_bone)
+    uu = unit[:, :, None] * unit[:, None, :]
+    np.add.at(blocks, (bc, bc), uu)
+    np.add.at(blocks, (bp, bp), uu)
+    np.add.at(blocks, (bp, bc), -uu)
+    np.add.at(blocks, (bc, bp), -uu)
+    np.add.at(grad, bc, unit * r_b[:, None])
+    np.add.at(grad, bp, -unit * r_b[:, None])
+    return blocks.transpose(0, 2, 1, 3).reshape(3 * j, 3 * j), grad.ravel()
+
+
 def _fit(
     x0: np.ndarray,
     uv: np.ndarray,
@@ -267,7 +307,6 @@ def _fit(
     j = len(x0)
     n = 3 * j
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    idx = np.arange(j)
     bp, bc = bones[:, 0], bones[:, 1]
     inv_z = 1.0 / np.broadcast_to(np.asarray(sigma_z, dtype=np.float64), (j,))
     na = 0 if angles is None else int(angles(x0).shape[-1])
@@ -294,28 +333,8 @@ def _fit(
 
     def normal_equations(x, ev: _FitEval) -> NormalEquations:
         nonlocal jac_a
-        r_u, r_v, r_z, r_b, r_a = ev.res
-        z = np.maximum(x[:, 2], 1.0)
-        s = 1.0 / (z * sigma_uv)
-        pu = np.zeros((j, 3))
-        pv = np.zeros((j, 3))
-        pu[:, 0], pu[:, 2] = fx * s, -fx * x[:, 0] / z * s
-        pv[:, 1], pv[:, 2] = fy * s, -fy * x[:, 1] / z * s
-        blocks = np.zeros((j, j, 3, 3))
-        blocks[idx, idx] = pu[:, :, None] * pu[:, None, :] + pv[:, :, None] * pv[:, None, :]
-        blocks[idx, idx, 2, 2] += inv_z**2
-        grad = pu * r_u[:, None] + pv * r_v[:, None]
-        grad[:, 2] += inv_z * r_z
-        unit = ev.vec / (np.maximum(ev.ln, 1e-9)[:, None] * sigma_bone)
-        uu = unit[:, :, None] * unit[:, None, :]
-        np.add.at(blocks, (bc, bc), uu)
-        np.add.at(blocks, (bp, bp), uu)
-        np.add.at(blocks, (bp, bc), -uu)
-        np.add.at(blocks, (bc, bp), -uu)
-        np.add.at(grad, bc, unit * r_b[:, None])
-        np.add.at(grad, bp, -unit * r_b[:, None])
-        jtj = blocks.transpose(0, 2, 1, 3).reshape(n, n)
-        g = grad.ravel()
+        r_a = ev.res[4]
+        jtj, g = _fit_blocks(x, ev, camera, sigma_uv, inv_z, bones, sigma_bone)
         if na:
             if jac_a is None:  # kept from the first iteration
                 jac_a = ((angles(x[None] + eps) - r_a) / 1e-3).T  # (A, 3J)
@@ -742,12 +761,10 @@ def propagate(
         hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
         bone_lengths_mm, settings,
     )  # fmt: skip
-    refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
     out = _Collector.empty(n, skeleton.num_joints, problems, tasks, progress, on_result)
-    with _crops_for_workers(crops, remote) as (crops_path, crops_offset):
+    with _crops_for_workers(crops, remote) as crops_file:
         ctx = _Context(
-            crops_path=crops_path,
-            crops_offset=crops_offset,
+            *crops_file,
             crops_shape=tuple(crops.shape),
             crops_dtype=str(crops.dtype),
             boxes=np.asarray(boxes, dtype=np.float64),
@@ -760,15 +777,8 @@ def propagate(
             aligner_kwargs=dict(aligner_kwargs or {}),
             settings=settings,
             crops_array=None if remote else crops,
-            hand_model=model_obj,
             fit_weights=fit_weights,
-            model_refs=refs if model_obj is not None else None,
-            model_ref_joints=(
-                np.stack([known[int(f)][0] for f in refs])
-                if model_obj is not None and len(refs)
-                else None
-            ),
-        )
+        ).with_model(model_obj, known, reference_joints)
         if scheduler is not None:
             _run_dask(scheduler, ctx, tasks, out.add_remote)
         elif remote:

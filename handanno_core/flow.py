@@ -25,7 +25,6 @@ The coarse-to-fine pyramid exists once (:func:`coarse_to_fine`) and is shared by
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
 
 import cv2
 import numpy as np
@@ -602,15 +601,3 @@ def sample_flow(flow: np.ndarray, points: np.ndarray, *, radius: int = 1) -> np.
     out = np.median(val, axis=1).astype(np.float64)
     out[bad] = np.nan
     return out
-
-
-ALIGNERS = ("sift", "dis", "ncc")
-
-
-def dense_flow(name: str, **kwargs) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """The dense flow function for an aligner name (``"sift"`` or ``"dis"``), keywords bound."""
-    if name == "sift":
-        return partial(sift_flow, **kwargs)
-    if name == "dis":
-        return partial(dis_flow, **kwargs)
-    raise ValueError(f"no dense flow named {name!r}; choose 'sift' or 'dis'")

@@ -49,6 +49,17 @@ def load_fpha(data: Path, subjects: tuple[str, ...] = ("Subject_1",)) -> np.ndar
     return np.concatenate([rm.load_fpha(f) for f in files])
 
 
+def load_layout(layout: str, data: Path) -> np.ndarray:
+    """The recorded frames ``(N, J, 3)`` mm the table of ``layout`` is learned from."""
+    if layout == "msra21":
+        return load_fpha(data)
+    if layout == "nyu14":
+        return rm.load_nyu(data)
+    if layout == "icvl16":
+        return np.concatenate([rm.load_icvl(data, 1), rm.load_icvl(data, 2)])
+    raise ValueError(f"no recorded motion for layout {layout!r}")
+
+
 def measurable(skeleton: Skeleton) -> Skeleton:
     """The layout with every joint that has a parent and one child marked as an angle joint."""
     par = skeleton.parent_array
@@ -108,14 +119,14 @@ def main() -> None:
         ),
         "percentiles": [args.low, args.high],
         "layouts": {
-            "msra21": learn(MSRA21, load_fpha(data), args.low, args.high, "FPHA Subject_1"),
-            "nyu14": learn(NYU14, rm.load_nyu(data), args.low, args.high, "NYU test labels"),
+            "msra21": learn(
+                MSRA21, load_layout("msra21", data), args.low, args.high, "FPHA Subject_1"
+            ),
+            "nyu14": learn(
+                NYU14, load_layout("nyu14", data), args.low, args.high, "NYU test labels"
+            ),
             "icvl16": learn(
-                ICVL16,
-                np.concatenate([rm.load_icvl(data, 1), rm.load_icvl(data, 2)]),
-                args.low,
-                args.high,
-                "ICVL test_seq_1+2",
+                ICVL16, load_layout("icvl16", data), args.low, args.high, "ICVL test_seq_1+2"
             ),
         },
     }

@@ -42,8 +42,7 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
     import shutil
 
     from handanno_core import pipeline
-    from handanno_core.bench import _summary, peak_rss_mb
-    from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+    from handanno_core.bench import peak_rss_mb, run_session, stage_errors
 
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-cmp-"))
@@ -52,19 +51,7 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
         gt = base.open_sequence().ground_truth.joints_mm
         pipeline.ensure_crops(base, quiet=True)
         for fraction in fractions:
-            folder = tmp / f"run-{fraction:g}"
-            if folder.exists():
-                shutil.rmtree(folder)
-            session = Session.create(
-                folder,
-                base.model.dataset,
-                base.num_frames,
-                base.camera,
-                base.model.skeleton,
-                base.model.sequence_breaks,
-            )
-            for name in (CROPS_FILE, CROPS_META_FILE):
-                (folder / name).symlink_to((tmp / "base" / name).resolve())
+            session = run_session(base, tmp / f"run-{fraction:g}")
             pipeline.select(
                 session, strategy="forest", ref_fraction=fraction, figures=False, quiet=True
             )
@@ -73,7 +60,6 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
             pipeline.lift(session, workers=2, quiet=True)
             t_lift = time.perf_counter() - t
             refs = session.reference_frames
-            non_ref = np.setdiff1d(np.arange(session.num_frames), refs)
             for use_model in (False, True):
                 t = time.perf_counter()
                 pipeline.propagate(session, workers=2, quiet=True, use_model=use_model)
@@ -81,17 +67,13 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
                 t = time.perf_counter()
                 res = pipeline.refine(session, quiet=True, use_model=use_model)
                 t_ref = time.perf_counter() - t
-                r = session.load_results()
                 row = {
                     "dataset": str(dataset),
                     "frames": int(session.num_frames),
                     "ref_fraction": fraction,
                     "references": int(len(refs)),
                     "model": use_model,
-                    "lift": _summary(r["lifted_mm"], gt, refs),
-                    "init": _summary(r["init_mm"], gt),
-                    "final": _summary(r["final_mm"], gt),
-                    "final_non_reference": _summary(r["final_mm"], gt, non_ref),
+                    **stage_errors(session.load_results(), gt, refs),
                     "kept_initialization": len(res.info.get("kept_initialization", [])),
                     "timings_s": {
                         "lift": round(t_lift, 1),

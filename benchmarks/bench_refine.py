@@ -139,7 +139,6 @@ def main() -> None:
         crops=crops,
         boxes=boxes,
         centres_mm=centres,
-        depth_of=seq.depth,
         camera=seq.camera,
         skeleton=skel,
         bone_lengths_mm=bones,

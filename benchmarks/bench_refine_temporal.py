@@ -60,7 +60,6 @@ def run_session(folder: Path, variants: dict[str, RefineWeights]) -> dict:
                 crops=crops,
                 boxes=boxes,
                 centres_mm=centres,
-                depth_of=None,
                 camera=session.camera,
                 skeleton=session.skeleton,
                 bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),

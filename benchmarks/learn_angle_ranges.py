@@ -9,7 +9,7 @@ Reads the joint trajectories in ``real-motion/`` (README there; never copied int
 
 * ``msra21`` from FPHA ``Subject_1`` (21 joints, ~20k frames; ``Subject_2`` is held out for
   benchmarks/bench_lift.py): FPHA's joint order is mapped onto
-  MSRA-21 (:data:`FPHA_TO_MSRA21`; FPHA's thumb "MCP" is the CMC-side joint, as MSRA's first thumb
+  MSRA-21 (:data:`handanno_core.skeleton.FPHA_TO_MSRA21`, read by :mod:`handanno_core.real_motion`; FPHA's thumb "MCP" is the CMC-side joint, as MSRA's first thumb
   joint);
 * ``nyu14`` from the NYU test labels (u, v, d back-projected with the NYU Kinect intrinsics);
 * ``icvl16`` from the two ICVL test sequences (u, v, d back-projected with f = 241).
@@ -31,9 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from handanno_core.camera import CameraIntrinsics
+from handanno_core import real_motion as rm
 from handanno_core.skeleton import (
-    FPHA_TO_MSRA21,
     ICVL16,
     MSRA21,
     NYU14,
@@ -41,52 +40,24 @@ from handanno_core.skeleton import (
     default_angle_ranges_path,
 )
 
-REPO = Path(__file__).resolve().parents[1]
-#: the repository's parent folder's shared/data (worktrees: /work/shared)
-DEFAULT_DATA = next(
-    (
-        p
-        for p in (REPO.parent / "shared/data/real-motion", Path("/work/shared/data/real-motion"))
-        if p.is_dir()
-    ),
-    REPO.parent / "shared/data/real-motion",
-)
-NYU_LABEL_CAMERA = CameraIntrinsics(
-    fx=588.036865, fy=587.075073, cx=320.0, cy=240.0, width=640, height=480
-)
-ICVL_LABEL_CAMERA = CameraIntrinsics(
-    fx=240.99, fy=240.96, cx=160.0, cy=120.0, width=320, height=240
-)
 
-
-def load_fpha(folder: Path, subjects: tuple[str, ...] = ("Subject_1",)) -> np.ndarray:
+def load_fpha(data: Path, subjects: tuple[str, ...] = ("Subject_1",)) -> np.ndarray:
     """FPHA frames ``(N, 21, 3)`` mm of ``subjects`` in MSRA-21 order (empty files skipped)."""
-    poses = []
-    files = [f for s in subjects for f in sorted((folder / s).glob("*/*/skeleton.txt"))]
-    for f in files:
-        if f.stat().st_size == 0:
-            continue
-        a = np.loadtxt(f, ndmin=2)
-        if a.shape[1] != 64:
-            raise ValueError(f"{f}: expected 64 columns (index + 21 x 3), got {a.shape[1]}")
-        poses.append(a[:, 1:].reshape(-1, 21, 3)[:, FPHA_TO_MSRA21])
-    if not poses:
-        raise FileNotFoundError(f"{folder}: no */*/*/skeleton.txt")
-    return np.concatenate(poses)
+    files = [f for s in subjects for f in rm.fpha_sequences(data, s) if f.stat().st_size > 0]
+    if not files:
+        raise FileNotFoundError(f"{data / 'fpha'}: no */*/*/skeleton.txt")
+    return np.concatenate([rm.load_fpha(f) for f in files])
 
 
-def load_nyu(folder: Path) -> np.ndarray:
-    uvd = np.loadtxt(folder / "nyu_test_groundtruth_label.txt").reshape(-1, 14, 3)
-    return NYU_LABEL_CAMERA.backproject(uvd[..., :2], uvd[..., 2])
-
-
-def load_icvl(folder: Path) -> np.ndarray:
-    parts = [
-        np.loadtxt(f, usecols=range(1, 49)).reshape(-1, 16, 3)
-        for f in sorted(folder.glob("test_seq_*.txt"))
-    ]
-    uvd = np.concatenate(parts)
-    return ICVL_LABEL_CAMERA.backproject(uvd[..., :2], uvd[..., 2])
+def load_layout(layout: str, data: Path) -> np.ndarray:
+    """The recorded frames ``(N, J, 3)`` mm the table of ``layout`` is learned from."""
+    if layout == "msra21":
+        return load_fpha(data)
+    if layout == "nyu14":
+        return rm.load_nyu(data)
+    if layout == "icvl16":
+        return np.concatenate([rm.load_icvl(data, 1), rm.load_icvl(data, 2)])
+    raise ValueError(f"no recorded motion for layout {layout!r}")
 
 
 def measurable(skeleton: Skeleton) -> Skeleton:
@@ -134,7 +105,7 @@ def learn(skeleton: Skeleton, poses: np.ndarray, low: float, high: float, source
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(DEFAULT_DATA))
+    ap.add_argument("--data", default=str(rm.DEFAULT_REAL_MOTION))
     ap.add_argument("--out", default=str(default_angle_ranges_path()))
     ap.add_argument("--low", type=float, default=0.25)
     ap.add_argument("--high", type=float, default=99.75)
@@ -149,11 +120,13 @@ def main() -> None:
         "percentiles": [args.low, args.high],
         "layouts": {
             "msra21": learn(
-                MSRA21, load_fpha(data / "fpha"), args.low, args.high, "FPHA Subject_1"
+                MSRA21, load_layout("msra21", data), args.low, args.high, "FPHA Subject_1"
             ),
-            "nyu14": learn(NYU14, load_nyu(data / "nyu"), args.low, args.high, "NYU test labels"),
+            "nyu14": learn(
+                NYU14, load_layout("nyu14", data), args.low, args.high, "NYU test labels"
+            ),
             "icvl16": learn(
-                ICVL16, load_icvl(data / "icvl"), args.low, args.high, "ICVL test_seq_1+2"
+                ICVL16, load_layout("icvl16", data), args.low, args.high, "ICVL test_seq_1+2"
             ),
         },
     }

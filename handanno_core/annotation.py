@@ -18,10 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEPTH_ORDER_CLOSER = -1
-DEPTH_ORDER_UNKNOWN = 0
-DEPTH_ORDER_FARTHER = 1
-
 
 class AnnotationError(ValueError):
     """A malformed annotation: wrong joint count, bad values. The message says which."""

@@ -35,6 +35,35 @@ def _summary(pred: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None)
     return {k: round(float(s[k]), 3) for k in ("mean_mm", "median_mm", "max_mm")}
 
 
+def run_session(base: Session, folder: Path) -> Session:
+    """A fresh session in ``folder`` (replaced if it exists) on ``base``'s dataset, sharing its
+    crop cache (symlinked, not recomputed): one bench run."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    session = Session.create(
+        folder,
+        base.model.dataset,
+        base.num_frames,
+        base.camera,
+        base.model.skeleton,
+        base.model.sequence_breaks,
+    )
+    for name in (CROPS_FILE, CROPS_META_FILE):
+        (folder / name).symlink_to((base.folder / name).resolve())
+    return session
+
+
+def stage_errors(results: dict, gt: np.ndarray, refs: np.ndarray) -> dict:
+    """Error summaries of a run: ``lift`` (references), ``init``, ``final``, ``final_non_reference``."""
+    non_ref = np.setdiff1d(np.arange(len(gt)), refs)
+    return {
+        "lift": _summary(results["lifted_mm"], gt, refs),
+        "init": _summary(results["init_mm"], gt),
+        "final": _summary(results["final_mm"], gt),
+        "final_non_reference": _summary(results["final_mm"], gt, non_ref),
+    }
+
+
 def machine_description() -> str:
     import os
 
@@ -93,18 +122,7 @@ def run_bench(
     for strategy in strategies:
         for fraction in fractions:
             folder = tmp / f"{strategy}-{fraction:g}"
-            if folder.exists():
-                shutil.rmtree(folder)
-            session = Session.create(
-                folder,
-                base.model.dataset,
-                base.num_frames,
-                base.camera,
-                base.model.skeleton,
-                base.model.sequence_breaks,
-            )
-            for name in (CROPS_FILE, CROPS_META_FILE):
-                (folder / name).symlink_to((tmp / "base" / name).resolve())
+            session = run_session(base, folder)
             timings = {"load": round(load_s, 3)}
 
             t = time.perf_counter()
@@ -135,8 +153,6 @@ def run_bench(
             pipeline.refine(session, quiet=True)
             timings["refine"] = round(time.perf_counter() - t, 3)
 
-            results = session.load_results()
-            non_ref = np.setdiff1d(np.arange(session.num_frames), refs)
             run = {
                 "strategy": strategy,
                 "ref_fraction_target": fraction,
@@ -144,10 +160,7 @@ def run_bench(
                 "corrections": len(session.model.corrections),
                 "noise_px": noise_px,
                 "bones": "ground-truth" if gt_bones else "estimated",
-                "lift": _summary(results["lifted_mm"], gt, refs),
-                "init": _summary(results["init_mm"], gt),
-                "final": _summary(results["final_mm"], gt),
-                "final_non_reference": _summary(results["final_mm"], gt, non_ref),
+                **stage_errors(session.load_results(), gt, refs),
                 "timings_s": timings,
                 "peak_rss_mb": round(peak_rss_mb(), 1),
             }

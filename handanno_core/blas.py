@@ -1,8 +1,8 @@
 """One shared switch for BLAS threading.
 
 SLSQP (lift) and the banded solves (refine) make many tiny LAPACK calls; a multithreaded OpenBLAS
-spends more time waking its threads than computing and was measured 5-50x slower on the 2-core
-machine under load. Wrap those solver calls in :func:`single_blas_thread`.
+spends more time waking its threads than computing (figures:
+``benchmarks/results/design_measurements.md``). Wrap those solver calls in :func:`single_blas_thread`.
 """
 
 from __future__ import annotations

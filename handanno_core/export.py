@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from .annotation import FrameAnnotation
+from .sampling import visible_by_depth
 from .session import (
     Batch,
     Session,
@@ -30,7 +31,6 @@ from .session import (
 )
 
 EXPORT_FORMATS = ("json", "npz", "msra")
-_VISIBILITY_MARGIN_MM = 10.0
 
 
 def best_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -45,9 +45,9 @@ def best_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]
 
 
 def _visibility(session: Session, joints_mm: np.ndarray) -> np.ndarray:
-    """Depth test per frame and joint: visible when nothing is much closer than the joint's surface."""
+    """``(N, J)`` visibility of the exported joints by :func:`sampling.visible_by_depth` (False
+    where a frame has no estimate or its depth cannot be read)."""
     sequence = session.open_sequence()
-    camera = sequence.camera
     offsets = np.asarray(session.skeleton.surface_offsets_mm)
     visible = np.zeros(joints_mm.shape[:2], dtype=bool)
     for i in np.flatnonzero(np.all(np.isfinite(joints_mm), axis=(1, 2))):
@@ -55,16 +55,7 @@ def _visibility(session: Session, joints_mm: np.ndarray) -> np.ndarray:
             depth = sequence.depth(int(i))
         except ValueError:
             continue
-        uv = np.rint(camera.project(joints_mm[i])).astype(np.int64)
-        inside = (
-            (uv[:, 0] >= 0)
-            & (uv[:, 0] < camera.width)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < camera.height)
-        )
-        d = np.zeros(len(uv))
-        d[inside] = depth[uv[inside, 1], uv[inside, 0]]
-        visible[i] = inside & (d > 0) & (d >= joints_mm[i, :, 2] - offsets - _VISIBILITY_MARGIN_MM)
+        visible[i] = visible_by_depth(joints_mm[i], depth, sequence.camera, offsets)
     return visible
 
 
@@ -171,6 +162,16 @@ IMPORT_Z_RANGE_MM = (50.0, 5000.0)
 IMPORT_XY_MAX_MM = 5000.0
 
 
+def _one_per_joint(v: list | None, info: ValidationInfo, what: str) -> bool:
+    """False for an absent list; ``ValueError`` unless it has one ``what`` per skeleton joint."""
+    if v is None:
+        return False
+    j = info.context["joints"]
+    if len(v) != j:
+        raise ValueError(f"{len(v)} {what}, the skeleton has {j}")
+    return True
+
+
 class _ImportFrame(BaseModel):
     """One frame of a handanno JSON export, checked against the session (``context``)."""
 
@@ -193,11 +194,8 @@ class _ImportFrame(BaseModel):
     @field_validator("joints_mm")
     @classmethod
     def _plausible_joints(cls, v, info: ValidationInfo):
-        if v is None:
+        if not _one_per_joint(v, info, "joints"):
             return v
-        j = info.context["joints"]
-        if len(v) != j:
-            raise ValueError(f"{len(v)} joints, the skeleton has {j}")
         xyz = np.asarray(v, dtype=np.float64)
         lo, hi = IMPORT_Z_RANGE_MM
         bad = (xyz[:, 2] < lo) | (xyz[:, 2] > hi) | (np.abs(xyz[:, :2]) > IMPORT_XY_MAX_MM).any(1)
@@ -212,11 +210,8 @@ class _ImportFrame(BaseModel):
     @field_validator("confidence")
     @classmethod
     def _confidence_in_unit_range(cls, v, info: ValidationInfo):
-        if v is None:
+        if not _one_per_joint(v, info, "confidences"):
             return v
-        j = info.context["joints"]
-        if len(v) != j:
-            raise ValueError(f"{len(v)} confidences, the skeleton has {j}")
         if any(c is not None and not 0.0 <= c <= 1.0 for c in v):
             raise ValueError("confidences must lie in [0, 1]")
         return v
@@ -237,16 +232,8 @@ def _import_error(path: Path, exc: ValidationError) -> SessionError:
     return SessionError(f"{path}: {loc}: {msg}" if loc else f"{path}: {msg}")
 
 
-def import_json(session: Session, path: str | Path, client: str = "import") -> int:
-    """Import a handanno JSON export: reference annotations (one undoable edit) and the 3D joints.
-
-    The whole file is checked first (:class:`_ImportDoc`: frame indices in range and unique, the
-    session's frame count and skeleton, finite joints at plausible positions, confidences in
-    [0, 1], well-formed annotations); on any problem a :class:`SessionError` names the file, the
-    entry and the reason, and the session is left unchanged. Frames without ``joints_mm`` keep the
-    session's current result. Returns the number of frames with joints imported.
-    """
-    path = Path(path)
+def _parse_import(session: Session, path: Path) -> _ImportDoc:
+    """The checked export document (see :func:`import_json`); ``SessionError`` naming the problem."""
     try:
         doc = json.loads(path.read_bytes())
     except (OSError, ValueError, RecursionError) as exc:
@@ -269,6 +256,35 @@ def import_json(session: Session, path: str | Path, client: str = "import") -> i
         raise SessionError(f"{path}: frame {dup} appears more than once")
     if not any(f.joints_mm is not None or f.annotation is not None for f in parsed.frames):
         raise SessionError(f"{path}: no frame has joints or an annotation; nothing to import")
+    return parsed
+
+
+def _imported_annotation(data: dict[str, Any], j: int, where: str) -> FrameAnnotation:
+    """A reference annotation from an export entry; ``SessionError`` naming ``where`` if bad."""
+    try:
+        ann = FrameAnnotation.from_json(data, j, where)
+    except ValueError as exc:
+        raise SessionError(" ".join(str(exc).split())) from None
+    placed = np.isfinite(ann.xyz_mm).all(axis=1)
+    if np.isinf(ann.uv_px).any() or np.isinf(ann.xyz_mm).any():
+        raise SessionError(f"{where}: infinite positions")
+    if np.any(ann.xyz_mm[placed, 2] <= 0):
+        raise SessionError(f"{where}: a joint placed behind the camera (z <= 0)")
+    return ann
+
+
+def import_json(session: Session, path: str | Path, client: str = "import") -> int:
+    """Import a handanno JSON export: reference annotations (one undoable edit) and the 3D joints.
+
+    The whole file is checked first (:class:`_ImportDoc`: frame indices in range and unique, the
+    session's frame count and skeleton, finite joints at plausible positions, confidences in
+    [0, 1], well-formed annotations); on any problem a :class:`SessionError` names the file, the
+    entry and the reason, and the session is left unchanged. Frames without ``joints_mm`` keep the
+    session's current result. Returns the number of frames with joints imported.
+    """
+    path = Path(path)
+    parsed = _parse_import(session, path)
+    j = session.skeleton.num_joints
     results = session.load_results()
     joints, confidence = results["final_mm"], results["confidence"]
     commands = []
@@ -280,16 +296,7 @@ def import_json(session: Session, path: str | Path, client: str = "import") -> i
             if entry.confidence is not None:
                 confidence[i] = np.array(entry.confidence, dtype=np.float64)
         if entry.annotation is not None:
-            where = f"{path}: frames.{i}.annotation"
-            try:
-                ann = FrameAnnotation.from_json(entry.annotation, j, where)
-            except ValueError as exc:
-                raise SessionError(" ".join(str(exc).split())) from None
-            placed = np.isfinite(ann.xyz_mm).all(axis=1)
-            if np.isinf(ann.uv_px).any() or np.isinf(ann.xyz_mm).any():
-                raise SessionError(f"{where}: infinite positions")
-            if np.any(ann.xyz_mm[placed, 2] <= 0):
-                raise SessionError(f"{where}: a joint placed behind the camera (z <= 0)")
+            ann = _imported_annotation(entry.annotation, j, f"{path}: frames.{i}.annotation")
             commands.append(SetFrameAnnotation(frame=i, annotation=ann.to_json()))
         if entry.is_reference and i not in references:
             commands.append(SetReference(frame=i, is_reference=True))

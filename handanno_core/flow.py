@@ -25,7 +25,6 @@ The coarse-to-fine pyramid exists once (:func:`coarse_to_fine`) and is shared by
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
 
 import cv2
 import numpy as np
@@ -477,8 +476,8 @@ def dis_flow(
 
     The crops are scaled from ``value_range`` to uint8. ``finest_scale=1`` (patches matched at
     half resolution, then variational refinement at full resolution) was both faster and more
-    accurate than 0 on the synthetic benchmark (6.1 vs 6.6 mm propagated, 3 vs 14 ms per call). Returns ``(H, W, 2)`` float32 px with the
-    module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
+    accurate than 0 on the synthetic benchmark (``benchmarks/results/design_measurements.md``).
+    Returns ``(H, W, 2)`` float32 px with the module's convention. DIS has its own internal pyramid; ``levels > 1`` additionally wraps it
     in :func:`coarse_to_fine` (each level initialized with the upsampled flow).
     """
     key = (
@@ -602,15 +601,3 @@ def sample_flow(flow: np.ndarray, points: np.ndarray, *, radius: int = 1) -> np.
     out = np.median(val, axis=1).astype(np.float64)
     out[bad] = np.nan
     return out
-
-
-ALIGNERS = ("sift", "dis", "ncc")
-
-
-def dense_flow(name: str, **kwargs) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """The dense flow function for an aligner name (``"sift"`` or ``"dis"``), keywords bound."""
-    if name == "sift":
-        return partial(sift_flow, **kwargs)
-    if name == "dis":
-        return partial(dis_flow, **kwargs)
-    raise ValueError(f"no dense flow named {name!r}; choose 'sift' or 'dis'")

@@ -50,6 +50,7 @@ from functools import cached_property
 import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
+from . import lm
 from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .skeleton import Skeleton
@@ -838,38 +839,43 @@ def fit_frames(
     """
     w = weights or FitWeights()
     kin = kin or Kinematics(model.skeleton, model.bone_lengths_mm)
-    start = np.asarray(start_mm, dtype=np.float64)
-    n = start.shape[0]
-    root, u = kin.fit(start)
-    energy, terms, x, (h, g) = frame_energy(model, kin, root, u, obs, camera, w, priors, True)
-    e_start = energy.copy()
-    lam = np.full(n, 1e-3)
-    eye = np.eye(kin.num_params)
-    active = np.ones(n, dtype=bool)
-    it = 0
-    for _ in range(iterations or w.iterations):
-        it += 1
-        dg = np.einsum("npp->np", h) + 1e-6
-        step = -np.linalg.solve(h + (lam[:, None] * dg)[:, :, None] * eye, g[..., None])[..., 0]
-        step[~active] = 0.0
-        root_n, u_n = kin.retract(root, u, step)
-        e_n, t_n, x_n, (h_n, g_n) = frame_energy(
-            model, kin, root_n, u_n, obs, camera, w, priors, True
-        )
-        better = active & np.isfinite(e_n) & (e_n < energy)
-        rel = np.where(better, (energy - e_n) / np.maximum(energy, 1e-12), 0.0)
-        root = np.where(better[:, None], root_n, root)
-        u = np.where(better[:, None, None], u_n, u)
-        h = np.where(better[:, None, None], h_n, h)
-        g = np.where(better[:, None], g_n, g)
-        x = np.where(better[:, None, None], x_n, x)
-        terms = {k: np.where(better, t_n[k], terms[k]) for k in terms}
-        energy = np.where(better, e_n, energy)
-        lam = np.where(better, np.maximum(lam * 0.3, 1e-7), lam * 10.0)
-        active &= ~(better & (rel < 1e-4)) & (lam < 1e4)
-        if not np.any(active):
-            break
-    return FitResult(x, energy, e_start, terms, root, u, it)
+    root, u = kin.fit(np.asarray(start_mm, dtype=np.float64))
+
+    def evaluate(pose) -> _FrameFit:
+        e, t, xj, (h, g) = frame_energy(model, kin, *pose, obs, camera, w, priors, True)
+        return _FrameFit(e, t, xj, h, g)
+
+    def normal_equations(_pose, ev: _FrameFit) -> lm.BatchedNormalEquations:
+        return lm.BatchedNormalEquations(ev.h, ev.g, np.einsum("npp->np", ev.h) + 1e-6)
+
+    first = evaluate((root, u))
+    fit = lm.levenberg_marquardt_batched(
+        evaluate,
+        (root, u),
+        normal_equations=normal_equations,
+        retract=lambda pose, step: kin.retract(*pose, step),
+        max_iter=iterations or w.iterations,
+        lam0=1e-3,
+        up=10.0,
+        down=0.3,
+        floor=1e-7,
+        rtol=1e-4,
+        max_lam=1e4,
+        first=first,
+    )
+    ev = fit.evaluation
+    return FitResult(ev.x, ev.cost, first.cost.copy(), ev.terms, *fit.x, fit.iterations)
+
+
+@dataclass
+class _FrameFit:
+    """Per-frame energy ``cost`` (n,), ``terms``, joints ``x`` (n,J,3) and θ-space ``h``/``g``."""
+
+    cost: np.ndarray
+    terms: dict
+    x: np.ndarray
+    h: np.ndarray
+    g: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------

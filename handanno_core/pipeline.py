@@ -16,6 +16,7 @@ import numpy as np
 
 from .camera import CameraIntrinsics
 from .datasets import BadFrameReport, FrameError
+from .forest import roots as root_reference
 from .session import (
     CROPS_FILE,
     CROPS_META_FILE,
@@ -99,21 +100,6 @@ def _breaks_arg(breaks: str, sequence) -> list[int]:
             f"--breaks {breaks}: neither comma-separated frame indices nor a breaks file"
         )
     return read_breaks_file(text, sequence.frame_names, n)
-
-
-def root_reference(parent: np.ndarray) -> np.ndarray:
-    """For a parent forest ``(N,)`` (-1 at references) the reference at the root of each frame's tree."""
-    parent = np.asarray(parent, dtype=np.int64)
-    hop = np.where(parent < 0, np.arange(len(parent)), parent)
-    # Pointer jumping: log2(depth) vectorized passes instead of walking every chain in Python.
-    while True:
-        nxt = hop[hop]
-        if np.array_equal(nxt, hop):
-            break
-        hop = nxt
-    if np.any(parent[hop] >= 0):
-        raise ValueError("parent array is not a forest rooted at references (cycle found)")
-    return hop
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,6 +423,7 @@ def propagate(
 ):
     """Propagate lifted references to every frame along the selection's parent forest
     (``use_model``: fit the personalized hand model to every frame, see ``handmodel``)."""
+    from .propagate import PropagationSettings
     from .propagate import propagate as run_propagation
 
     sequence = session.open_sequence()
@@ -463,6 +450,7 @@ def propagate(
         initial_confidence=results["confidence"] if frames is not None else None,
         progress=progress,
         on_result=on_result,
+        settings=PropagationSettings.from_session(session.model.settings),
         hand_model=use_model,
     )
     computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))
@@ -512,7 +500,6 @@ def refine(
         crops=crops,
         boxes=boxes,
         centres_mm=centres,
-        depth_of=None,  # the observed depth is read from the crops
         camera=session.camera,
         skeleton=session.skeleton,
         bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),

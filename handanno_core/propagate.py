@@ -13,8 +13,8 @@ reference), parents always before children:
    chain) and the frame's surface at the new position (nearest valid pixel within 3 px) is
    neither far in front of (occluder) nor far behind (background) the predicted depth. A visible
    joint keeps the depth *below the surface* it had at its reference (within +-10 mm of the
-   skeleton's surface offset): that alone took the synthetic error from 6.4 to 4.5 mm, against
-   the fixed skeleton offset. Other joints keep the parent's depth relative to the hand centre,
+   skeleton's surface offset; chosen against the fixed skeleton offset on the synthetic
+   sequence, see the README's propagation results). Other joints keep the parent's depth relative to the hand centre,
    ``z_parent - c_parent + c_frame``;
 4. a small Levenberg-Marquardt fit on the ``3 J`` coordinates restores the bone lengths
    (``bone_lengths_mm``, soft but stiff: residuals in units of 0.05 mm) while staying close to the
@@ -25,20 +25,15 @@ reference), parents always before children:
 5. with the hand model on (``hand_model=True``, off by default: about 5x slower; :mod:`handanno_core.handmodel`), the
    personalized capsule model is fitted to the frame's own depth from several starts (the flowed
    pose, the parent's pose, the nearest references before and after the frame in time) and the fit
-   of lowest energy is kept (:func:`_model_fit`). On the report part of the synthetic data at 5 %
-   references this halved the median error of fast motion (see ``benchmarks/bench_handmodel.py``)
-   at about five times the propagation time.
-
-An optional second alignment straight from the subtree's reference
-(``PropagationSettings(anchor_fusion=True)``) did not help on the synthetic data (4.53 vs 4.47 mm)
-and is off by default.
+   of lowest energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py``
+   (README, hand model section).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
 of the normalized crops at the matched points (mm), the depth residual of the fit (mm) and the
 bone-length violation of the flowed pose before the fit, and with the model the fit residual of
 the capsules touching the joint. ``PropagationResult.frame_score`` is the
-per-frame mean over joints (``frame_min`` the minimum).
+per-frame mean over joints.
 
 Bad frames: a frame whose depth raises ``FrameError``, has no valid pixel, or has no hand centre is
 skipped and reported with its reason; its descendants propagate from the nearest valid ancestor
@@ -54,13 +49,15 @@ live only while their frame is processed.
 
 from __future__ import annotations
 
-import os
+import dataclasses
 import tempfile
 import time
 import warnings
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,6 +66,9 @@ from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
+from .forest import descendants, propagation_order
+from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
+from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
 __all__ = [
@@ -98,9 +98,6 @@ class PropagationSettings:
     sigma_visible_mm: float = 8.0
     sigma_hidden_mm: float = 25.0
     sigma_bone_mm: float = 0.05
-    anchor_fusion: bool = False  #: also align the subtree's reference directly to the frame
-    anchor_weight: float = 1.0
-    anchor_gate_px: float = 3.0
     angle_limits: bool = True  #: refit with joint-angle limit hinges when a limit is violated
     sigma_angle_deg: float = 2.0
     angle_trigger: float = 1.5  #: refit when a limit is exceeded by this many sigma
@@ -116,6 +113,12 @@ class PropagationSettings:
     model_fits: int = 2  #: hand-model fits per frame: the candidate starts of lowest energy
     model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
+
+    @classmethod
+    def from_session(cls, settings, **overrides) -> PropagationSettings:
+        """Settings for a session's propagation: its ``Settings.cube_mm`` (the crops' cube, which
+        the crop stage may have grown) plus ``overrides``; every other constant at its default."""
+        return cls(**({"cube_mm": float(settings.cube_mm)} | overrides))
 
 
 @dataclass
@@ -145,65 +148,10 @@ class PropagationResult:
             warnings.simplefilter("ignore", RuntimeWarning)
             return np.nanmean(self.confidence, axis=1)
 
-    @property
-    def frame_min(self) -> np.ndarray:
-        """``(N,)`` minimum joint confidence per frame."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            return np.nanmin(self.confidence, axis=1)
-
 
 # ---------------------------------------------------------------------------------------------
 # forest helpers
 # ---------------------------------------------------------------------------------------------
-def _children_csr(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CSR children lists: children of ``i`` are ``kids[start[i]:start[i+1]]`` (ascending)."""
-    n = len(parent)
-    has = parent >= 0
-    kids = np.flatnonzero(has)
-    kids = kids[np.argsort(parent[kids], kind="stable")]
-    counts = np.bincount(parent[has], minlength=n)
-    start = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(counts, out=start[1:])
-    return kids, start
-
-
-def descendants(parent: np.ndarray, frames) -> np.ndarray:
-    """All frames whose parent chain passes through any of ``frames`` (the frames included).
-
-    ``parent``: ``(N,)`` int, -1 at references. Returns a sorted int64 array. After a reference
-    (or any frame) changes, these are the frames to re-propagate.
-    """
-    parent = np.asarray(parent, dtype=np.int64)
-    kids, start = _children_csr(parent)
-    mark = np.zeros(len(parent), dtype=bool)
-    front = np.unique(np.asarray(frames, dtype=np.int64).ravel())
-    mark[front] = True
-    while front.size:
-        nxt = (
-            np.concatenate([kids[start[i] : start[i + 1]] for i in front]) if front.size else front
-        )
-        nxt = nxt[~mark[nxt]]
-        mark[nxt] = True
-        front = nxt
-    return np.flatnonzero(mark)
-
-
-def propagation_order(parent: np.ndarray, roots) -> list[np.ndarray]:
-    """Breadth-first frames below each root (roots excluded): one array per root, parents first."""
-    parent = np.asarray(parent, dtype=np.int64)
-    kids, start = _children_csr(parent)
-    out = []
-    for r in np.asarray(roots, dtype=np.int64).ravel():
-        order: list[np.ndarray] = []
-        front = kids[start[r] : start[r + 1]]
-        while front.size:
-            order.append(front)
-            front = np.concatenate([kids[start[i] : start[i + 1]] for i in front])
-        out.append(np.concatenate(order) if order else np.zeros(0, dtype=np.int64))
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # the per-frame step (runs in workers)
 # ---------------------------------------------------------------------------------------------
@@ -252,6 +200,15 @@ class _Context:
         state["crops_array"] = None
         return state
 
+    def with_model(self, model: hm.HandModel | None, known: dict, reference_joints) -> _Context:
+        """This context with the hand model to fit (None: off) and the references it starts from
+        (the usable ones, sorted, with their lifted joints)."""
+        if model is None:
+            return self
+        refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
+        joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
+        return dataclasses.replace(self, hand_model=model, model_refs=refs, model_ref_joints=joints)
+
 
 _CROPS_CACHE: dict[tuple, np.ndarray] = {}
 
@@ -265,46 +222,6 @@ class _Task:
     frames: np.ndarray
     sources: np.ndarray
     seeds: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]]
-
-
-def _robust_depth(depth: np.ndarray, uv: np.ndarray, window: int) -> np.ndarray:
-    """Depth ``(P,)`` mm at ``uv (P, 2)``: nearest valid pixel within ``window`` px, NaN if none."""
-    h, w = depth.shape
-    out = np.full(len(uv), np.nan)
-    ok = np.all(np.isfinite(uv), axis=1)
-    if not ok.any():
-        return out
-    r = np.arange(-window, window + 1)
-    dv, du = np.meshgrid(r, r, indexing="ij")
-    dist2 = (du**2 + dv**2).ravel().astype(np.float64)
-    cu = np.rint(uv[ok, 0]).astype(np.int64)[:, None] + du.ravel()[None]
-    cv = np.rint(uv[ok, 1]).astype(np.int64)[:, None] + dv.ravel()[None]
-    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
-    vals = np.zeros(cu.shape)
-    vals[inside] = depth[cv[inside], cu[inside]]
-    valid = inside & np.isfinite(vals) & (vals > 0)
-    key = np.where(valid, dist2[None] * 1e6 + vals, np.inf)
-    best = np.argmin(key, axis=1)
-    rows = np.arange(len(best))
-    out[np.flatnonzero(ok)] = np.where(np.isfinite(key[rows, best]), vals[rows, best], np.nan)
-    return out
-
-
-def _bilinear(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image (H, W)`` at ``pts (P, 2)`` (border replicated)."""
-    h, w = image.shape
-    x = np.clip(np.nan_to_num(pts[:, 0]), 0, w - 1)
-    y = np.clip(np.nan_to_num(pts[:, 1]), 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(int), w - 2)
-    y0 = np.minimum(np.floor(y).astype(int), h - 2)
-    fx, fy = x - x0, y - y0
-    img = image.astype(np.float64)
-    return (
-        img[y0, x0] * (1 - fx) * (1 - fy)
-        + img[y0, x0 + 1] * fx * (1 - fy)
-        + img[y0 + 1, x0] * (1 - fx) * fy
-        + img[y0 + 1, x0 + 1] * fx * fy
-    )
 
 
 def _align(ctx: _Context, crop_s: np.ndarray, crop_f: np.ndarray, xy_s: np.ndarray):
@@ -322,6 +239,45 @@ def _align(ctx: _Context, crop_s: np.ndarray, crop_f: np.ndarray, xy_s: np.ndarr
     bwd = fn(crop_f, crop_s, **ctx.aligner_kwargs)
     back = sample_flow(bwd, xy_s + disp, radius=st.sample_radius)
     return disp, np.linalg.norm(disp + back, axis=1)
+
+
+class _FitEval(NamedTuple):
+    """Residual groups (2D u, 2D v, depth, bone, angle), bone vectors and lengths, cost."""
+
+    res: tuple[np.ndarray, ...]
+    vec: np.ndarray
+    ln: np.ndarray
+    cost: float
+
+
+def _fit_blocks(x, ev: _FitEval, camera, sigma_uv, inv_z, bones, sigma_bone):
+    """``JᵀJ`` ``(3J, 3J)`` and ``Jᵀr`` ``(3J,)`` of the 2D, depth and bone residuals of
+    :func:`_fit`, assembled from 3x3 blocks per joint and per bone."""
+    r_u, r_v, r_z, r_b, _ = ev.res
+    j = len(x)
+    fx, fy = camera.fx, camera.fy
+    idx = np.arange(j)
+    bp, bc = bones[:, 0], bones[:, 1]
+    z = np.maximum(x[:, 2], 1.0)
+    s = 1.0 / (z * sigma_uv)
+    pu = np.zeros((j, 3))
+    pv = np.zeros((j, 3))
+    pu[:, 0], pu[:, 2] = fx * s, -fx * x[:, 0] / z * s
+    pv[:, 1], pv[:, 2] = fy * s, -fy * x[:, 1] / z * s
+    blocks = np.zeros((j, j, 3, 3))
+    blocks[idx, idx] = pu[:, :, None] * pu[:, None, :] + pv[:, :, None] * pv[:, None, :]
+    blocks[idx, idx, 2, 2] += inv_z**2
+    grad = pu * r_u[:, None] + pv * r_v[:, None]
+    grad[:, 2] += inv_z * r_z
+    unit = ev.vec / (np.maximum(ev.ln, 1e-9)[:, None] * sigma_bone)
+    uu = unit[:, :, None] * unit[:, None, :]
+    np.add.at(blocks, (bc, bc), uu)
+    np.add.at(blocks, (bp, bp), uu)
+    np.add.at(blocks, (bp, bc), -uu)
+    np.add.at(blocks, (bc, bp), -uu)
+    np.add.at(grad, bc, unit * r_b[:, None])
+    np.add.at(grad, bp, -unit * r_b[:, None])
+    return blocks.transpose(0, 2, 1, 3).reshape(3 * j, 3 * j), grad.ravel()
 
 
 def _fit(
@@ -343,7 +299,7 @@ def _fit(
 
     The normal equations are assembled from the Jacobian's sparse structure (3x3 blocks per
     joint and per bone) without BLAS: tiny multi-threaded BLAS calls stall badly on a loaded
-    machine (measured 5-25 ms for a 137x63 product vs 0.1 ms single-threaded).
+    machine.
 
     ``angles(poses (..., J, 3)) -> (..., A)`` hinge residuals of the joint-angle limits (0 inside
     the limits): when given, they are appended with a forward-difference Jacobian (one batched
@@ -351,14 +307,13 @@ def _fit(
     j = len(x0)
     n = 3 * j
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    idx = np.arange(j)
     bp, bc = bones[:, 0], bones[:, 1]
     inv_z = 1.0 / np.broadcast_to(np.asarray(sigma_z, dtype=np.float64), (j,))
     na = 0 if angles is None else int(angles(x0).shape[-1])
     eps = 1e-3 * np.eye(n).reshape(n, j, 3) if na else None
     jac_a = None
 
-    def residuals(x):
+    def residuals(x) -> _FitEval:
         z = np.maximum(x[:, 2], 1.0)
         r_u = (fx * x[:, 0] / z + cx - uv[:, 0]) / sigma_uv
         r_v = (fy * x[:, 1] / z + cy - uv[:, 1]) / sigma_uv
@@ -374,56 +329,31 @@ def _fit(
             + np.einsum("i,i->", r_b, r_b)
             + np.einsum("i,i->", r_a, r_a)
         )
-        return (r_u, r_v, r_z, r_b, r_a), vec, ln, cost
+        return _FitEval((r_u, r_v, r_z, r_b, r_a), vec, ln, cost)
 
-    x = x0.copy()
-    res, vec, ln, cost = residuals(x)
-    lam = 1e-4
-    for it in range(iterations):
-        r_u, r_v, r_z, r_b, r_a = res
-        z = np.maximum(x[:, 2], 1.0)
-        s = 1.0 / (z * sigma_uv)
-        pu = np.zeros((j, 3))
-        pv = np.zeros((j, 3))
-        pu[:, 0], pu[:, 2] = fx * s, -fx * x[:, 0] / z * s
-        pv[:, 1], pv[:, 2] = fy * s, -fy * x[:, 1] / z * s
-        blocks = np.zeros((j, j, 3, 3))
-        blocks[idx, idx] = pu[:, :, None] * pu[:, None, :] + pv[:, :, None] * pv[:, None, :]
-        blocks[idx, idx, 2, 2] += inv_z**2
-        grad = pu * r_u[:, None] + pv * r_v[:, None]
-        grad[:, 2] += inv_z * r_z
-        unit = vec / (np.maximum(ln, 1e-9)[:, None] * sigma_bone)
-        uu = unit[:, :, None] * unit[:, None, :]
-        np.add.at(blocks, (bc, bc), uu)
-        np.add.at(blocks, (bp, bp), uu)
-        np.add.at(blocks, (bp, bc), -uu)
-        np.add.at(blocks, (bc, bp), -uu)
-        np.add.at(grad, bc, unit * r_b[:, None])
-        np.add.at(grad, bp, -unit * r_b[:, None])
-        jtj = blocks.transpose(0, 2, 1, 3).reshape(n, n)
-        g = grad.ravel()
+    def normal_equations(x, ev: _FitEval) -> NormalEquations:
+        nonlocal jac_a
+        r_a = ev.res[4]
+        jtj, g = _fit_blocks(x, ev, camera, sigma_uv, inv_z, bones, sigma_bone)
         if na:
-            if it == 0:
+            if jac_a is None:  # kept from the first iteration
                 jac_a = ((angles(x[None] + eps) - r_a) / 1e-3).T  # (A, 3J)
             jtj = jtj + np.einsum("ai,aj->ij", jac_a, jac_a)
             g = g + np.einsum("ai,a->i", jac_a, r_a)
-        diag = np.diag(jtj).copy() + 1e-9
-        accepted = small = False
-        for _ in range(5):
-            m = jtj.copy()
-            m[np.diag_indices(n)] += lam * diag
-            step = np.linalg.solve(m, -g)
-            xn = x + step.reshape(j, 3)
-            rn, vn, lnn, cn = residuals(xn)
-            if cn < cost:
-                accepted = True
-                small = cost - cn < 1e-8 * cost + 1e-12
-                x, res, vec, ln, cost, lam = xn, rn, vn, lnn, cn, max(lam * 0.1, 1e-9)
-                break
-            lam *= 10.0
-        if not accepted or small:
-            break
-    return x
+        return NormalEquations(jtj, g, np.diag(jtj).copy() + 1e-9)
+
+    fit = levenberg_marquardt(
+        residuals,
+        x0.copy(),
+        normal_equations=normal_equations,
+        solve=solve_dense,
+        damping=Marquardt(lam=1e-4, up=10.0, down=0.1, floor=1e-9),
+        max_iter=iterations,
+        max_tries=5,
+        rtol=1e-8,
+        atol=1e-12,
+    )
+    return fit.x
 
 
 def _angle_hinge(sk: Skeleton, sigma_deg: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -448,7 +378,9 @@ def _surface_offsets_at_source(ctx: _Context, frame: int, joints: np.ndarray) ->
         depth = ctx.depth_of(frame)
     except FrameError:
         return np.full(len(joints), np.nan)
-    surf = _robust_depth(depth, ctx.camera.project(joints), ctx.settings.depth_window_px)
+    surf = depth_at(
+        depth, ctx.camera.project(joints), window=ctx.settings.depth_window_px, near_px=0
+    )
     delta = joints[:, 2] - surf
     with np.errstate(invalid="ignore"):
         near = np.abs(delta - offsets) < ctx.settings.near_surface_mm
@@ -462,7 +394,6 @@ def _step(
     joints_s: np.ndarray,
     conf_s: np.ndarray,
     delta_s: np.ndarray,
-    anchor: tuple[int, np.ndarray] | None = None,
 ):
     """Propagate ``joints_s`` of frame ``src`` to ``frame``. ``delta_s`` (J,) mm: each joint's
     depth below the observed surface in the source (NaN = not on its surface). Returns
@@ -490,29 +421,11 @@ def _step(
     disp, fb = _align(ctx, crop_s, crop_f, xy_s)
     disp = np.where(np.isfinite(disp), disp, 0.0)
     xy_f = xy_s + disp
-    if anchor is not None and anchor[0] != src and st.anchor_fusion:
-        # a second, direct alignment from the subtree's reference bounds the drift of long
-        # chains; per joint, the estimate with the better forward-backward consistency wins
-        # when the two disagree, else they are averaged with weights 1 / (fb^2 + 0.25)
-        a_frame, a_joints = anchor
-        xy_a = image_to_crop(cam.project(a_joints), ctx.boxes[a_frame])
-        disp_a, fb_a = _align(ctx, np.asarray(crops[a_frame], dtype=np.float32), crop_f, xy_a)
-        xy_fa = xy_a + np.where(np.isfinite(disp_a), disp_a, 0.0)
-        ok = np.isfinite(fb_a) & np.all(np.isfinite(xy_fa), axis=1)
-        w1 = 1.0 / (fb**2 + 0.25)
-        w2 = np.where(ok, st.anchor_weight / (np.nan_to_num(fb_a, nan=1e6) ** 2 + 0.25), 0.0)
-        apart = np.linalg.norm(xy_fa - xy_f, axis=1) > st.anchor_gate_px
-        pick_a = ok & apart & (fb_a < fb)
-        mixed = (w1[:, None] * xy_f + w2[:, None] * np.nan_to_num(xy_fa)) / (w1 + w2)[:, None]
-        xy_f = np.where(pick_a[:, None], xy_fa, np.where(apart[:, None], xy_f, mixed))
-        fb = np.where(
-            pick_a, fb_a, np.where(apart, fb, np.minimum(fb, np.nan_to_num(fb_a, nan=1e6)))
-        )
     uv_f = crop_to_image(xy_f, box_f)
 
     # the joint keeps its depth below the surface from the source (the reference's lift), kept
     # within +-carry_band_mm of the skeleton's offset
-    surf = _robust_depth(depth, uv_f, st.depth_window_px)
+    surf = depth_at(depth, uv_f, window=st.depth_window_px, near_px=0)
     vis_s = np.isfinite(delta_s)
     below = np.where(
         vis_s,
@@ -552,7 +465,8 @@ def _step(
     # confidence
     half = 0.5 * st.cube_mm
     # matched points should show the same centre-relative depth in both crops
-    app_res = np.abs(_bilinear(crop_s, xy_s) - _bilinear(crop_f, xy_f)) * half
+    app_s = bilinear(crop_s, xy_s[:, 0], xy_s[:, 1])
+    app_res = np.abs(app_s - bilinear(crop_f, xy_f[:, 0], xy_f[:, 1])) * half
     bone_viol = np.zeros(len(x))
     bone_viol[bones[:, 1]] = np.abs(len0 - lengths) / np.maximum(lengths, 1e-6)
     depth_res = np.where(visible, np.abs(x[:, 2] - z_t), st.depth_scale_mm * 0.6)
@@ -642,8 +556,22 @@ class _Skip(Exception):
     pass
 
 
+@dataclass
+class _TaskResult:
+    """One task's rows: ``frames`` (M,), the frame each was propagated from ``sources`` (M,) (-1
+    where skipped), ``joints`` (M, J, 3) mm, ``confidence`` (M, J), ``below`` (M, J) mm depth
+    below the surface (NaN off it) and ``skipped`` ``{frame: reason}``."""
+
+    frames: np.ndarray
+    sources: np.ndarray
+    joints: np.ndarray
+    confidence: np.ndarray
+    below: np.ndarray
+    skipped: dict[int, str]
+
+
 def _run_task(ctx: _Context, task: _Task, emit: Callable | None = None):
-    """Propagate one task. Returns ``(frames, sources, joints (M,J,3), conf (M,J), skipped)``.
+    """Propagate one task (a :class:`_TaskResult`).
 
     OpenCV runs single-threaded here: one task = one core (parallelism comes from tasks)."""
     import cv2
@@ -666,12 +594,10 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
     skipped: dict[int, str] = {}
     state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     alias: dict[int, int] = {}  # skipped frame -> nearest valid ancestor
-    root: dict[int, int] = {}  # frame -> the seed its subtree hangs off
     for f, (jj, cc, vv) in task.seeds.items():
         if vv is None:
             vv = _surface_offsets_at_source(ctx, f, jj)
         state[f] = (jj, cc, vv)
-        root[f] = f
     for k in range(m):
         f = int(task.frames[k])
         s = int(task.sources[k])
@@ -683,9 +609,8 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 emit(f, None, None)
             continue
         jj, cc, vv = state[s]
-        root[f] = root[s]
         try:
-            x, conf, vis = _step(ctx, s, f, jj, cc, vv, (root[s], state[root[s]][0]))
+            x, conf, vis = _step(ctx, s, f, jj, cc, vv)
         except _Skip as err:
             skipped[f] = str(err)
             alias[f] = s
@@ -696,7 +621,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
         out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
         if emit is not None:
             emit(f, x, conf)
-    return task.frames, used_src, out_j, out_c, out_b, skipped
+    return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -815,14 +740,75 @@ def propagate(
     t0 = time.perf_counter()
     parent = np.asarray(parent, dtype=np.int64)
     n = len(parent)
-    j = skeleton.num_joints
     if aligner not in ALIGNERS:
         raise ValueError(f"unknown aligner {aligner!r}; choose one of {ALIGNERS}")
     if crops.shape[0] != n or boxes.shape[0] != n or len(centres_mm) != n:
         raise ValueError("parent, crops, boxes and centres must have the same number of frames")
     settings = settings or PropagationSettings()
+    known, bad_refs = _reference_seeds(
+        reference_joints, skeleton, bone_lengths_mm, reference_confidence
+    )
+    todo = np.flatnonzero(parent >= 0)
+    if frames is not None:
+        todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
+        todo = todo[parent[todo] >= 0]
+        _previous_seeds(known, todo, previous, initial_mm, initial_confidence, skeleton.num_joints)
+    remote = scheduler is not None or workers > 1
+    n_workers = _DASK_TASK_SLOTS if scheduler is not None else max(workers, 1)
+    tasks, problems = _plan(parent, known, todo, n_workers * tasks_per_worker if remote else 1)
+    _name_bad_references(problems, bad_refs, parent)
+    model_obj = _hand_model(
+        hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
+        bone_lengths_mm, settings,
+    )  # fmt: skip
+    out = _Collector.empty(n, skeleton.num_joints, problems, tasks, progress, on_result)
+    with _crops_for_workers(crops, remote) as crops_file:
+        ctx = _Context(
+            *crops_file,
+            crops_shape=tuple(crops.shape),
+            crops_dtype=str(crops.dtype),
+            boxes=np.asarray(boxes, dtype=np.float64),
+            centres_mm=np.asarray(centres_mm, dtype=np.float64),
+            depth_of=depth_of,
+            camera=camera,
+            skeleton=skeleton,
+            bone_lengths_mm=np.asarray(bone_lengths_mm, dtype=np.float64),
+            aligner=aligner,
+            aligner_kwargs=dict(aligner_kwargs or {}),
+            settings=settings,
+            crops_array=None if remote else crops,
+            fit_weights=fit_weights,
+        ).with_model(model_obj, known, reference_joints)
+        if scheduler is not None:
+            _run_dask(scheduler, ctx, tasks, out.add_remote)
+        elif remote:
+            _run_pool(workers, ctx, tasks, out.add_remote)
+        else:
+            _run_local(ctx, tasks, out)
+    return out.result(time.perf_counter() - t0)
 
-    known: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+
+_Seeds = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+
+#: tasks are planned for this many workers when running on a Dask scheduler
+_DASK_TASK_SLOTS = 4
+#: local runs report progress every this many frames
+_PROGRESS_EVERY = 16
+#: a reference whose bone lengths are off by more than this fraction is not propagated from
+_BONE_PLAUSIBILITY = 0.5
+
+
+def _reference_seeds(
+    reference_joints: dict[int, np.ndarray],
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    reference_confidence: dict[int, np.ndarray] | None,
+) -> tuple[_Seeds, dict[int, str]]:
+    """Seeds ``{frame: (joints (J,3), confidence (J,), None)}`` of the usable references, and
+    ``{frame: reason}`` for the implausible ones (references with NaN joints are left out)."""
+    j = skeleton.num_joints
+    lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
+    known: _Seeds = {}
     bad_refs: dict[int, str] = {}
     for f, jj in reference_joints.items():
         jj = np.asarray(jj, dtype=np.float64)
@@ -830,9 +816,8 @@ def propagate(
             raise ValueError(f"reference {f}: joints must be ({j}, 3), got {jj.shape}")
         if not np.all(np.isfinite(jj)):
             continue
-        lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
         rel = np.abs(skeleton.bone_lengths(jj) - lengths) / np.maximum(lengths, 1e-6)
-        if np.any(jj[:, 2] <= 0) or np.max(rel) > 0.5:
+        if np.any(jj[:, 2] <= 0) or np.max(rel) > _BONE_PLAUSIBILITY:
             bad_refs[int(f)] = (
                 "reference joints implausible (behind the camera or bones off by >50%)"
             )
@@ -841,174 +826,186 @@ def propagate(
             np.ones(j) if reference_confidence is None else reference_confidence.get(f, np.ones(j))
         )
         known[int(f)] = (jj, np.asarray(conf, dtype=np.float64), None)
-    if frames is None:
-        todo = np.flatnonzero(parent >= 0)
-    else:
-        todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
-        todo = todo[parent[todo] >= 0]
-        if previous is not None:
-            initial_mm = previous.joints_mm
-            initial_confidence = previous.confidence
-        if initial_mm is not None:
-            keep = np.ones(n, dtype=bool)
-            keep[todo] = False
-            for f in np.flatnonzero(keep & np.all(np.isfinite(initial_mm), axis=(1, 2))):
-                if int(f) not in known:
-                    conf = (
-                        np.asarray(initial_confidence[f], dtype=np.float64)
-                        if initial_confidence is not None
-                        else np.ones(j)
-                    )
-                    below = None
-                    if previous is not None and previous.below_surface_mm is not None:
-                        below = np.asarray(previous.below_surface_mm[f], dtype=np.float64)
-                    known[int(f)] = (
-                        np.asarray(initial_mm[f], dtype=np.float64),
-                        np.nan_to_num(conf, nan=0.5),
-                        below,
-                    )
+    return known, bad_refs
 
-    n_workers = 1 if scheduler is None else 4
-    if scheduler is None and workers > 1:
-        n_workers = workers
-    tasks, problems = _plan(
-        parent, known, todo, n_workers * tasks_per_worker if n_workers > 1 else 1
+
+def _previous_seeds(
+    known: _Seeds,
+    todo: np.ndarray,
+    previous: PropagationResult | None,
+    initial_mm: np.ndarray | None,
+    initial_confidence: np.ndarray | None,
+    j: int,
+) -> None:
+    """Add to ``known`` the frames outside ``todo`` that have joints from a previous run."""
+    if previous is not None:
+        initial_mm = previous.joints_mm
+        initial_confidence = previous.confidence
+    if initial_mm is None:
+        return
+    keep = np.ones(len(initial_mm), dtype=bool)
+    keep[todo] = False
+    for f in np.flatnonzero(keep & np.all(np.isfinite(initial_mm), axis=(1, 2))):
+        if int(f) in known:
+            continue
+        conf = (
+            np.asarray(initial_confidence[f], dtype=np.float64)
+            if initial_confidence is not None
+            else np.ones(j)
+        )
+        below = None
+        if previous is not None and previous.below_surface_mm is not None:
+            below = np.asarray(previous.below_surface_mm[f], dtype=np.float64)
+        known[int(f)] = (
+            np.asarray(initial_mm[f], dtype=np.float64),
+            np.nan_to_num(conf, nan=0.5),
+            below,
+        )
+
+
+def _name_bad_references(problems: dict[int, str], bad_refs: dict[int, str], parent) -> None:
+    """Name the real cause for the subtrees below an implausible reference."""
+    if not bad_refs:
+        return
+    n = len(parent)
+    for f in list(problems):
+        r, steps = f, 0
+        while parent[r] >= 0 and steps < n:  # bounded: the forest may hold a cycle
+            r, steps = int(parent[r]), steps + 1
+        if r in bad_refs:
+            problems[f] = f"reference {r}: {bad_refs[r]}"
+
+
+def _hand_model(
+    hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
+    bone_lengths_mm, settings: PropagationSettings,
+) -> hm.HandModel | None:  # fmt: skip
+    """The hand model to fit (``hand_model=True``: personalized from the usable references)."""
+    if hand_model is False or hand_model is None:
+        return None
+    if isinstance(hand_model, hm.HandModel):
+        return hand_model
+    refs = sorted(f for f in known if f in reference_joints)
+    if not refs:
+        return None
+    ref_frames = np.asarray(refs, dtype=np.int64)
+    obs = hm.observe(
+        np.asarray(crops[ref_frames], dtype=np.float32),
+        np.asarray(boxes, dtype=np.float64)[ref_frames],
+        np.asarray(centres_mm, dtype=np.float64)[ref_frames],
+        camera,
+        cube_mm=settings.cube_mm,
     )
-    if bad_refs:  # name the real cause for the subtrees below an implausible reference
-        for f in list(problems):
-            r, steps = f, 0
-            while parent[r] >= 0 and steps < n:  # bounded: the forest may hold a cycle
-                r, steps = int(parent[r]), steps + 1
-            if r in bad_refs:
-                problems[f] = f"reference {r}: {bad_refs[r]}"
+    return hm.personalize(skeleton, bone_lengths_mm, np.stack([known[f][0] for f in refs]), obs)
 
-    # crops: a path to map in the workers (never pickled per task)
-    tmpdir = None
-    remote = scheduler is not None or workers > 1
-    crops_path, crops_offset = None, 0
-    if remote:
-        if isinstance(crops, np.memmap) and crops.filename is not None:
-            crops_path, crops_offset = str(crops.filename), int(crops.offset)
-        else:
-            tmpdir = tempfile.mkdtemp(prefix="handanno-crops-")
-            tmp = Path(tmpdir) / "crops.npy"
-            mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=crops.dtype, shape=crops.shape)
-            mm[:] = crops
-            crops_path, crops_offset = str(tmp), int(mm.offset)
-            del mm
-    model_obj = None
-    known_refs = sorted(f for f in known if f in reference_joints)
-    ref_frames = np.asarray(known_refs, dtype=np.int64)
-    if hand_model is not False and hand_model is not None:
-        if isinstance(hand_model, hm.HandModel):
-            model_obj = hand_model
-        elif len(ref_frames):
-            obs = hm.observe(
-                np.asarray(crops[ref_frames], dtype=np.float32),
-                np.asarray(boxes, dtype=np.float64)[ref_frames],
-                np.asarray(centres_mm, dtype=np.float64)[ref_frames],
-                camera,
-                cube_mm=settings.cube_mm,
-            )
-            model_obj = hm.personalize(
-                skeleton,
-                bone_lengths_mm,
-                np.stack([known[f][0] for f in known_refs]),
-                obs,
-            )
-    ctx = _Context(
-        crops_path=crops_path,
-        crops_offset=crops_offset,
-        crops_shape=tuple(crops.shape),
-        crops_dtype=str(crops.dtype),
-        boxes=np.asarray(boxes, dtype=np.float64),
-        centres_mm=np.asarray(centres_mm, dtype=np.float64),
-        depth_of=depth_of,
-        camera=camera,
-        skeleton=skeleton,
-        bone_lengths_mm=np.asarray(bone_lengths_mm, dtype=np.float64),
-        aligner=aligner,
-        aligner_kwargs=dict(aligner_kwargs or {}),
-        settings=settings,
-        crops_array=None if remote else crops,
-        hand_model=model_obj,
-        fit_weights=fit_weights,
-        model_refs=ref_frames if model_obj is not None else None,
-        model_ref_joints=(
-            np.stack([known[int(f)][0] for f in ref_frames])
-            if model_obj is not None and len(ref_frames)
-            else None
-        ),
-    )
 
-    joints = np.full((n, j, 3), np.nan)
-    confidence = np.full((n, j), np.nan)
-    below = np.full((n, j), np.nan)
-    source = np.full(n, -1, dtype=np.int64)
-    reasons: dict[int, str] = dict(problems)
-    order: list[int] = []
-    total = sum(len(t.frames) for t in tasks)
-    done = 0
+@contextmanager
+def _crops_for_workers(crops: np.ndarray, remote: bool):
+    """``(path, offset)`` of the crops as a file the workers can map (``(None, 0)`` in process):
+    a memmap's own file, else a temporary ``.npy`` written once and removed afterwards."""
+    if not remote:
+        yield None, 0
+        return
+    if isinstance(crops, np.memmap) and crops.filename is not None:
+        yield str(crops.filename), int(crops.offset)
+        return
+    with tempfile.TemporaryDirectory(prefix="handanno-crops-") as tmpdir:
+        tmp = Path(tmpdir) / "crops.npy"
+        mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=crops.dtype, shape=crops.shape)
+        mm[:] = crops
+        offset = int(mm.offset)
+        del mm
+        yield str(tmp), offset
 
-    def collect(result) -> None:
-        nonlocal done
-        fr, src, jj, cc, bb, skipped = result
-        joints[fr], confidence[fr], below[fr], source[fr] = jj, cc, bb, src
-        reasons.update(skipped)
-        if on_result is not None and remote:
-            for k, f in enumerate(fr):
-                if int(f) not in skipped:
-                    on_result(int(f), jj[k], cc[k])
-        if remote:
-            order.extend(int(f) for f in fr)
-            done += len(fr)
-            if progress is not None:
-                progress(done, total)
 
-    try:
-        if not remote:
+@dataclass
+class _Collector:
+    """The result arrays, filled task by task (remote) or frame by frame (local)."""
 
-            def emit(f, x, c):
-                nonlocal done
-                order.append(f)
-                done += 1
-                if x is not None and on_result is not None:
-                    on_result(f, x, c)
-                if progress is not None and (done % 16 == 0 or done == total):
-                    progress(done, total)
+    joints: np.ndarray
+    confidence: np.ndarray
+    below: np.ndarray
+    source: np.ndarray
+    reasons: dict[int, str]
+    total: int
+    progress: Callable[[int, int], None] | None
+    on_result: Callable[[int, np.ndarray, np.ndarray], None] | None
+    order: list[int] = field(default_factory=list)
+    done: int = 0
 
-            for task in tasks:
-                collect(_run_task(ctx, task, emit))
-        elif scheduler is not None:
-            _run_dask(scheduler, ctx, tasks, collect)
-        else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
+    @classmethod
+    def empty(cls, n, j, problems, tasks, progress, on_result) -> _Collector:
+        return cls(
+            joints=np.full((n, j, 3), np.nan),
+            confidence=np.full((n, j), np.nan),
+            below=np.full((n, j), np.nan),
+            source=np.full(n, -1, dtype=np.int64),
+            reasons=dict(problems),
+            total=sum(len(t.frames) for t in tasks),
+            progress=progress,
+            on_result=on_result,
+        )
 
-            method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-            with ProcessPoolExecutor(
-                max_workers=workers, mp_context=mp.get_context(method)
-            ) as pool:
-                futures = [pool.submit(_run_task, ctx, t) for t in tasks]
-                for fut in as_completed(futures):
-                    collect(fut.result())
-    finally:
-        if tmpdir is not None:
-            for p in Path(tmpdir).iterdir():
-                p.unlink()
-            os.rmdir(tmpdir)
+    def store(self, r: _TaskResult) -> None:
+        """Store a finished task's rows."""
+        fr = r.frames
+        self.joints[fr], self.confidence[fr], self.below[fr] = r.joints, r.confidence, r.below
+        self.source[fr] = r.sources
+        self.reasons.update(r.skipped)
 
-    skipped = sorted(reasons)
-    return PropagationResult(
-        joints_mm=joints,
-        confidence=confidence,
-        skipped=skipped,
-        reasons={f: reasons[f] for f in skipped},
-        source=source,
-        below_surface_mm=below,
-        seconds=time.perf_counter() - t0,
-        order=order,
-    )
+    def add_remote(self, r: _TaskResult) -> None:
+        """A task finished in another process: store it, report its frames and progress."""
+        self.store(r)
+        if self.on_result is not None:
+            for k, f in enumerate(r.frames):
+                if int(f) not in r.skipped:
+                    self.on_result(int(f), r.joints[k], r.confidence[k])
+        self.order.extend(int(f) for f in r.frames)
+        self.done += len(r.frames)
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+    def emit(self, f: int, x, c) -> None:
+        """One frame finished in this process (``x`` None if it was skipped)."""
+        self.order.append(f)
+        self.done += 1
+        if x is not None and self.on_result is not None:
+            self.on_result(f, x, c)
+        if self.progress is not None and (
+            self.done % _PROGRESS_EVERY == 0 or self.done == self.total
+        ):
+            self.progress(self.done, self.total)
+
+    def result(self, seconds: float) -> PropagationResult:
+        skipped = sorted(self.reasons)
+        return PropagationResult(
+            joints_mm=self.joints,
+            confidence=self.confidence,
+            skipped=skipped,
+            reasons={f: self.reasons[f] for f in skipped},
+            source=self.source,
+            below_surface_mm=self.below,
+            seconds=seconds,
+            order=self.order,
+        )
+
+
+def _run_local(ctx: _Context, tasks: list[_Task], out: _Collector) -> None:
+    """Run the tasks in this process, reporting every frame as it is done."""
+    for task in tasks:
+        out.store(_run_task(ctx, task, out.emit))
+
+
+def _run_pool(workers: int, ctx: _Context, tasks: list[_Task], collect: Callable) -> None:
+    """Run the tasks in a local process pool (forkserver where available)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method)) as pool:
+        futures = [pool.submit(_run_task, ctx, t) for t in tasks]
+        for fut in as_completed(futures):
+            collect(fut.result())
 
 
 def _run_dask(scheduler, ctx: _Context, tasks: list[_Task], collect: Callable) -> None:

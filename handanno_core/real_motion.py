@@ -23,7 +23,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
+from . import lm
 from .camera import CameraIntrinsics
+from .skeleton import FPHA_TO_MSRA21 as _FPHA_TO_MSRA21
 from .skeleton import MSRA21
 from .synth import (
     GESTURES,
@@ -52,11 +54,8 @@ def _find_real_motion() -> Path:
 #: the real-motion data (see :func:`_find_real_motion`)
 DEFAULT_REAL_MOTION = _find_real_motion()
 
-#: FPHA joint index of each MSRA21 joint. FPHA: wrist, TMCP, IMCP, MMCP, RMCP, PMCP, then (PIP, DIP,
-#: TIP) of thumb, index, middle, ring, pinky; its thumb "MCP" is the CMC-side joint (MSRA's 17).
-FPHA_TO_MSRA21 = np.array(
-    [0, 2, 9, 10, 11, 3, 12, 13, 14, 4, 15, 16, 17, 5, 18, 19, 20, 1, 6, 7, 8]
-)
+#: FPHA joint index of each MSRA21 joint (:data:`handanno_core.skeleton.FPHA_TO_MSRA21`)
+FPHA_TO_MSRA21 = np.asarray(_FPHA_TO_MSRA21)
 #: FPHA depth camera (Intel RealSense SR300), 640x480
 FPHA_CAMERA = CameraIntrinsics(
     fx=475.065948, fy=475.065948, cx=315.944855, cy=245.287079, width=640, height=480
@@ -417,27 +416,39 @@ def _batched_lm(
     forward-difference Jacobians (one ``fun`` call per unknown), damped normal equations solved per
     row, steps clipped into ``[lo, hi]`` and kept only where they lower that row's cost.
     """
-    x = x0.copy()
-    r = fun(x)
-    cost = np.sum(r * r, axis=1)
-    lam = np.full(len(x), 1e-3)
-    p = x.shape[1]
+    p = x0.shape[1]
     eps = np.where(np.isfinite(hi - lo) & (hi - lo < 10.0), 1e-6, 1e-4)  # radians vs deg / mm
-    for _ in range(iterations):
-        jac = np.empty(r.shape + (p,))
+
+    def evaluate(x: np.ndarray) -> _Residuals:
+        r = fun(x)
+        return _Residuals(np.sum(r * r, axis=1), r)
+
+    def normal_equations(x: np.ndarray, ev: _Residuals) -> lm.BatchedNormalEquations:
+        jac = np.empty(ev.r.shape + (p,))
         for k in range(p):
             xk = x.copy()
             xk[:, k] += eps[k]
-            jac[:, :, k] = (fun(xk) - r) / eps[k]
+            jac[:, :, k] = (fun(xk) - ev.r) / eps[k]
         jtj = np.einsum("mrp,mrq->mpq", jac, jac)
-        jtr = np.einsum("mrp,mr->mp", jac, r)
-        diag = np.einsum("mpp->mp", jtj)
-        a = jtj + (lam[:, None] * diag + 1e-9)[:, :, None] * np.eye(p)
-        step = np.linalg.solve(a, -jtr[..., None])[..., 0]
-        trial = np.clip(x + step, lo, hi)
-        r_trial = fun(trial)
-        cost_trial = np.sum(r_trial * r_trial, axis=1)
-        better = cost_trial < cost
-        x[better], r[better], cost[better] = trial[better], r_trial[better], cost_trial[better]
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-    return x
+        jtr = np.einsum("mrp,mr->mp", jac, ev.r)
+        return lm.BatchedNormalEquations(jtj, jtr, np.einsum("mpp->mp", jtj), shift=1e-9)
+
+    fit = lm.levenberg_marquardt_batched(
+        evaluate,
+        x0.copy(),
+        normal_equations=normal_equations,
+        retract=lambda x, step: np.clip(x + step, lo, hi),
+        max_iter=iterations,
+        lam0=1e-3,
+        up=10.0,
+        down=0.3,
+    )
+    return fit.x
+
+
+@dataclass
+class _Residuals:
+    """Per-row cost ``(M,)`` and residuals ``r`` ``(M, R)``."""
+
+    cost: np.ndarray
+    r: np.ndarray

@@ -56,17 +56,18 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
-from scipy.linalg import LinAlgError, solveh_banded
 
 from . import handmodel as hmod
 from .annotation import FrameAnnotation
-from .blas import single_blas_thread
 from .camera import CameraIntrinsics
-from .crops import DEFAULT_CROP
+from .crops import DEFAULT_CROP, image_to_crop
 from .handmodel import Kinematics as _Kinematics
 from .handmodel import angle_jacobian, angle_violation
+from .lm import Nielsen, NormalEquations, levenberg_marquardt, solve_banded
+from .sampling import bilinear_gradient
 from .skeleton import Skeleton
 
 __all__ = ["RefineResult", "RefineWeights", "refine"]
@@ -81,16 +82,15 @@ class RefineWeights:
     references) with two initializations: the real propagation (``propagate.propagate`` from a
     5 % / 2 % ``forest`` selection, reference poses = ground truth to skip the lift) and perturbed
     ground truth (smooth 5-10 mm offsets correlated in time, larger at fingertips, 2 % outlier
-    frames of 20-40 mm, bone violations); see ``benchmarks/bench_refine.py``. On 300 frames:
-    propagation 5 % 3.92 -> 2.14 mm mean (max 40.9 -> 19.3), 2 % 10.10 -> 8.03 mm, perturbed
-    8.15 -> 4.04 mm (max 59.9 -> 35.1).
+    frames of 20-40 mm, bone violations); chosen by ``benchmarks/bench_refine.py``, figures in
+    ``benchmarks/results/design_measurements.md``.
 
     * ``appearance`` (per mm² per patch sample; 7×7 samples, 2 crop px apart, per joint): 0.02,
       so one joint's patch weighs about 1/mm², like the temporal term. Samples are robust with
       a redescending Welsch loss of scale ``appearance_scale_mm`` = 10 mm (Huber made silhouette
       mismatches pull joints tens of mm away); relative depths are clipped at ±40 mm so background
       is a constant. Only joints visible in the closest reference use it (an occluded joint's
-      patch shows its occluder). 0.05 and 0.01 were no better.
+      patch shows its occluder).
     * ``acceleration`` (per mm² per joint and triple of consecutive frames): 1.0, Huber scale
       15 mm. A constant-velocity prior: it removes the frame-to-frame jitter of the propagation
       without pulling a moving hand towards a standing one. It replaced the velocity term
@@ -101,7 +101,7 @@ class RefineWeights:
     * ``temporal`` (per mm² per joint and consecutive-frame pair, Huber ``temporal_huber_mm``):
       0, the velocity prior, kept for comparison.
     * ``reprojection`` (per px² on the references' annotated 2D): 20; anchors references to a
-      fraction of a pixel with exact annotations (4 was ~0.1 mm worse); lower it (to about
+      fraction of a pixel with exact annotations; lower it (to about
       1/σ² for σ px of annotation noise) for noisy annotators.
     * ``depth_band`` (per mm² outside Eq. 3's band ``[D + offset, D + offset + eps_mm]``): 1.0 with
       a Welsch loss of scale 10 mm: a joint whose projection falls on a far surface (a fingertip
@@ -111,15 +111,14 @@ class RefineWeights:
       ground truth itself exceeds ``Skeleton.joint_angles`` limits at some DIP joints, so more
       is harmful).
     * ``init`` (per mm² to the initialization, Huber 10 mm): 0.03. Without it joints with little
-      data (occluded, fingertips) drift with their neighbours (mean got *worse*, 3.92 -> 4.18 mm
-      on the propagation); 0.1-0.5 kept too much of the propagation error.
+      data (occluded, fingertips) drift with their neighbours; higher weights kept too much of the
+      propagation error.
     """
 
     appearance: float = 0.02
     appearance_scale_mm: float = 10.0
     appearance_clip_mm: float = 40.0
     appearance_visible_only: bool = True
-    appearance_robust: str = "welsch"
     acceleration: float = 1.0
     acceleration_huber_mm: float = 15.0
     temporal: float = 0.0
@@ -182,42 +181,47 @@ def _welsch(r_abs: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * scale**2 * (1.0 - e), e
 
 
-def _bilinear(flat: np.ndarray, size: int, base: np.ndarray, x: np.ndarray, y: np.ndarray):
-    """Sample images stored flat (N·S·S,) at crop px (x, y); ``base`` = frame·S·S (broadcast).
-
-    Returns value, d/dx, d/dy (gradient of the bilinear interpolant) and a foreground flag (all
-    four neighbours inside the crop and strictly inside (-1, 1), i.e. real depth). Outside the
-    crop the value is +1 (background) with zero gradient.
-    """
+def _sample_crops(crops: np.ndarray, frame: np.ndarray, x: np.ndarray, y: np.ndarray, size: int):
+    """Crop values at crop px (x, y) of ``crops[frame]`` with their gradient (float32), and a
+    foreground flag: all four neighbours inside the crop and strictly inside (-1, 1), i.e. real
+    depth. Outside the crop the value is +1 (background) with zero gradient."""
+    s = bilinear_gradient(crops, x, y, frame=frame, dtype=np.float32)
     inside = (x >= 0) & (x <= size - 1) & (y >= 0) & (y <= size - 1)
-    xc = np.clip(x, 0.0, size - 1.000001)
-    yc = np.clip(y, 0.0, size - 1.000001)
-    x0 = xc.astype(np.int64)
-    y0 = yc.astype(np.int64)
-    fx = (xc - x0).astype(np.float32)
-    fy = (yc - y0).astype(np.float32)
-    i00 = base + y0 * size + x0
-    c00 = flat[i00].astype(np.float32)
-    c01 = flat[i00 + 1].astype(np.float32)
-    c10 = flat[i00 + size].astype(np.float32)
-    c11 = flat[i00 + size + 1].astype(np.float32)
-    top = c00 + fx * (c01 - c00)
-    bot = c10 + fx * (c11 - c10)
-    val = top + fy * (bot - top)
-    gx = (1 - fy) * (c01 - c00) + fy * (c11 - c10)
-    gy = (1 - fx) * (c10 - c00) + fx * (c11 - c01)
-    hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11))
-    lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11))
-    fg = inside & (hi < 0.999) & (lo > -0.999)
-    val = np.where(inside, val, np.float32(1.0))
-    gx = np.where(inside, gx, np.float32(0.0))
-    gy = np.where(inside, gy, np.float32(0.0))
+    fg = inside & (s.hi < 0.999) & (s.lo > -0.999)
+    val = np.where(inside, s.value, np.float32(1.0))
+    gx = np.where(inside, s.dx, np.float32(0.0))
+    gy = np.where(inside, s.dy, np.float32(0.0))
     return val, gx, gy, fg
 
 
 # ------------------------------------------------------------------------------------------------
 # the problem
 # ------------------------------------------------------------------------------------------------
+@dataclass
+class _Evaluation:
+    """The energy at poses ``(root (N, 6), u (N, P-6))`` and its X-space normal-equation pieces.
+
+    ``terms``: energy per term; ``x``: joints (N, J, 3) mm; ``hd`` (N, J, 3, 3) / ``gx`` (N, J, 3):
+    per-joint Hessian blocks and gradient of the per-frame terms; ``wt`` (N-1, J) / ``wa``
+    (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations, dθ-Jacobian)`` of the frames
+    outside their angle limits (None if none); ``mod``: θ-space hand-model blocks (None if off)."""
+
+    root: np.ndarray
+    u: np.ndarray
+    terms: dict[str, float]
+    x: np.ndarray
+    hd: np.ndarray
+    gx: np.ndarray
+    wt: np.ndarray | None
+    wa: np.ndarray | None
+    ang: tuple | None
+    mod: tuple | None
+
+    @property
+    def cost(self) -> float:
+        return sum(self.terms.values())
+
+
 class _Problem:
     def __init__(
         self,
@@ -245,7 +249,7 @@ class _Problem:
         self.n, self.j = n, j
         self.chunk = chunk
         self.size = int(crops.shape[-1])
-        self.flat = np.asarray(crops).reshape(-1)  # plain ndarray view (a memmap stays on disk)
+        self.crops = np.asarray(crops)  # (N, S, S); a memmap stays on disk
         self.boxes = np.asarray(boxes, dtype=np.float64)
         self.zc = np.asarray(centres_mm, dtype=np.float64)[:, 2]
         self.half = 0.5 * cube_mm
@@ -294,15 +298,11 @@ class _Problem:
     # -------------------------------------------------------------------- geometry
     def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
         """joints (n,J,3) -> crop px (n,J,2) and d(crop px)/dX (n,J,2,3)."""
-        b = self.boxes[frames]
+        b = self.boxes[frames][:, None]
         uv = self.cam.project(x)
         pj = self.cam.projection_jacobian(x)
-        sx = b[:, None, 2]
-        sy = b[:, None, 3]
-        cx = (uv[..., 0] - b[:, None, 0] + 0.5) / sx - 0.5
-        cy = (uv[..., 1] - b[:, None, 1] + 0.5) / sy - 0.5
-        jac = pj / np.stack([sx, sy], axis=-1)[..., None]
-        return np.stack([cx, cy], axis=-1), jac, uv, pj
+        jac = pj / b[..., 2:4, None]
+        return image_to_crop(uv, b), jac, uv, pj
 
     def _templates(self):
         """Reference patches (K,J,G) in mm relative to the reference joint's depth."""
@@ -314,19 +314,11 @@ class _Problem:
             return out, valid
         x = self.init[self.refs]
         xy, _, uv, _ = self._crop_xy(x, self.refs)
-        b = self.boxes[self.refs]
-        ann_xy = np.stack(
-            [
-                (self.ref_uv[..., 0] - b[:, None, 0] + 0.5) / b[:, None, 2] - 0.5,
-                (self.ref_uv[..., 1] - b[:, None, 1] + 0.5) / b[:, None, 3] - 0.5,
-            ],
-            axis=-1,
-        )
+        ann_xy = image_to_crop(self.ref_uv, self.boxes[self.refs][:, None])
         xy = np.where(self.ref_has[..., None], ann_xy, xy)
         px = xy[..., None, 0] + self.grid[:, 0]
         py = xy[..., None, 1] + self.grid[:, 1]
-        base = (self.refs * self.size * self.size)[:, None, None]
-        val, _, _, _ = _bilinear(self.flat, self.size, base, px, py)
+        val, _, _, _ = _sample_crops(self.crops, self.refs[:, None, None], px, py, self.size)
         rel = self.zc[self.refs][:, None, None] + self.half * val - x[..., 2:3]
         clip = self.w.appearance_clip_mm
         out[:] = np.clip(rel, -clip, clip)
@@ -334,9 +326,8 @@ class _Problem:
         return out, valid
 
     # -------------------------------------------------------------------- evaluation
-    def evaluate(self, root, u, want_jac: bool):
-        """Energy terms at (root, u); with want_jac also X-space normal-equation pieces."""
-        w = self.w
+    def evaluate(self, root, u) -> _Evaluation:
+        """Energy terms at (root, u) and the X-space normal-equation pieces."""
         n, j = self.n, self.j
         x = self.kin.joints(root, u)
         terms = dict.fromkeys(
@@ -351,141 +342,157 @@ class _Problem:
             ),
             0.0,
         )
-        if want_jac:
-            hd = np.zeros((n, j, 3, 3))
-            gx = np.zeros((n, j, 3))
-        clip = w.appearance_clip_mm
-        # ---------------- per-frame terms, chunked over frames (memory ~ chunk·J·G)
+        hd = np.zeros((n, j, 3, 3))
+        gx = np.zeros((n, j, 3))
+        # per-frame terms, chunked over frames (memory ~ chunk·J·G)
         for a in range(0, n, self.chunk):
             fr = np.arange(a, min(n, a + self.chunk))
-            xc = x[fr]
-            xy, dxy, uv, pj = self._crop_xy(xc, fr)
-            zc = self.zc[fr][:, None]
-            base = (fr * self.size * self.size)[:, None]
-            # depth band (observed depth D from the crop at the joint's projection)
-            val, _, _, fg = _bilinear(self.flat, self.size, base, xy[..., 0], xy[..., 1])
-            d_obs = zc + self.half * val
-            lo = d_obs + self.offsets
-            z = xc[..., 2]
-            below = np.where(fg, np.maximum(lo - z, 0.0), 0.0)
-            above = np.where(fg & self.visible[fr], np.maximum(z - (lo + w.eps_mm), 0.0), 0.0)
-            cost_below, w_below = _welsch(below, w.depth_band_scale_mm)
-            cost_above, w_above = _welsch(above, w.depth_band_scale_mm)
-            terms["depth_band"] += w.depth_band * float(np.sum(cost_below) + np.sum(cost_above))
-            if want_jac:
-                # D treated as constant: residual depends on Z only
-                hz = w.depth_band * (w_below * (below > 0) + w_above * (above > 0))
-                gz = w.depth_band * (-w_below * below + w_above * above)
-                hd[fr, :, 2, 2] += hz
-                gx[fr, :, 2] += gz
-            # appearance
-            tpos = self.tmpl_of[fr]
-            has_t = (tpos >= 0)[:, None] & self.tmpl_valid[np.maximum(tpos, 0)]
-            if w.appearance_visible_only:
-                has_t &= self.visible[fr]
-            if w.appearance > 0 and np.any(has_t):
-                px = xy[..., None, 0] + self.grid[:, 0]
-                py = xy[..., None, 1] + self.grid[:, 1]
-                v, vx, vy, _ = _bilinear(self.flat, self.size, base[..., None], px, py)
-                rel = (zc - z).astype(np.float32)[..., None] + np.float32(self.half) * v
-                inside = np.abs(rel) < clip
-                rel = np.clip(rel, -clip, clip)
-                tm = self.templates[np.maximum(tpos, 0)]
-                r = np.where(has_t[..., None], rel - tm, 0.0)
-                if w.appearance_robust == "welsch":
-                    cost, wr = _welsch(np.abs(r), w.appearance_scale_mm)
-                else:
-                    cost, wr = _huber(np.abs(r), w.appearance_scale_mm)
-                terms["appearance"] += w.appearance * float(np.sum(cost, dtype=np.float64))
-                if want_jac:
-                    # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
-                    gxy = np.float32(self.half) * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
-                    ja = np.matmul(gxy, dxy.astype(np.float32))  # (n,J,G,3)
-                    ja[..., 2] -= 1.0
-                    ja *= inside[..., None]
-                    ww = (w.appearance * wr * has_t[..., None]).astype(np.float32)
-                    jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
-                    hd[fr] += np.matmul(jw, ja)
-                    gx[fr] += np.matmul(jw, r[..., None])[..., 0]
-        # ---------------- hand model fitted to each frame's own depth (θ-space blocks)
-        mod = None
-        if self.model is not None and w.model > 0:
-            terms["model"] = 0.0
-            if want_jac:
-                p = self.kin.num_params
-                mod = (np.zeros((n, p, p)), np.zeros((n, p)))
-            for a in range(0, n, self.model_chunk):
-                fr = np.arange(a, min(n, a + self.model_chunk))
-                e, _, _, extra = hmod.frame_energy(
-                    self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
-                    self.fit_w, None, want_jac,
-                )  # fmt: skip
-                terms["model"] += w.model * float(np.sum(e))
-                if want_jac:
-                    mod[0][fr] = w.model * extra[0]
-                    mod[1][fr] = w.model * extra[1]
-        # ---------------- reprojection on reference frames
-        if len(self.refs):
-            xr = x[self.refs]
-            uv = self.cam.project(xr)
-            res = np.where(self.ref_has[..., None], uv - self.ref_uv, 0.0)
-            terms["reprojection"] = w.reprojection * 0.5 * float(np.sum(res**2))
-            if want_jac:
-                pj = self.cam.projection_jacobian(xr) * self.ref_has[..., None, None]
-                hd[self.refs] += w.reprojection * np.einsum("nkac,nkad->nkcd", pj, pj)
-                gx[self.refs] += w.reprojection * np.einsum("nkac,nka->nkc", pj, res)
-        # ---------------- optional prior to the initialization
-        if w.init > 0:
-            dvec = x - self.init
-            dn = np.linalg.norm(dvec, axis=-1)
-            cost, wi = _huber(dn, w.init_huber_mm)
-            terms["init"] = w.init * float(np.sum(cost))
-            if want_jac:
-                hd += (w.init * wi)[..., None, None] * np.eye(3)
-                gx += (w.init * wi)[..., None] * dvec
-        # ---------------- temporal smoothness (Huber on the per-joint displacement)
-        wt = None
-        if n > 1 and w.temporal > 0:
-            dvec = x[1:] - x[:-1]
-            dn = np.linalg.norm(dvec, axis=-1)
-            cost, wt = _huber(dn, w.temporal_huber_mm)
-            scale = (self.pair_ok * self.pair_scale)[:, None]
-            wt = w.temporal * wt * scale
-            terms["temporal"] = w.temporal * float(np.sum(cost * scale))
-            if want_jac:
-                eye = np.eye(3)
-                hd[:-1] += wt[..., None, None] * eye
-                hd[1:] += wt[..., None, None] * eye
-                gx[:-1] -= wt[..., None] * dvec
-                gx[1:] += wt[..., None] * dvec
-        # ---------------- constant-velocity prior (Huber on the per-joint second difference)
-        wa = None
-        if n > 2 and w.acceleration > 0:
-            acc = x[2:] - 2.0 * x[1:-1] + x[:-2]
-            cost, wa = _huber(np.linalg.norm(acc, axis=-1), w.acceleration_huber_mm)
-            scale = (self.pair_ok[:-1] & self.pair_ok[1:]).astype(np.float64)[:, None]
-            wa = w.acceleration * wa * scale
-            terms["acceleration"] = w.acceleration * float(np.sum(cost * scale))
-            if want_jac:
-                eye = np.eye(3)
-                hd[:-2] += wa[..., None, None] * eye
-                hd[1:-1] += 4.0 * wa[..., None, None] * eye
-                hd[2:] += wa[..., None, None] * eye
-                gx[:-2] += wa[..., None] * acc
-                gx[1:-1] -= 2.0 * wa[..., None] * acc
-                gx[2:] += wa[..., None] * acc
-        # ---------------- joint-angle limits
-        ang = None
-        if w.angle > 0 and self.skel.flexion_limits_deg is not None:
-            viol = self._angle_violation(x)
-            terms["angle"] = w.angle * 0.5 * float(np.sum(viol**2))
-            if want_jac:
-                active = np.flatnonzero(np.any(viol > 0, axis=1))
-                if len(active):
-                    ang = (active, *self._angle_jacobian(root[active], u[active]))
-        if not want_jac:
-            return terms, x
-        return terms, x, hd, gx, (wt, wa), ang, mod
+            xy, dxy, _, _ = self._crop_xy(x[fr], fr)
+            terms["depth_band"] += self._depth_band(x[fr], fr, xy, hd, gx)
+            terms["appearance"] += self._appearance(x[fr], fr, xy, dxy, hd, gx)
+        mod = self._model_blocks(root, u, terms)
+        terms["reprojection"] = self._reprojection(x, hd, gx)
+        terms["init"] = self._init_prior(x, hd, gx)
+        terms["temporal"], wt = self._temporal(x, hd, gx)
+        terms["acceleration"], wa = self._acceleration(x, hd, gx)
+        terms["angle"], ang = self._angles(x, root, u)
+        return _Evaluation(root, u, terms, x, hd, gx, wt, wa, ang, mod)
+
+    def _depth_band(self, xc, fr, xy, hd, gx) -> float:
+        """Depth band of frames ``fr`` (observed depth D from the crop at the joint's projection,
+        treated as constant: the residual depends on Z only); adds to ``hd``/``gx``."""
+        w = self.w
+        val, _, _, fg = _sample_crops(self.crops, fr[:, None], xy[..., 0], xy[..., 1], self.size)
+        lo = self.zc[fr][:, None] + self.half * val + self.offsets
+        z = xc[..., 2]
+        below = np.where(fg, np.maximum(lo - z, 0.0), 0.0)
+        above = np.where(fg & self.visible[fr], np.maximum(z - (lo + w.eps_mm), 0.0), 0.0)
+        cost_below, w_below = _welsch(below, w.depth_band_scale_mm)
+        cost_above, w_above = _welsch(above, w.depth_band_scale_mm)
+        hd[fr, :, 2, 2] += w.depth_band * (w_below * (below > 0) + w_above * (above > 0))
+        gx[fr, :, 2] += w.depth_band * (-w_below * below + w_above * above)
+        return w.depth_band * float(np.sum(cost_below) + np.sum(cost_above))
+
+    def _appearance(self, xc, fr, xy, dxy, hd, gx) -> float:
+        """Appearance of frames ``fr`` against their reference's template patches."""
+        w = self.w
+        clip = w.appearance_clip_mm
+        tpos = self.tmpl_of[fr]
+        has_t = (tpos >= 0)[:, None] & self.tmpl_valid[np.maximum(tpos, 0)]
+        if w.appearance_visible_only:
+            has_t &= self.visible[fr]
+        if not (w.appearance > 0 and np.any(has_t)):
+            return 0.0
+        px = xy[..., None, 0] + self.grid[:, 0]
+        py = xy[..., None, 1] + self.grid[:, 1]
+        v, vx, vy, _ = _sample_crops(self.crops, fr[:, None, None], px, py, self.size)
+        zc = self.zc[fr][:, None]
+        rel = (zc - xc[..., 2]).astype(np.float32)[..., None] + np.float32(self.half) * v
+        inside = np.abs(rel) < clip
+        rel = np.clip(rel, -clip, clip)
+        tm = self.templates[np.maximum(tpos, 0)]
+        r = np.where(has_t[..., None], rel - tm, 0.0)
+        cost, wr = _welsch(np.abs(r), w.appearance_scale_mm)
+        # dr/dX = half·∇c·d(xy)/dX − e_z, zero where the relative depth is clipped
+        gxy = np.float32(self.half) * np.stack([vx, vy], axis=-1)  # (n,J,G,2)
+        ja = np.matmul(gxy, dxy.astype(np.float32))  # (n,J,G,3)
+        ja[..., 2] -= 1.0
+        ja *= inside[..., None]
+        ww = (w.appearance * wr * has_t[..., None]).astype(np.float32)
+        jw = (ja * ww[..., None]).swapaxes(-1, -2)  # (n,J,3,G)
+        hd[fr] += np.matmul(jw, ja)
+        gx[fr] += np.matmul(jw, r[..., None])[..., 0]
+        return w.appearance * float(np.sum(cost, dtype=np.float64))
+
+    def _model_blocks(self, root, u, terms: dict[str, float]):
+        """Hand model fitted to each frame's own depth: θ-space blocks ``((N,P,P), (N,P))`` (None
+        when off); sets ``terms["model"]``."""
+        w = self.w
+        if self.model is None or w.model <= 0:
+            return None
+        n = self.n
+        terms["model"] = 0.0
+        p = self.kin.num_params
+        mod = (np.zeros((n, p, p)), np.zeros((n, p)))
+        for a in range(0, n, self.model_chunk):
+            fr = np.arange(a, min(n, a + self.model_chunk))
+            e, _, _, extra = hmod.frame_energy(
+                self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
+                self.fit_w, None, True,
+            )  # fmt: skip
+            terms["model"] += w.model * float(np.sum(e))
+            mod[0][fr] = w.model * extra[0]
+            mod[1][fr] = w.model * extra[1]
+        return mod
+
+    def _reprojection(self, x, hd, gx) -> float:
+        """Reprojection on the reference frames' annotated 2D."""
+        if not len(self.refs):
+            return 0.0
+        w = self.w
+        xr = x[self.refs]
+        res = np.where(self.ref_has[..., None], self.cam.project(xr) - self.ref_uv, 0.0)
+        pj = self.cam.projection_jacobian(xr) * self.ref_has[..., None, None]
+        hd[self.refs] += w.reprojection * np.einsum("nkac,nkad->nkcd", pj, pj)
+        gx[self.refs] += w.reprojection * np.einsum("nkac,nka->nkc", pj, res)
+        return w.reprojection * 0.5 * float(np.sum(res**2))
+
+    def _init_prior(self, x, hd, gx) -> float:
+        """Optional Huber prior to the initialization."""
+        w = self.w
+        if w.init <= 0:
+            return 0.0
+        dvec = x - self.init
+        cost, wi = _huber(np.linalg.norm(dvec, axis=-1), w.init_huber_mm)
+        hd += (w.init * wi)[..., None, None] * np.eye(3)
+        gx += (w.init * wi)[..., None] * dvec
+        return w.init * float(np.sum(cost))
+
+    def _temporal(self, x, hd, gx) -> tuple[float, np.ndarray | None]:
+        """Temporal smoothness (Huber on the per-joint displacement); its IRLS weights (N-1, J)."""
+        w = self.w
+        if self.n <= 1 or w.temporal <= 0:
+            return 0.0, None
+        dvec = x[1:] - x[:-1]
+        cost, wt = _huber(np.linalg.norm(dvec, axis=-1), w.temporal_huber_mm)
+        scale = (self.pair_ok * self.pair_scale)[:, None]
+        wt = w.temporal * wt * scale
+        eye = np.eye(3)
+        hd[:-1] += wt[..., None, None] * eye
+        hd[1:] += wt[..., None, None] * eye
+        gx[:-1] -= wt[..., None] * dvec
+        gx[1:] += wt[..., None] * dvec
+        return w.temporal * float(np.sum(cost * scale)), wt
+
+    def _acceleration(self, x, hd, gx) -> tuple[float, np.ndarray | None]:
+        """Constant-velocity prior (Huber on the per-joint second difference, not across a break);
+        its IRLS weights (N-2, J)."""
+        w = self.w
+        if self.n <= 2 or w.acceleration <= 0:
+            return 0.0, None
+        acc = x[2:] - 2.0 * x[1:-1] + x[:-2]
+        cost, wa = _huber(np.linalg.norm(acc, axis=-1), w.acceleration_huber_mm)
+        scale = (self.pair_ok[:-1] & self.pair_ok[1:]).astype(np.float64)[:, None]
+        wa = w.acceleration * wa * scale
+        eye = np.eye(3)
+        hd[:-2] += wa[..., None, None] * eye
+        hd[1:-1] += 4.0 * wa[..., None, None] * eye
+        hd[2:] += wa[..., None, None] * eye
+        gx[:-2] += wa[..., None] * acc
+        gx[1:-1] -= 2.0 * wa[..., None] * acc
+        gx[2:] += wa[..., None] * acc
+        return w.acceleration * float(np.sum(cost * scale)), wa
+
+    def _angles(self, x, root, u) -> tuple[float, tuple | None]:
+        """Joint-angle limits: energy and ``(frames, violations, dθ-Jacobian)`` of the frames
+        outside them (None if none)."""
+        w = self.w
+        if w.angle <= 0 or self.skel.flexion_limits_deg is None:
+            return 0.0, None
+        viol = self._angle_violation(x)
+        active = np.flatnonzero(np.any(viol > 0, axis=1))
+        ang = (active, *self._angle_jacobian(root[active], u[active])) if len(active) else None
+        return w.angle * 0.5 * float(np.sum(viol**2)), ang
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
@@ -499,11 +506,18 @@ class _Problem:
 # ------------------------------------------------------------------------------------------------
 # block-tridiagonal system in θ-space
 # ------------------------------------------------------------------------------------------------
-def _assemble(problem: _Problem, m: np.ndarray, hd, gx, weights, ang, mod, fixed: np.ndarray):
-    """θ-space diagonal blocks (N,P,P), first and second super-diagonal blocks (N-1,P,P),
-    (N-2,P,P) and gradient (N,P). ``weights``: the temporal terms' per-joint IRLS weights
-    (pairs (N-1,J), triples (N-2,J)), None where a term is off."""
-    wt, w_acc = weights
+def _solve_fixed(system: NormalEquations, lam: float, frozen: np.ndarray) -> np.ndarray:
+    """Banded damped step with the parameters of fixed frames (``frozen`` (N·P,) bool) at 0."""
+    step = solve_banded(system, lam)
+    step[frozen] = 0.0
+    return step
+
+
+def _assemble(problem: _Problem, m: np.ndarray, ev: _Evaluation, fixed: np.ndarray):
+    """θ-space diagonal blocks (N,P,P), first and second super-diagonal blocks (N-1,P,P) and
+    (N-2,P,P) (None without the acceleration term) and gradient (N,P) from the X-space pieces of
+    ``ev`` and the kinematic Jacobian ``m`` (N, 3J, P)."""
+    hd, gx, wt, ang, mod = ev.hd, ev.gx, ev.wt, ev.ang, ev.mod
     n, j = problem.n, problem.j
     p = m.shape[-1]
     m4 = m.reshape(n, j, 3, p)
@@ -527,14 +541,14 @@ def _assemble(problem: _Problem, m: np.ndarray, hd, gx, weights, ang, mod, fixed
     else:
         off = np.zeros((0, p, p))
     off2 = None
-    if w_acc is not None:
+    if ev.wa is not None:
         # residual X[i-1] - 2X[i] + X[i+1]: pairs (k, k+1) get -2w from the triples centred at k
         # and at k+1, frames two apart get +w
         c = np.zeros((n - 1, j))
-        c[1:] -= 2.0 * w_acc
-        c[:-1] -= 2.0 * w_acc
+        c[1:] -= 2.0 * ev.wa
+        c[:-1] -= 2.0 * ev.wa
         off += np.matmul((m[:-1] * np.repeat(c, 3, axis=1)[..., None]).transpose(0, 2, 1), m[1:])
-        w2 = np.repeat(w_acc, 3, axis=1)[..., None]
+        w2 = np.repeat(ev.wa, 3, axis=1)[..., None]
         off2 = np.matmul((m[:-2] * w2).transpose(0, 2, 1), m[2:])
     if np.any(fixed):
         diag[fixed] = np.eye(p)
@@ -620,7 +634,6 @@ def refine(
     crops: np.ndarray,
     boxes: np.ndarray,
     centres_mm: np.ndarray,
-    depth_of: Callable[[int], np.ndarray] | None,
     camera: CameraIntrinsics,
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray,
@@ -649,8 +662,6 @@ def refine(
         ``(d − z_c)/(cube_mm/2)``, background +1; observed depths are read from them.
     boxes : (N, 4) crop boxes ``[u_left, v_top, sx, sy]`` (``crops.crop_boxes``).
     centres_mm : (N, 3) crop centres in mm.
-    depth_of : callable(frame) -> (H, W) mm
-        Accepted for API symmetry; unused because the crops already hold the depth inside the cube.
     camera, skeleton : intrinsics and layout.
     bone_lengths_mm : (B,) fixed bone lengths (hard constraints).
     reference_frames : (K,) reference frame indices; reference_annotations their 2D annotations.
@@ -720,65 +731,26 @@ def refine(
     p = kin.num_params
     if hand_model is not False and hand_model is not None:
         _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
-    terms, x, hd, gx, wt, ang, mod = problem.evaluate(root, u, want_jac=True)
-    energy = sum(terms.values())
-    history = [energy]
-    lam = 1e-4
-    converged = False
-    it = 0
-    nu = 2.0
-    log = []
-    for it in range(1, iterations + 1):
-        m = kin.jacobian(u)
-        diag, off, off2, grad = _assemble(problem, m, hd, gx, wt, ang, mod, fixed)
-        dscale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
-        ab0 = _banded(diag, off, off2)
-        g = grad.reshape(-1)
-        accepted = False
-        tries = 0
-        while tries < 12:
-            tries += 1
-            ab = ab0.copy()
-            ab[-1] += lam * dscale
-            try:
-                with single_blas_thread():
-                    step = solveh_banded(ab, -g, lower=False, check_finite=False)
-            except (LinAlgError, ValueError):
-                lam *= nu
-                nu *= 2.0
-                continue
-            step[np.repeat(fixed, p)] = 0.0
-            predicted = 0.5 * float(step @ (lam * dscale * step - g))
-            root_n, u_n = kin.retract(root, u, step.reshape(n, p))
-            trial = problem.evaluate(root_n, u_n, want_jac=True)
-            e_new = sum(trial[0].values())
-            if np.isfinite(e_new) and e_new < energy:
-                accepted = True
-                break
-            lam *= nu
-            nu *= 2.0
-        if not accepted:
-            history.append(energy)
-            log.append((it, lam, tries, 0.0))
-            if progress is not None:
-                progress(it, energy)
-            converged = True
-            break
-        decrease = (energy - e_new) / max(energy, 1e-12)
-        gain = (energy - e_new) / max(predicted, 1e-300)
-        # Nielsen's damping update on the gain ratio
-        lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3), 1e-9)
-        nu = 2.0
-        log.append((it, lam, tries, gain))
-        root, u = root_n, u_n
-        terms, x, hd, gx, wt, ang, mod = trial
-        energy = e_new
-        history.append(energy)
-        if progress is not None:
-            progress(it, energy)
-        if decrease < tol:
-            converged = True
-            break
+
+    def normal_equations(_x, ev: _Evaluation) -> NormalEquations:
+        diag, off, off2, grad = _assemble(problem, kin.jacobian(ev.u), ev, fixed)
+        scale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
+        return NormalEquations(_banded(diag, off, off2), grad.reshape(-1), scale)
+
+    fit = levenberg_marquardt(
+        lambda pose: problem.evaluate(*pose),
+        (root, u),
+        normal_equations=normal_equations,
+        solve=partial(_solve_fixed, frozen=np.repeat(fixed, p)),
+        damping=Nielsen(lam=1e-4, nu=2.0, floor=1e-9),
+        max_iter=iterations,
+        max_tries=12,
+        rtol=tol,
+        retract=lambda pose, step: kin.retract(*pose, step.reshape(n, p)),
+        progress=progress,
+    )
+    root, u = fit.x
+    terms = fit.evaluation.terms
     joints = kin.joints(root, u)
     viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
     joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
@@ -791,11 +763,11 @@ def refine(
         joints[kept] = init[kept]
     return RefineResult(
         joints_mm=joints,
-        energy_history=history,
+        energy_history=fit.history,
         bone_violation_max_mm=viol,
         terms=terms,
-        iterations=it,
-        converged=converged,
+        iterations=fit.iterations,
+        converged=fit.converged,
         time_s=time.perf_counter() - t0,
-        info={"lambda": lam, "log": log, "kept_initialization": kept.tolist()},
+        info={"lambda": fit.lam, "log": fit.log, "kept_initialization": kept.tolist()},
     )

@@ -36,6 +36,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .sampling import VISIBILITY_MARGIN_MM, visible_by_depth
 from .session import (
     Batch,
     Command,
@@ -323,29 +324,19 @@ def seed_annotation(
     camera: CameraIntrinsics,
     depth_mm: np.ndarray | None = None,
     surface_offsets_mm: np.ndarray | None = None,
-    margin_mm: float = 10.0,
+    margin_mm: float = VISIBILITY_MARGIN_MM,
 ) -> FrameAnnotation:
     """A reference annotation from a shown skeleton ``(J, 3)`` mm: every joint placed in 3D (and its
-    projection in 2D), visibility by a depth test against ``depth_mm`` (H, W) when given."""
+    projection in 2D), visibility by :func:`sampling.visible_by_depth` against ``depth_mm`` (H, W)
+    when given."""
     x = np.asarray(joints_mm, dtype=np.float64)
     nj = len(x)
     ann = FrameAnnotation.empty(nj)
     ann.xyz_mm[:] = x
     ann.uv_px[:] = camera.project(x)
     if depth_mm is not None:
-        uv = np.rint(ann.uv_px).astype(np.int64)
-        inside = (
-            (uv[:, 0] >= 0)
-            & (uv[:, 0] < camera.width)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < camera.height)
-        )
-        d = np.zeros(nj)
-        d[inside] = depth_mm[uv[inside, 1], uv[inside, 0]]
-        off = (
-            0.0 if surface_offsets_mm is None else np.asarray(surface_offsets_mm, dtype=np.float64)
-        )
-        ann.visible[:] = inside & (d > 0) & (d >= x[:, 2] - off - margin_mm)
+        off = 0.0 if surface_offsets_mm is None else surface_offsets_mm
+        ann.visible[:] = visible_by_depth(x, depth_mm, camera, off, margin_mm)
     return ann
 
 

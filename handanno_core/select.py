@@ -39,8 +39,8 @@ Strategies
     Edge weight = cosine distance (times ``temporal_weight`` for temporal edges) + ``hop_cost``.
     Defaults (``graph_k=5, temporal_weight=0.1, hop_cost=0.002``) come from a sweep on the
     synthetic 3040-frame benchmark (benchmarks/bench_select.py): consecutive video frames are the
-    best propagation sources (parent->child pose change 1.6 mm vs 3-6 mm for appearance
-    neighbours), so temporal edges are made cheap, while kNN edges still let a revisited pose reach
+    best propagation sources (smaller parent->child pose change than appearance neighbours), so
+    temporal edges are made cheap, while kNN edges still let a revisited pose reach
     a reference recorded elsewhere in the video; the hop cost keeps trees shallow.
 
 Budget
@@ -58,11 +58,12 @@ blocked scan of the unvisited frames as fallback (O(N k) plus occasional O(N D) 
 from __future__ import annotations
 
 import heapq
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from . import forest
 
 STRATEGIES = ("chain", "chain-step", "coverage", "uniform", "forest")
 # chosen on the benchmark suite's tune part (README, "Default selection strategy"): uniform beat the
@@ -115,45 +116,15 @@ class Selection:
 
     def validate(self) -> None:
         """Raise ValueError unless parents form a forest rooted exactly at the references."""
-        n = len(self.parent)
-        refs = self.reference_frames
-        if refs.size == 0:
-            raise ValueError("no reference frames")
-        if refs.min() < 0 or refs.max() >= n or np.unique(refs).size != refs.size:
-            raise ValueError("reference frames out of range or repeated")
-        is_ref = np.zeros(n, bool)
-        is_ref[refs] = True
-        if not np.array_equal(self.parent < 0, is_ref) or np.any(self.parent < -1):
-            raise ValueError("parent must be -1 exactly at the references")
-        if np.any(self.parent >= n):
-            raise ValueError("parent index out of range")
-        self.roots()  # raises on cycles
+        forest.validate(self.parent, self.reference_frames)
 
     def roots(self) -> np.ndarray:
-        """(N,) int64: the reference at the root of each frame's tree (pointer jumping)."""
-        n = len(self.parent)
-        up = np.where(self.parent < 0, np.arange(n), self.parent)
-        for _ in range(max(1, math.ceil(math.log2(max(n, 2)))) + 2):
-            nxt = up[up]
-            if np.array_equal(nxt, up):
-                break
-            up = nxt
-        if np.any(self.parent[up] >= 0):
-            raise ValueError("parent forest has a cycle (some frame never reaches a reference)")
-        return up
+        """(N,) int64: the reference at the root of each frame's tree (:func:`forest.roots`)."""
+        return forest.roots(self.parent)
 
     def depths(self) -> np.ndarray:
         """(N,) int64: number of propagation steps from each frame's root reference (0 at refs)."""
-        n = len(self.parent)
-        up = np.where(self.parent < 0, np.arange(n), self.parent)
-        depth = (self.parent >= 0).astype(np.int64)
-        for _ in range(max(1, math.ceil(math.log2(max(n, 2)))) + 2):
-            if np.all(self.parent[up] < 0):
-                break
-            depth = depth + np.where(self.parent[up] >= 0, depth[up], 0)
-            up = np.where(self.parent[up] >= 0, up[up], up)
-        self.roots()
-        return depth
+        return forest.depths(self.parent)
 
 
 # --------------------------------------------------------------------------------------------

@@ -112,64 +112,25 @@ def catalogue(seed: int = 0, real_motion: Path | None = None) -> list[SuiteSeque
     when ``real_motion`` (default :data:`handanno_core.real_motion.DEFAULT_REAL_MOTION`) exists."""
     root = Path(real_motion) if real_motion is not None else rm.DEFAULT_REAL_MOTION
     s = 1000 * seed
-    rows = [
-        # ------------------------------------------------------------------ tune
+    v, kin, sr = "varied", "kinect", "sr300"
+    # fmt: off
+    rows = [  # name, part, motion, frames, seed, then how the frames are rendered
         SuiteSequence("tune-smooth", "tune", "smooth", 600, s + 101),
-        SuiteSequence("tune-shape-fast", "tune", "fast", 400, s + 102, hand="varied"),
-        SuiteSequence(
-            "tune-kinect640-wrist",
-            "tune",
-            "smooth",
-            500,
-            s + 103,
-            hand="varied",
-            sensor="kinect",
-            camera="kinect640",
-            depth_mm=650.0,
-            arm="wrist",
-            sleeve=True,
-        ),
-        SuiteSequence(
-            "tune-sr300-egocentric",
-            "tune",
-            "smooth",
-            500,
-            s + 104,
-            hand="varied",
-            sensor="sr300",
-            camera="msra",
-            arm="egocentric",
-        ),
-        # ------------------------------------------------------------------ report
+        SuiteSequence("tune-shape-fast", "tune", "fast", 400, s + 102, hand=v),
+        SuiteSequence("tune-kinect640-wrist", "tune", "smooth", 500, s + 103, hand=v, sensor=kin,
+                      camera="kinect640", depth_mm=650.0, arm="wrist", sleeve=True),
+        SuiteSequence("tune-sr300-egocentric", "tune", "smooth", 500, s + 104, hand=v, sensor=sr,
+                      camera="msra", arm="egocentric"),
         SuiteSequence("report-smooth", "report", "smooth", 600, s + 201),
-        SuiteSequence("report-shape", "report", "smooth", 600, s + 202, hand="varied"),
-        SuiteSequence("report-shape-fast", "report", "fast", 400, s + 203, hand="varied"),
-        SuiteSequence(
-            "report-sr300-topdown",
-            "report",
-            "smooth",
-            500,
-            s + 204,
-            hand="varied",
-            sensor="sr300",
-            camera="sr300",
-            arm="top-down",
-            sleeve=True,
-        ),
-        SuiteSequence(
-            "report-kinect320-egocentric",
-            "report",
-            "smooth",
-            500,
-            s + 205,
-            hand="varied",
-            sensor="kinect",
-            camera="kinect320",
-            depth_mm=650.0,
-            arm="egocentric",
-            sleeve=True,
-        ),
+        SuiteSequence("report-shape", "report", "smooth", 600, s + 202, hand=v),
+        SuiteSequence("report-shape-fast", "report", "fast", 400, s + 203, hand=v),
+        SuiteSequence("report-sr300-topdown", "report", "smooth", 500, s + 204, hand=v, sensor=sr,
+                      camera="sr300", arm="top-down", sleeve=True),
+        SuiteSequence("report-kinect320-egocentric", "report", "smooth", 500, s + 205, hand=v,
+                      sensor=kin, camera="kinect320", depth_mm=650.0, arm="egocentric",
+                      sleeve=True),
     ]
+    # fmt: on
     if root.is_dir():
         for part, subject in (("tune", "Subject_1"), ("report", "Subject_2")):
             for i, rel in enumerate(_fpha_pick(root, subject, 2, seed)):

@@ -33,6 +33,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import MSRA_CAMERA, CameraIntrinsics
+from .sampling import visible_by_depth
 from .skeleton import MSRA21, Skeleton
 
 # ---------------------------------------------------------------------------- parameters
@@ -1122,9 +1123,9 @@ def simulate_annotation(
 
     * ``uv_px``: projection of the ground-truth joints ``(J, 3)`` plus Gaussian noise of std
       ``noise_px`` per coordinate;
-    * ``visible``: the observed depth ``D`` (minimum valid depth in the 3x3 window at the rounded
-      projected pixel) satisfies ``D >= z - surface_offset - 10 mm`` (nothing much closer in front of
-      the joint); no valid depth there (or off the image) -> False;
+    * ``visible``: :func:`sampling.visible_by_depth` of the ground truth (the closest valid depth
+      ``D`` in the 3x3 pixels at the rounded projection satisfies ``D >= z - surface_offset - 10 mm``;
+      no valid depth there, or off the image -> False);
     * ``depth_order``: +1 if ``z > z_parent + 10 mm``, -1 if ``z < z_parent - 10 mm``, else 0 (root 0);
     * ``xyz_mm``: all NaN.
     """
@@ -1138,17 +1139,7 @@ def simulate_annotation(
     if noise_px > 0:
         rng = rng if rng is not None else np.random.default_rng()
         noisy = uv + rng.normal(0.0, noise_px, uv.shape)
-    h, w = depth.shape
-    pad = np.pad(np.where(depth > 0, depth, np.inf).astype(np.float64), 1, constant_values=np.inf)
-    col = np.rint(uv[:, 0])
-    row = np.rint(uv[:, 1])
-    inside = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    ci = np.where(inside, col, 0).astype(np.int64)
-    ri = np.where(inside, row, 0).astype(np.int64)
-    window = np.stack([pad[ri + dy, ci + dx] for dy in range(3) for dx in range(3)], axis=1)
-    observed = window.min(axis=1)
-    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
-    visible = inside & np.isfinite(observed) & (observed >= gt[:, 2] - offsets - 10.0)
+    visible = visible_by_depth(gt, depth, camera, skeleton.surface_offsets_mm)
     parents = skeleton.parent_array
     order = np.zeros(j, dtype=np.int8)
     has_parent = parents >= 0

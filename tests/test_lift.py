@@ -7,7 +7,8 @@ import pytest
 
 from handanno_core.annotation import AnnotationError, FrameAnnotation
 from handanno_core.camera import MSRA_CAMERA
-from handanno_core.lift import _Problem, initial_pose, lift_frame, lift_references, observed_depth
+from handanno_core.lift import initial_pose, lift_frame, lift_references, observed_depth
+from handanno_core.lift.problem import _Problem
 from handanno_core.skeleton import MSRA21
 
 SK = MSRA21
@@ -233,7 +234,7 @@ def test_analytic_derivatives_match_finite_differences(frames):
         soft_bones=0.1,
         right_hand=True,
     )
-    prob.set_elastic(True)
+    prob = prob.with_start(x0, x0[:, 2], elastic=True)
     x = np.random.default_rng(0).normal(0, 0.5, prob.n_var)
     x[63:] = np.abs(x[63:])
 
@@ -393,7 +394,7 @@ def test_vectorized_angle_rows_match_skeleton_angles(frames):
 
 def test_inconsistent_depth_rules():
     """Backed readings are kept; an unbacked impossible pair loses both readings."""
-    from handanno_core.lift import _drop_inconsistent_depths
+    from handanno_core.lift.initial import _drop_inconsistent_depths
 
     X = random_pose(np.random.default_rng(2))
     bones = SK.bone_lengths(X)
@@ -434,7 +435,7 @@ def test_start_elastic_gives_the_fallback_result_directly(frames, monkeypatch):
     assert direct.converged
     assert np.abs(direct.joints_mm - fallback.joints_mm).max() < 0.5
     # slacks on the joint that needed one only: one small solve, same solution
-    import handanno_core.lift as lift_module
+    import handanno_core.lift.solve as lift_module
 
     slacks_per_solve = []
     real_solve = lift_module._solve
@@ -480,7 +481,7 @@ def test_feasible_iterate_at_iteration_limit_is_kept(frames):
 def test_stalled_hard_solve_stops_early(frames, monkeypatch):
     """An infeasible hard solve whose violation is stuck is stopped after a few iterations (not
     run to max_iter) before the elastic re-solve; feasible solves run to convergence."""
-    import handanno_core.lift as lift_module
+    import handanno_core.lift.solve as lift_module
 
     solves = []
     real_solve = lift_module._solve

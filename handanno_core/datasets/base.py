@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..camera import CameraIntrinsics
@@ -117,6 +118,36 @@ def check_frame_header(path: str | Path, frame: int, shape: tuple[int, int]) -> 
         )
 
 
+def read_npy(path: Path, index: int, shape: tuple[int, int]) -> np.ndarray:
+    """The raw array of a ``.npy`` depth frame: its header is checked against ``shape`` before
+    loading; :class:`FrameError` if unreadable."""
+    check_frame_header(path, index, shape)  # before loading: the header states the size
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise FrameError(path, index, f"cannot read .npy: {exc}") from exc
+
+
+def read_png16(path: Path, index: int, shape: tuple[int, int], scale: float) -> np.ndarray:
+    """Read a single-channel 16-bit PNG as ``(H, W)`` float32 mm (value x ``scale``)."""
+    if not path.is_file():
+        raise FrameError(path, index, "file missing")
+    check_frame_header(path, index, shape)  # before decoding: a tiny PNG can declare gigapixels
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FrameError(path, index, "unreadable image (not a valid PNG?)")
+    if image.ndim != 2 or image.dtype != np.uint16:
+        raise FrameError(
+            path,
+            index,
+            f"expected a single-channel 16-bit PNG, got shape {image.shape} dtype {image.dtype}",
+        )
+    depth = image.astype(np.float32)
+    if scale != 1.0:
+        depth *= np.float32(scale)
+    return validate_depth(depth, path, index, shape)
+
+
 class DepthSequence(abc.ABC):
     """A lazily read depth video with a camera, a skeleton layout and optional ground truth."""
 
@@ -196,6 +227,26 @@ _LAST_NUMBER = re.compile(r"^(.*?)(\d+)(\D*)$")
 
 #: a jump in the frame numbers of file names this many times the usual step is a break.
 GAP_FACTOR = 5.0
+
+
+class FileListSequence(DepthSequence):
+    """A sequence with one depth file per frame: ``_files`` (names relative to ``_base``, default
+    the sequence folder) in frame order."""
+
+    _files: list[str]
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    @property
+    def frame_names(self) -> list[str]:
+        return list(self._files)
+
+    def _frame_file(self, index: int) -> tuple[int, Path, tuple[int, int]]:
+        """``(index, path, (H, W))`` of frame ``index`` (negative counts from the end)."""
+        index = self._check_index(index)
+        base = getattr(self, "_base", self.path)
+        return index, base / self._files[index], (self.camera.height, self.camera.width)
 
 
 def breaks_from_names(names: list[str], gap_factor: float = GAP_FACTOR) -> list[int]:

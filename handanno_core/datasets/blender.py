@@ -22,11 +22,11 @@ from ..camera import CameraIntrinsics
 from ..skeleton import BLENDER24
 from .base import (
     DatasetError,
-    DepthSequence,
+    FileListSequence,
     FrameError,
     GroundTruth,
-    check_frame_header,
     natural_key,
+    read_npy,
     validate_depth,
 )
 
@@ -70,7 +70,7 @@ def looks_like_blender(path: str | Path) -> bool:
     return False
 
 
-class BlenderSequence(DepthSequence):
+class BlenderSequence(FileListSequence):
     """A folder of Blender ``.npy`` depth frames (metres) with optional ``anno_blender`` labels."""
 
     format = "blender"
@@ -83,26 +83,13 @@ class BlenderSequence(DepthSequence):
         if not depth:
             raise DatasetError(f"{root}: no *depth*.npy frames found (Blender layout)")
         ids = sorted(depth, key=natural_key)
-        self._depth_files = [depth[i] for i in ids]
+        self._files = [depth[i] for i in ids]
         self._label_files = [labels.get(i) for i in ids]
         super().__init__(root, intrinsics or BLENDER_CAMERA, BLENDER24)
 
-    def __len__(self) -> int:
-        return len(self._depth_files)
-
-    @property
-    def frame_names(self) -> list[str]:
-        return list(self._depth_files)
-
     def depth(self, index: int) -> np.ndarray:
-        index = self._check_index(index)
-        path = self.path / self._depth_files[index]
-        shape = (self.camera.height, self.camera.width)
-        check_frame_header(path, index, shape)  # before loading: the header states the size
-        try:
-            raw = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise FrameError(path, index, f"cannot read .npy: {exc}") from exc
+        index, path, shape = self._frame_file(index)
+        raw = read_npy(path, index, shape)
         if raw.ndim == 3 and raw.shape[2] >= 1:
             raw = raw[:, :, 0]
         if raw.ndim != 2:
@@ -120,9 +107,7 @@ class BlenderSequence(DepthSequence):
         """Joints ``(N, 24, 3)`` mm (OpenCV frame) from the labels; None if no frame has a label."""
         if all(f is None for f in self._label_files):
             return None
-        missing = [
-            d for d, lab in zip(self._depth_files, self._label_files, strict=True) if lab is None
-        ]
+        missing = [d for d, lab in zip(self._files, self._label_files, strict=True) if lab is None]
         if missing:
             raise DatasetError(
                 f"{self.path}: {len(missing)} depth frame(s) have no *{LABEL_SUFFIX}, e.g. {missing[0]}"

@@ -28,16 +28,16 @@ from ..camera import CameraIntrinsics
 from ..skeleton import MSRA21, SKELETONS
 from .base import (
     DatasetError,
-    DepthSequence,
+    FileListSequence,
     FrameError,
     GroundTruth,
     breaks_from_names,
-    check_frame_header,
     natural_key,
     read_breaks_file,
+    read_npy,
+    read_png16,
     validate_depth,
 )
-from .icvl import read_png16
 
 INTRINSICS_FILE = "intrinsics.json"
 JOINTS_FILE = "joints.npy"
@@ -66,7 +66,7 @@ def looks_like_folder(path: str | Path) -> bool:
     return path.is_dir() and bool(_frames(path)[0])
 
 
-class FolderSequence(DepthSequence):
+class FolderSequence(FileListSequence):
     """Depth frames in a plain folder; see the module docstring."""
 
     format = "folder"
@@ -113,7 +113,7 @@ class FolderSequence(DepthSequence):
                 f"{root}: depth_scale_mm must be a number > 0, got {depth_scale_mm!r}"
             )
         self.depth_scale_mm = scale
-        self._names = names
+        self._files = names
         self._kind = kind
         skeleton = MSRA21
         self._joints_path = root / JOINTS_FILE
@@ -145,29 +145,16 @@ class FolderSequence(DepthSequence):
             )
         return _SKELETON_BY_J[arr.shape[1]]
 
-    def __len__(self) -> int:
-        return len(self._names)
-
-    @property
-    def frame_names(self) -> list[str]:
-        return list(self._names)
-
     @property
     def sequence_breaks(self) -> list[int]:
         """From ``breaks.txt`` or the file names (module docstring)."""
         return list(self._breaks)
 
     def depth(self, index: int) -> np.ndarray:
-        index = self._check_index(index)
-        path = self.path / self._names[index]
-        shape = (self.camera.height, self.camera.width)
+        index, path, shape = self._frame_file(index)
         if self._kind == "png":
             return read_png16(path, index, shape, self.depth_scale_mm)
-        check_frame_header(path, index, shape)  # before loading
-        try:
-            raw = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise FrameError(path, index, f"cannot read .npy: {exc}") from exc
+        raw = read_npy(path, index, shape)
         if raw.dtype.kind not in "fiu":
             raise FrameError(path, index, f"depth has non-numeric dtype {raw.dtype}")
         if raw.shape != shape:

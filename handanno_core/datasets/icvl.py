@@ -14,19 +14,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..camera import CameraIntrinsics
 from ..skeleton import ICVL16
 from .base import (
     DatasetError,
-    DepthSequence,
-    FrameError,
+    FileListSequence,
     GroundTruth,
-    check_frame_header,
     natural_key,
-    validate_depth,
+    read_png16,
 )
 
 ICVL_CAMERA = CameraIntrinsics(fx=241.42, fy=241.42, cx=160.0, cy=120.0, width=320, height=240)
@@ -58,7 +55,7 @@ def looks_like_icvl(path: str | Path) -> bool:
     return any(_is_label_file(f) for f in _label_files(path))
 
 
-class ICVLSequence(DepthSequence):
+class ICVLSequence(FileListSequence):
     """ICVL frames listed in one label file, in the file's order."""
 
     format = "icvl"
@@ -88,7 +85,7 @@ class ICVLSequence(DepthSequence):
             self._base = depth_dir
         else:
             self._base = root
-        self._names = names
+        self._files = names
         self._uvd = uvd
         self.label_file = label_file
         self.depth_scale_mm = 1.0 if depth_scale_mm is None else float(depth_scale_mm)
@@ -96,42 +93,13 @@ class ICVLSequence(DepthSequence):
             raise DatasetError(f"{path}: depth_scale_mm must be > 0, got {depth_scale_mm}")
         super().__init__(root, intrinsics or ICVL_CAMERA, ICVL16)
 
-    def __len__(self) -> int:
-        return len(self._names)
-
-    @property
-    def frame_names(self) -> list[str]:
-        return list(self._names)
-
     def depth(self, index: int) -> np.ndarray:
-        index = self._check_index(index)
-        path = self._base / self._names[index]
-        shape = (self.camera.height, self.camera.width)
+        index, path, shape = self._frame_file(index)
         return read_png16(path, index, shape, self.depth_scale_mm)
 
     def _load_ground_truth(self) -> GroundTruth:
         """Joints ``(N, 16, 3)`` mm in the OpenCV frame, back-projected from (u, v, d) labels."""
         return GroundTruth(self.camera.backproject(self._uvd[..., :2], self._uvd[..., 2]))
-
-
-def read_png16(path: Path, index: int, shape: tuple[int, int], scale: float) -> np.ndarray:
-    """Read a single-channel 16-bit PNG as ``(H, W)`` float32 mm (value x ``scale``)."""
-    if not path.is_file():
-        raise FrameError(path, index, "file missing")
-    check_frame_header(path, index, shape)  # before decoding: a tiny PNG can declare gigapixels
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FrameError(path, index, "unreadable image (not a valid PNG?)")
-    if image.ndim != 2 or image.dtype != np.uint16:
-        raise FrameError(
-            path,
-            index,
-            f"expected a single-channel 16-bit PNG, got shape {image.shape} dtype {image.dtype}",
-        )
-    depth = image.astype(np.float32)
-    if scale != 1.0:
-        depth *= np.float32(scale)
-    return validate_depth(depth, path, index, shape)
 
 
 def read_icvl_labels(path: Path) -> tuple[list[str], np.ndarray]:

@@ -52,13 +52,6 @@ def _frame_numbers(folder: str) -> np.ndarray:
     return np.sort(np.asarray(numbers, dtype=np.int64))
 
 
-def _has_frames(folder: str) -> bool:
-    with os.scandir(folder) as it:
-        return any(
-            e.name.endswith(FRAME_SUFFIX) and e.name[: -len(FRAME_SUFFIX)].isdigit() for e in it
-        )
-
-
 def _gesture_folders(root: str, depth: int = 0) -> list[str]:
     """Folders (root first, then sub-folders in natural order) that directly contain frames."""
     found = []

@@ -1,575 +1,52 @@
-"""An annotation session is a folder; this module is its data model, used by the CLI and the app alike.
-
-Layout of ``sessions/<name>/``:
-
-* ``session.json`` - :class:`SessionModel` snapshot (dataset, camera, skeleton, settings, selection,
-  annotations, review state) plus ``journal_seq``, the last journal entry folded into the snapshot;
-* ``journal.jsonl`` - every edit, one JSON line each, appended, flushed and fsynced *before* the edit
-  is acknowledged; reopening replays the entries after ``journal_seq``;
-* ``crops.npy`` / ``crops_meta.npz`` - the crop cache (memory-mapped) and its geometry;
-* ``results.npz`` - lifted / propagated / refined joints and confidences (derived, recomputable).
-
-Every edit is a small command object (SLEAP style) with ``apply`` and an ``inverse`` computed from
-the state it replaces, so undo and redo are journal entries too and a crash at any instant loses no
-acknowledged edit. Writes of whole files are atomic (temporary file + ``os.replace``).
-
-Journal integrity (issue 16): each entry is one ``os.write`` of the whole line, fsynced; a failed
-write or fsync truncates the file back to its previous size, so a refused edit never resurfaces.
-Each line carries ``crc`` (CRC-32 of the session id and the canonical JSON of the entry), and the
-sequence numbers must be continuous: replay names ``journal.jsonl:LINE: reason`` for a corrupt,
-foreign (another session's) or out-of-range entry. A torn last line (a write that never completed,
-so never acknowledged) is cut before the next append and its bytes kept beside the journal as
-``journal.jsonl.torn-<time>``. One process writes a session at a time: the first write (or
-:meth:`Session.acquire_writer`) takes an advisory ``flock`` on ``session.lock`` that names the owner
-(PID, command, start time) and dies with the process, so a stale lock is taken over naturally.
-"""
+"""The :class:`Session` object: snapshot + journal replay, execute/undo/redo, results I/O."""
 
 from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import json
 import logging
 import os
-import re
-import sys
 import threading
 import time
 import uuid
-import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, Field, TypeAdapter, ValidationError
+from pydantic import ValidationError
 
-from .annotation import FrameAnnotation
-from .camera import CameraIntrinsics
-from .crops import DEFAULT_CROP
-from .fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
-from .results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
-from .skeleton import Skeleton, get_skeleton
-
-SESSION_FILE = "session.json"
-JOURNAL_FILE = "journal.jsonl"
-CROPS_FILE = "crops.npy"
-CROPS_META_FILE = "crops_meta.npz"
-LOCK_FILE = "session.lock"
-
+from ..annotation import FrameAnnotation
+from ..camera import CameraIntrinsics
+from ..fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
+from ..forest import NO_SELECTION
+from ..results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
+from ..skeleton import Skeleton, get_skeleton
+from .commands import (
+    Batch,
+    Command,
+    parse_command,
+)
+from .files import (
+    acquire_session_lock,
+    default_writer_command,
+    release_session_lock,
+)
+from .journal import JournalEntry, encode_entry, entry_checksum
+from .model import (
+    CROPS_FILE,
+    CROPS_META_FILE,
+    JOURNAL_FILE,
+    SESSION_FILE,
+    DatasetSpec,
+    SelectionModel,
+    SessionError,
+    SessionModel,
+    Settings,
+)
 
 log = logging.getLogger(__name__)
-
-
-class SessionError(RuntimeError):
-    """A session folder is missing, corrupt or cannot be written. The message names the file."""
-
-
-class SessionLockedError(SessionError):
-    """Another process (named in the message by PID and command) is writing this session."""
-
-
-# ---------------------------------------------------------------------------------------------
-# The persistent model
-
-
-class DatasetSpec(BaseModel):
-    path: str
-    format: str
-    intrinsics: CameraIntrinsics | None = None
-    depth_scale_mm: float | None = None
-
-
-class Settings(BaseModel):
-    cube_mm: float = DEFAULT_CROP.cube_mm
-    crop_size: int = DEFAULT_CROP.size
-    descriptor: str = "downsampled"
-    eps_mm: float = 15.0
-    angle_limits: bool = True
-    aligner: str = "dis"
-
-
-class SelectionModel(BaseModel):
-    strategy: str | None = None
-    reference_frames: list[int] = Field(default_factory=list)
-    parent: list[int] = Field(default_factory=list)
-    threshold: float | None = None
-    ref_fraction: float | None = None
-    #: frames the selection could not use (unreadable, or no hand pixels): never references
-    skipped_frames: list[int] = Field(default_factory=list)
-
-
-class SessionModel(BaseModel):
-    version: int = 1
-    name: str
-    dataset: DatasetSpec
-    frames: int
-    camera: CameraIntrinsics
-    skeleton: str = "msra21"
-    sequence_breaks: list[int] = Field(default_factory=list)
-    settings: Settings = Field(default_factory=Settings)
-    selection: SelectionModel = Field(default_factory=SelectionModel)
-    #: frame index (as a string key) -> FrameAnnotation.to_json()
-    annotations: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    bone_lengths_mm: list[float] | None = None
-    bones_pinned: bool = False
-    #: frame -> "accepted" | "flagged"
-    review: dict[str, str] = Field(default_factory=dict)
-    #: frames that became references through review corrections (annotation cost beyond the selection)
-    corrections: list[int] = Field(default_factory=list)
-    journal_seq: int = 0
-    #: random id of this session, part of every journal entry's checksum (so an entry copied from
-    #: another session's journal is refused); empty in sessions made before issue 16.
-    session_id: str = ""
-
-
-# ---------------------------------------------------------------------------------------------
-# Commands: every edit, with an inverse for undo
-
-
-class _Command(BaseModel):
-    frame: int
-
-    def check(self, session: Session) -> None:
-        if not 0 <= self.frame < session.model.frames:
-            raise ValueError(
-                f"frame {self.frame} out of range (session has {session.model.frames} frames)"
-            )
-
-    def inverse(self, session: Session) -> Command:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def apply(self, session: Session) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    # shared helpers
-    def _joint_check(self, session: Session, joint: int) -> None:
-        if not 0 <= joint < session.skeleton.num_joints:
-            raise ValueError(
-                f"joint {joint} out of range (skeleton has {session.skeleton.num_joints} joints)"
-            )
-
-
-class SetFrameAnnotation(_Command):
-    """Replace a frame's whole annotation (``None`` deletes it). Used by import and the simulated annotator."""
-
-    kind: Literal["set_frame"] = "set_frame"
-    annotation: dict[str, Any] | None
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        if self.annotation is not None:
-            FrameAnnotation.from_json(
-                self.annotation, session.skeleton.num_joints, f"frame {self.frame}"
-            )
-
-    def inverse(self, session: Session) -> Command:
-        return SetFrameAnnotation(
-            frame=self.frame, annotation=session.model.annotations.get(str(self.frame))
-        )
-
-    def apply(self, session: Session) -> None:
-        if self.annotation is None:
-            session.model.annotations.pop(str(self.frame), None)
-        else:
-            session.model.annotations[str(self.frame)] = self.annotation
-
-
-class _JointEdit(_Command):
-    joint: int
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        self._joint_check(session, self.joint)
-
-    def _annotation(self, session: Session) -> FrameAnnotation:
-        return session.annotation(self.frame) or FrameAnnotation.empty(session.skeleton.num_joints)
-
-    def _store(self, session: Session, ann: FrameAnnotation) -> None:
-        session.model.annotations[str(self.frame)] = ann.to_json()
-
-    def _old_state(self, session: Session) -> dict[str, Any]:
-        ann = self._annotation(session)
-        k = self.joint
-        return {
-            "uv_px": None if np.isnan(ann.uv_px[k]).any() else tuple(ann.uv_px[k]),
-            "xyz_mm": None if np.isnan(ann.xyz_mm[k]).any() else tuple(ann.xyz_mm[k]),
-            "visible": bool(ann.visible[k]),
-            "order": int(ann.depth_order[k]),
-        }
-
-    #: the joint fields this edit changes; its inverse restores exactly these (per joint, per
-    #: field), so undoing one annotator's 2D edit never reverts another's depth order on that joint.
-    fields: ClassVar[tuple[str, ...]] = ()
-
-    def changed_fields(self) -> tuple[str, ...]:
-        return self.fields
-
-    def inverse(self, session: Session) -> Command:
-        old = self._old_state(session)
-        keep = {f: old[f] for f in self.changed_fields()}
-        return SetJointState(
-            frame=self.frame,
-            joint=self.joint,
-            uv_px=keep.get("uv_px", _UNCHANGED),
-            xyz_mm=keep.get("xyz_mm", _UNCHANGED),
-            visible=keep.get("visible"),
-            order=keep.get("order"),
-        )
-
-
-#: SetJointState's marker for "leave this position as it is" (``None`` clears it).
-_UNCHANGED = "unchanged"
-
-
-class SetJointState(_JointEdit):
-    """Set several fields of one joint at once (the inverse of every single-joint edit).
-
-    ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``:
-    a value or ``None`` (unchanged). Entries written before issue 16 set all four.
-    """
-
-    kind: Literal["set_joint"] = "set_joint"
-    uv_px: tuple[float, float] | None | Literal["unchanged"] = _UNCHANGED
-    xyz_mm: tuple[float, float, float] | None | Literal["unchanged"] = _UNCHANGED
-    visible: bool | None = None
-    order: Literal[-1, 0, 1] | None = None
-
-    def changed_fields(self) -> tuple[str, ...]:
-        out = [f for f in ("uv_px", "xyz_mm") if getattr(self, f) != _UNCHANGED]
-        return (*out, *(f for f in ("visible", "order") if getattr(self, f) is not None))
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        for name in ("uv_px", "xyz_mm"):
-            value = getattr(self, name)
-            if isinstance(value, tuple) and not np.all(np.isfinite(value)):
-                raise ValueError(f"{name} must be finite")
-
-    def apply(self, session: Session) -> None:
-        ann = self._annotation(session)
-        k = self.joint
-        if self.uv_px != _UNCHANGED:
-            ann.uv_px[k] = np.nan if self.uv_px is None else self.uv_px
-        if self.xyz_mm != _UNCHANGED:
-            ann.xyz_mm[k] = np.nan if self.xyz_mm is None else self.xyz_mm
-        if self.visible is not None:
-            ann.visible[k] = self.visible
-        if self.order is not None:
-            ann.depth_order[k] = self.order
-        self._store(session, ann)
-
-
-class SetJoint2D(_JointEdit):
-    """Set (or clear, with ``None``) one joint's 2D position in image pixels."""
-
-    kind: Literal["set_2d"] = "set_2d"
-    uv_px: tuple[float, float] | None
-    fields: ClassVar[tuple[str, ...]] = ("uv_px",)
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        if self.uv_px is not None and not np.all(np.isfinite(self.uv_px)):
-            raise ValueError("2D position must be finite")
-
-    def apply(self, session: Session) -> None:
-        ann = self._annotation(session)
-        ann.uv_px[self.joint] = np.nan if self.uv_px is None else self.uv_px
-        self._store(session, ann)
-
-
-class SetJoint3D(_JointEdit):
-    """Place (or clear) one joint directly in 3D (mm); its 2D position follows by projection."""
-
-    kind: Literal["set_3d"] = "set_3d"
-    xyz_mm: tuple[float, float, float] | None
-    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm")
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        if self.xyz_mm is not None and (
-            not np.all(np.isfinite(self.xyz_mm)) or self.xyz_mm[2] <= 0
-        ):
-            raise ValueError("3D position must be finite and in front of the camera")
-
-    def apply(self, session: Session) -> None:
-        ann = self._annotation(session)
-        if self.xyz_mm is None:
-            ann.xyz_mm[self.joint] = np.nan
-        else:
-            ann.xyz_mm[self.joint] = self.xyz_mm
-            ann.uv_px[self.joint] = session.camera.project(np.asarray(self.xyz_mm))
-        self._store(session, ann)
-
-
-class SetVisibility(_JointEdit):
-    kind: Literal["set_visible"] = "set_visible"
-    visible: bool
-    fields: ClassVar[tuple[str, ...]] = ("visible",)
-
-    def apply(self, session: Session) -> None:
-        ann = self._annotation(session)
-        ann.visible[self.joint] = self.visible
-        self._store(session, ann)
-
-
-class SetDepthOrder(_JointEdit):
-    """Depth of the joint relative to its parent: -1 closer, 0 unknown, +1 farther."""
-
-    kind: Literal["set_depth_order"] = "set_depth_order"
-    order: Literal[-1, 0, 1]
-    fields: ClassVar[tuple[str, ...]] = ("order",)
-
-    def apply(self, session: Session) -> None:
-        ann = self._annotation(session)
-        ann.depth_order[self.joint] = self.order
-        self._store(session, ann)
-
-
-class SetReference(_Command):
-    """Make a frame a reference (``is_reference=True``) or restore it to a propagated frame.
-
-    ``parent`` is the parent to restore when un-making a reference; ``correction`` marks a frame
-    that became a reference through review (counted as extra annotation cost).
-    """
-
-    kind: Literal["set_reference"] = "set_reference"
-    is_reference: bool
-    parent: int = -1
-    correction: bool = False
-
-    def check(self, session: Session) -> None:
-        super().check(session)
-        if not -1 <= self.parent < session.model.frames or self.parent == self.frame:
-            raise ValueError(
-                f"parent {self.parent} of frame {self.frame} out of range "
-                f"(session has {session.model.frames} frames)"
-            )
-
-    def inverse(self, session: Session) -> Command:
-        sel = session.model.selection
-        was_ref = self.frame in sel.reference_frames
-        old_parent = sel.parent[self.frame] if sel.parent else -1
-        return SetReference(
-            frame=self.frame,
-            is_reference=was_ref,
-            parent=old_parent,
-            correction=self.frame in session.model.corrections,
-        )
-
-    def apply(self, session: Session) -> None:
-        sel = session.model.selection
-        refs = set(sel.reference_frames)
-        if not sel.parent:
-            sel.parent = [-1] * session.model.frames
-        if self.is_reference:
-            refs.add(self.frame)
-            sel.parent[self.frame] = -1
-        else:
-            refs.discard(self.frame)
-            sel.parent[self.frame] = self.parent
-        sel.reference_frames = sorted(refs)
-        corrections = set(session.model.corrections)
-        if self.is_reference and self.correction:
-            corrections.add(self.frame)
-        else:
-            corrections.discard(self.frame)
-        session.model.corrections = sorted(corrections)
-
-
-class SetReview(_Command):
-    kind: Literal["set_review"] = "set_review"
-    status: Literal["accepted", "flagged"] | None
-
-    def inverse(self, session: Session) -> Command:
-        return SetReview(frame=self.frame, status=session.model.review.get(str(self.frame)))  # type: ignore[arg-type]
-
-    def apply(self, session: Session) -> None:
-        if self.status is None:
-            session.model.review.pop(str(self.frame), None)
-        else:
-            session.model.review[str(self.frame)] = self.status
-
-
-class Batch(BaseModel):
-    """Several commands applied (and undone) as one edit."""
-
-    kind: Literal["batch"] = "batch"
-    commands: list[Annotated[Any, Field()]]
-
-    @property
-    def frame(self) -> int:
-        return self.parsed()[0].frame if self.commands else -1
-
-    def parsed(self) -> list[Command]:
-        return [
-            c if isinstance(c, BaseModel) else _COMMAND_ADAPTER.validate_python(c)
-            for c in self.commands
-        ]
-
-    def check(self, session: Session) -> None:
-        for c in self.parsed():
-            c.check(session)
-
-    def inverse(self, session: Session) -> Command:
-        # Inverses must see the state each command replaces: compute them while applying to a copy.
-        raise NotImplementedError  # handled specially in Session._inverse_of
-
-    def apply(self, session: Session) -> None:
-        for c in self.parsed():
-            c.apply(session)
-
-
-Command = Annotated[
-    SetFrameAnnotation
-    | SetJointState
-    | SetJoint2D
-    | SetJoint3D
-    | SetVisibility
-    | SetDepthOrder
-    | SetReference
-    | SetReview
-    | Batch,
-    Field(discriminator="kind"),
-]
-_COMMAND_ADAPTER: TypeAdapter[Any] = TypeAdapter(Command)
-
-
-def parse_command(data: dict[str, Any]) -> Command:
-    return _COMMAND_ADAPTER.validate_python(data)
-
-
-# ---------------------------------------------------------------------------------------------
-# Atomic file helpers
-
-
-# ---------------------------------------------------------------------------------------------
-# One writer per session: an advisory lock that dies with its process
-
-_held_locks: dict[str, list[Any]] = {}  # realpath of the lock file -> [fd, holders]
-_held_guard = threading.Lock()
-
-
-def _lock_owner(fd: int) -> str:
-    try:
-        owner = json.loads(os.pread(fd, 4096, 0) or b"{}")
-        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(owner["started"])))
-        return f"PID {int(owner['pid'])} ({owner['command']}, since {since})"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "another process (owner unknown)"
-
-
-def acquire_session_lock(folder: Path, command: str) -> str:
-    """Take the writer lock of the session ``folder`` for this process; returns its key.
-
-    Several :class:`Session` objects of one process share the lock (the per-session ``RLock``
-    serializes them); another process gets :class:`SessionLockedError` naming the owner's PID,
-    command and start time. The lock is ``flock`` on ``session.lock``: it dies with its process.
-    """
-    path = Path(folder) / LOCK_FILE
-    key = os.path.realpath(path)
-    with _held_guard:
-        held = _held_locks.get(key)
-        if held is not None:
-            held[1] += 1
-            return key
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, FILE_MODE)
-        except OSError as exc:
-            raise SessionError(f"{path}: cannot create the session lock: {exc}") from exc
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            owner = _lock_owner(fd)
-            os.close(fd)
-            if exc.errno not in (errno.EAGAIN, errno.EACCES):
-                raise SessionError(f"{path}: cannot lock the session: {exc}") from exc
-            raise SessionLockedError(
-                f"{Path(folder)}: session is being written by {owner}; "
-                "stop that process first (one writer per session)"
-            ) from None
-        owner = {"pid": os.getpid(), "command": command, "started": time.time()}
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps(owner).encode(), 0)
-        _held_locks[key] = [fd, 1]
-        return key
-
-
-def release_session_lock(key: str) -> None:
-    with _held_guard:
-        held = _held_locks.get(key)
-        if held is None:
-            return
-        held[1] -= 1
-        if held[1] <= 0:
-            del _held_locks[key]
-            with contextlib.suppress(OSError):
-                os.ftruncate(held[0], 0)
-            os.close(held[0])  # closing the only descriptor releases the flock
-
-
-def default_writer_command() -> str:
-    """How this process names itself in a lock: ``handanno serve demo`` style."""
-    argv = list(sys.argv) or ["python"]
-    argv[0] = "handanno" if argv[0].endswith(("handanno", "cli.py")) else Path(argv[0]).name
-    return " ".join(argv)[:200]
-
-
-_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-
-
-def safe_session_path(name: str, sessions_dir: str | Path) -> Path:
-    """Resolve a session *name* from a user (e.g. in the app) under ``sessions_dir``, refusing path tricks."""
-    if not _SAFE_NAME.match(name) or ".." in name:
-        raise SessionError(
-            f"invalid session name {name!r}: use letters, digits, '.', '_' or '-' (no path separators)"
-        )
-    base = Path(sessions_dir).resolve()
-    path = (base / name).resolve()
-    if path.parent != base:
-        raise SessionError(f"session {name!r} resolves outside the sessions folder {base}")
-    return path
-
-
-def resolve_session(session: str | Path, sessions_dir: str | Path = "sessions") -> Path:
-    """CLI rule: a path (contains a separator or exists) is used as is; a bare name lives in ``sessions_dir``."""
-    s = str(session)
-    if s.strip(".") == "":  # ".", "..": never a session name, and not a session folder either
-        raise SessionError(f"invalid session {s!r}: give a session name or a path to its folder")
-    if os.sep in s or "/" in s or Path(s).exists():
-        return Path(s)
-    return safe_session_path(s, sessions_dir)
-
-
-# ---------------------------------------------------------------------------------------------
-# The session
-
-
-class JournalEntry(BaseModel):
-    seq: int
-    time: float
-    client: str = "cli"
-    #: "do" (a new edit), "undo" (inverse of entry ``target``), "redo" (re-applies entry ``target``)
-    action: Literal["do", "undo", "redo"] = "do"
-    target: int | None = None
-    command: dict[str, Any]
-    inverse: dict[str, Any]
-
-
-def _canonical(data: dict[str, Any]) -> bytes:
-    return json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
-
-
-def entry_checksum(session_id: str, body: dict[str, Any]) -> int:
-    """CRC-32 of the session id and the canonical JSON (sorted keys, no spaces) of an entry."""
-    return zlib.crc32(session_id.encode() + b"\n" + _canonical(body))
-
-
-def encode_entry(entry: JournalEntry, session_id: str) -> bytes:
-    """One journal line: the entry's canonical JSON plus its ``crc``, newline-terminated."""
-    body = entry.model_dump(mode="json")
-    return _canonical({**body, "crc": entry_checksum(session_id, body)}) + b"\n"
 
 
 def _one_line(exc: Exception) -> str:
@@ -692,7 +169,7 @@ class Session:
                 doc = json.loads(raw)
                 if not isinstance(doc, dict):
                     raise ValueError("not a JSON object")
-                crc = doc.pop("crc", None)  # absent in journals written before issue 16
+                crc = doc.pop("crc", None)  # absent in journals written before checksums
                 if crc is not None and crc != entry_checksum(self.model.session_id, doc):
                     raise ValueError(
                         "checksum mismatch (a damaged line, or an entry copied from another "
@@ -767,8 +244,12 @@ class Session:
 
     @property
     def parent(self) -> np.ndarray:
+        """``(N,)`` int64 parent forest (:mod:`forest`); all :data:`forest.NO_SELECTION` before a
+        selection."""
         p = self.model.selection.parent
-        return np.asarray(p, dtype=np.int64) if p else np.full(self.num_frames, -2, dtype=np.int64)
+        if not p:
+            return np.full(self.num_frames, NO_SELECTION, dtype=np.int64)
+        return np.asarray(p, dtype=np.int64)
 
     def annotation(self, frame: int) -> FrameAnnotation | None:
         data = self.model.annotations.get(str(frame))
@@ -804,7 +285,7 @@ class Session:
     def open_sequence(self):  # -> DepthSequence
         """The session's depth sequence (opened once, lazily)."""
         if self._sequence is None:
-            from .datasets import open_sequence
+            from ..datasets import open_sequence
 
             spec = self.model.dataset
             try:
@@ -851,9 +332,6 @@ class Session:
                 return None
             target = stack[-1]
             return self._commit(parse_command(target.command), client, "redo", target.seq)
-
-    def can_undo(self, client: str = "cli") -> bool:
-        return bool(self._undo.get(client))
 
     def can_redo(self, client: str = "cli") -> bool:
         return bool(self._redo.get(client))
@@ -921,7 +399,7 @@ class Session:
         path = self.folder / JOURNAL_FILE
         if self._journal_file is None:
             self.acquire_writer()
-            if not self.model.session_id:  # a session from before issue 16: give it an id first
+            if not self.model.session_id:  # a session from before checksums: give it an id first
                 self.model.session_id = uuid.uuid4().hex
                 self.save()
             try:

@@ -1,0 +1,111 @@
+"""Lift annotated reference frames from 2D to 3D (thesis Eq. 3), and estimate the bone lengths.
+
+For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jacobians,
+
+    min_X  1/2 sum_k |pi(X_k) - uv_k|^2                       (px^2, joints with 2D)
+         + 1/2 w_3d   sum_k |X_k - xyz_k|^2                    (px^2/mm^2 * mm^2, joints placed in 3D)
+         + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
+         + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
+         + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
+         + 1/2 w_angle sum_r min(g_r(X), 0)^2                  (angle-range rows, mm; soft)
+    s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
+           D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
+           D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
+           sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
+
+``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
+and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
+
+Why the surface term: with exact 2D the one-sided depth intervals leave the whole hand free to
+slide up to ``eps`` along the viewing rays, and with noisy 2D a foreshortened bone turns a pixel of
+noise into centimetres of depth. The pull towards ``D_k + o_k + s`` (``w_surface`` = 0.1 px^2/mm^2,
+``surface_depth_mm`` s = 3 mm: the 3x3 closest-surface reading lies that much in front of the
+offset surface, median measured on the synthetic sequence) fixes visible joints near where joint
+centres of a hand seen from the front lie. Hidden joints without a depth order only have a lower
+bound; where the two mirror poses of a hidden finger both fit the 2D (bones nearly parallel to the
+image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth (figures:
+``benchmarks/results/design_measurements.md``).
+
+Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
+length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the
+surface behind it, or the finger in front of it (see :func:`initial_pose`).
+
+Joint angles follow ``skeleton.joint_angles`` exactly (same palm normal, same frame: lateral axis
+from the palm normal at a finger's first joint, transported along the chain after that). The
+ranges are ``skeleton.angle_ranges()``: the anatomical limits widened to what real hands were
+recorded doing (robust percentiles over FPHA / NYU / ICVL motion, ``data/angle_ranges.json``).
+They are *soft*: a row ``g_r >= 0`` holds inside the range, and beyond it the penalty
+``w_angle/2 g_r^2`` (``g_r`` ~ bone length x sin(excess angle), mm) grows quadratically instead of a
+hard wall (real hands exceed any fixed limits now and then; a wall turns that into a wrong pose
+elsewhere). A flexion range of 170 degrees or more has no rows (no limit). The rows are linear in
+the outgoing bone ``b`` for a fixed local frame (``a_hat``, ``n_perp``, ``lateral``):
+
+* flexion >= fmin:  cos(fmin) b.n_perp - sin(fmin) b.a_hat >= 0   (a half-plane; range < 180 deg)
+* flexion <= fmax:  sin(fmax) b.a_hat - cos(fmax) b.n_perp >= 0
+* abduction in [amin, amax]:  |b| sin(amin) <= b.lateral <= |b| sin(amax)
+
+The frame depends on the incoming bones of the chain and on the palm normal; all are
+differentiated exactly (no lagged frame).
+
+If the hard problem is infeasible or SLSQP fails (typically a 2D point on the wrong surface, so
+its observed depth is wrong), the frame is re-solved in *elastic mode*: each depth interval gets a
+slack with an L1 cost (an exact penalty: intervals that can be met are met). A result whose bone or
+order constraints are still violated by more than 0.5 mm is returned with
+``converged=False`` and halved confidence. An infeasible hard solve is recognised early: its
+constraint violation stays stuck at its first value, and a callback stops it once the violation
+(> 5 mm) has not dropped for 4 iterations instead of letting it run to the iteration limit. A feasible iterate that merely ran
+out of iterations is kept (not re-solved). The app's live re-lift passes ``start_elastic`` for a
+frame whose previous lift needed slack, skipping the hard attempt altogether, and
+``elastic_joints`` = the joints that needed it, so only those get slack variables (the others keep
+hard bounds: a smaller problem, the same solution where the guess is right, and a fallback to
+slacks on every joint where it is not); both are :class:`WarmStart` fields.
+
+Speed notes: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
+can be 50x slower, so every solve runs inside :func:`handanno_core.blas.single_blas_thread`.
+Variables are offsets from the initial pose, scaled per axis (1.5 mm units in x/y ~ 1 px, 10 mm
+in z) so SLSQP's identity start Hessian is about right; constraints are in mm. The angle-limit
+Jacobian is vectorized over fingers (one batch per chain level).
+
+Bone lengths (:func:`lift_references`) are unknown in advance. They start from the skeleton's
+template scaled to the annotated frames and are re-estimated from all lifted references: each
+round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
+hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
+stretches or shrinks the bone; the new estimate is the median over frames where both of the
+bone's joints are annotated (at least ``min_bone_votes`` references; a bone with fewer keeps the
+template times the global scale of the re-estimated bones, so a partially annotated hand of any
+size gets all its bones). Rounds stop when no bone moves by more than 0.1 mm; a final lift uses
+the estimate as hard constraints, from both the last soft solution and the cold start, keeping
+the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
+
+Surface offsets are self-calibrated per session (:func:`surface_correction`): once the bones have
+converged, the median over annotated visible joints of ``z_lifted - (D + o + s)`` per joint group
+(same level along the chains) corrects that group's offset, and the rounds continue with the
+corrected offsets (at most ``max_calibrations`` times). Fingertips are the anchor and are not
+corrected: from 2D and depth alone, moving every joint deeper below the surface is the same as a
+larger hand farther away (an exact scale ambiguity of the projection), so only the *relative*
+depth of joint groups (a wrist or palm joint deeper inside the hand than the default, as on NYU)
+is recoverable this way. The offsets used are returned in ``LiftSet.surface_offsets_mm``.
+
+A reference whose own soft-bone lift wants an annotated bone more than 20 % (and 3 mm, and 4 robust
+standard deviations of the bone's spread over the references) longer or shorter than the final
+estimate is reported ``stretched`` and not ``converged`` (with a warning):
+the template could only be fitted to its clicks by stretching it.
+"""
+
+from ..annotation import AnnotationError
+from .initial import initial_bone_lengths, initial_pose, observed_depth
+from .references import LiftSet, lift_references, surface_correction
+from .solve import LiftResult, WarmStart, lift_frame
+
+__all__ = [
+    "LiftResult",
+    "LiftSet",
+    "WarmStart",
+    "initial_bone_lengths",
+    "initial_pose",
+    "lift_frame",
+    "lift_references",
+    "observed_depth",
+    "surface_correction",
+    "AnnotationError",
+]

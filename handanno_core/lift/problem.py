@@ -1,0 +1,335 @@
+"""The lift's optimisation problem for SLSQP: objective, bounds, bone equalities and inequality
+rows, in scaled variables ``x = (X - x0) / scale``.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from ..annotation import FrameAnnotation
+from ..camera import CameraIntrinsics
+from ..skeleton import Skeleton
+from .angles import _AngleRows
+
+# Variable scaling: SLSQP starts its quasi-Newton Hessian at the identity, so each
+# unit should move the objective by about the same amount. 1 px of reprojection is ~1.5 mm
+# laterally at hand distance (f = 241 px, z = 350 mm), while depth is only weakly determined
+# (bones, surface tie-breaker) and gets 10 mm units (fewer SLSQP iterations than uniform 10 mm
+# units: benchmarks/results/design_measurements.md).
+_SCALE_XY = 1.5  # mm per optimisation unit, x and y
+_SCALE_Z = 10.0  # mm per optimisation unit, z (and elastic slacks)
+
+
+class _Problem(_AngleRows):
+    """Objective, constraints and their analytic derivatives for one frame (vectorized)."""
+
+    def __init__(
+        self,
+        annotation: FrameAnnotation,
+        d_obs: np.ndarray,
+        camera: CameraIntrinsics,
+        skeleton: Skeleton,
+        bone_lengths_mm: np.ndarray,
+        x0_mm: np.ndarray,
+        *,
+        eps_mm: float,
+        angle_limits: bool,
+        order_margin_mm: float,
+        w_3d: float,
+        w_surface: float,
+        surface_depth_mm: float = 0.0,
+        w_flat: float = 0.0,
+        w_free: float,
+        soft_bones: float | None,
+        right_hand: bool,
+        w_angle: float = 1.0,
+        w_angle_inner: float = 0.0,
+    ):
+        self.cam = camera
+        self.j = skeleton.num_joints
+        self.x0 = np.asarray(x0_mm, dtype=np.float64)
+        self.bones = skeleton.bones
+        self.d = np.asarray(bone_lengths_mm, dtype=np.float64)
+        self.soft = soft_bones
+        ann = annotation
+        self.has2d = ann.has_2d
+        self.uv = np.where(self.has2d[:, None], ann.uv_px, 0.0)
+        self.has3d = ann.has_3d
+        self.xyz = np.where(self.has3d[:, None], ann.xyz_mm, 0.0)
+        self.w_3d = w_3d
+        self.free = ~(self.has2d | self.has3d)
+        self.w_free = w_free
+        offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+        valid_d = np.isfinite(d_obs) & self.has2d
+        lo = np.where(valid_d, d_obs + offsets, -np.inf)
+        hi = np.where(valid_d & ann.visible, d_obs + offsets + eps_mm, np.inf)
+        self.z_lo, self.z_hi = lo, hi
+        self.surf_mask = valid_d & ann.visible
+        self.surf_target = np.where(self.surf_mask, lo + surface_depth_mm, 0.0)
+        self.w_surface = w_surface
+        # hidden joints without a depth order: weak pull towards the parent's depth
+        par_all = skeleton.parent_array
+        fm = self.has2d & ~ann.visible & (np.asarray(ann.depth_order) == 0) & (par_all >= 0)
+        self.flat_k = np.flatnonzero(fm)
+        self.flat_p = par_all[self.flat_k]
+        self.w_flat = w_flat
+        # depth order rows
+        par = skeleton.parent_array
+        sel = (np.asarray(ann.depth_order) != 0) & (par >= 0)
+        self.ord_k = np.flatnonzero(sel)
+        self.ord_p = par[self.ord_k]
+        self.ord_s = np.asarray(ann.depth_order, dtype=np.float64)[self.ord_k]
+        self.margin = order_margin_mm
+        # angle rows
+        self.use_angles = (
+            bool(angle_limits)
+            and skeleton.palm_joints is not None
+            and len(skeleton.angle_joints) > 0
+        )
+        if self.use_angles:
+            k = skeleton.angle_joints
+            self.ak = k
+            self.ap = par[k]
+            self.ac = skeleton.angle_children
+            # soft rows beyond the range real hands were recorded in (weight w_angle) and,
+            # optionally, a second tier beyond the narrower anatomical limits (w_angle_inner;
+            # default 0: chosen on the tune set, synthetic seed 1 + FPHA Subject_1 mean)
+            tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
+            lim = skeleton.angle_limits()
+            if not right_hand:
+                lim = (lim[0], -lim[1][:, ::-1])
+            if w_angle_inner > 0 and not all(
+                np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)
+            ):
+                tiers.append((lim, w_angle_inner))
+            coef, weights = [], []
+            for (fl, ab), w in tiers:
+                # a flexion range of 170 deg or more is no limit (the two half-plane rows can
+                # only express ranges under 180 deg): its rows are switched off
+                on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
+                fl, ab = np.radians(fl), np.radians(ab)
+                coef.append(
+                    np.stack(
+                        [
+                            on * np.cos(fl[:, 0]),
+                            on * np.sin(fl[:, 0]),
+                            on * np.cos(fl[:, 1]),
+                            on * np.sin(fl[:, 1]),
+                            np.sin(ab[:, 0]),
+                            np.sin(ab[:, 1]),
+                        ]
+                    )
+                )
+                weights.append(np.full(4 * len(k), w))
+            self.angle_coef = coef  # per tier (6, A): cos/sin fmin, cos/sin fmax, sin amin/amax
+            self.angle_row_w = np.concatenate(weights)
+            self.palm = skeleton.palm_joints
+            self.hand_sign = 1.0 if right_hand else -1.0
+            self._setup_angle_levels()
+        self.sc3 = np.array([_SCALE_XY, _SCALE_XY, _SCALE_Z])
+        self._cache: dict = {}
+        self.elastic = False
+        self.iv_lo = np.flatnonzero(np.isfinite(lo))  # joints with a lower / upper depth bound
+        self.iv_hi = np.flatnonzero(np.isfinite(hi))
+        self.w_elastic = 1.0
+        self._set_elastic(False)
+
+    def with_start(
+        self,
+        x0_mm: np.ndarray,
+        z_inside_mm: np.ndarray,
+        *,
+        elastic: bool = False,
+        weight: float = 1.0,
+        joints: np.ndarray | None = None,
+    ) -> _Problem:
+        """The problem of one solve (this one is left unchanged): variables relative to
+        ``x0_mm`` (J, 3) mm, where joints without an elastic slack start at depth ``z_inside_mm``
+        (J,) (inside their hard interval); hard, or elastic (see :meth:`_set_elastic`)."""
+        p = copy.copy(self)
+        p._cache = {}
+        p._set_elastic(elastic, weight, joints)
+        x0 = np.array(x0_mm, dtype=np.float64)
+        x0[:, 2] = np.where(p.slot < 0, z_inside_mm, x0[:, 2])
+        p.x0 = x0
+        return p
+
+    def _set_elastic(self, on: bool, weight: float = 1.0, joints: np.ndarray | None = None) -> None:
+        """Elastic mode: depth intervals become ``z >= lo - s``, ``z <= hi + s`` with slacks
+        ``s >= 0`` (one per joint with an interval) costing ``weight`` px^2 per mm (exact L1
+        penalty: intervals that can be met are met exactly). ``joints``: only these joints get
+        slacks, the others keep their hard bounds (fewer variables and rows, faster iterations)."""
+        self.elastic = on
+        self.w_elastic = weight
+        keep = np.arange(self.j) if joints is None else np.asarray(joints, dtype=np.int64).ravel()
+        self.el_lo = np.intersect1d(self.iv_lo, keep) if on else np.zeros(0, dtype=np.int64)
+        self.el_hi = np.intersect1d(self.iv_hi, keep) if on else np.zeros(0, dtype=np.int64)
+        self.el_joints = np.union1d(self.el_lo, self.el_hi)
+        self.slot = np.full(self.j, -1)
+        self.slot[self.el_joints] = np.arange(len(self.el_joints))
+
+    def slacks_mm(self, x: np.ndarray) -> np.ndarray:
+        """``(S,)`` mm: the elastic slacks at ``x`` (empty outside elastic mode)."""
+        return _SCALE_Z * np.asarray(x[3 * self.j : 3 * self.j + self.n_slack])
+
+    @property
+    def n_slack(self) -> int:
+        return len(self.el_joints) if self.elastic else 0
+
+    @property
+    def n_var(self) -> int:
+        return 3 * self.j + self.n_slack
+
+    # -- variables: x (3J [+ S],) = (X - x0) / (1.5, 1.5, 10) mm [, slacks / 10 mm]
+    def pose(self, x: np.ndarray) -> np.ndarray:
+        return self.x0 + self.sc3 * x[: 3 * self.j].reshape(self.j, 3)
+
+    def bounds(self, trust_mm: float = 150.0) -> list[tuple[float | None, float | None]]:
+        txy, tz = trust_mm / _SCALE_XY, trust_mm / _SCALE_Z
+        b: list[tuple[float | None, float | None]] = []
+        for k in range(self.j):
+            b.append((-txy, txy))
+            b.append((-txy, txy))
+            lo, hi = -tz, tz
+            if self.slot[k] < 0:  # no slack: the depth interval is a hard bound
+                if np.isfinite(self.z_lo[k]):
+                    lo = max(lo, (self.z_lo[k] - self.x0[k, 2]) / _SCALE_Z)
+                if np.isfinite(self.z_hi[k]):
+                    hi = min(hi, (self.z_hi[k] - self.x0[k, 2]) / _SCALE_Z)
+                hi = max(hi, lo)
+            b.append((lo, hi))
+        b.extend([(0.0, tz)] * self.n_slack)
+        return b
+
+    # -- objective
+    def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        X = self.pose(x)
+        g = np.zeros((self.j, 3))
+        f = 0.0
+        m = self.has2d
+        if np.any(m):
+            Xm = X[m]
+            z = np.maximum(Xm[:, 2], 1e-3)
+            u = self.cam.fx * Xm[:, 0] / z + self.cam.cx
+            v = self.cam.fy * Xm[:, 1] / z + self.cam.cy
+            ru = u - self.uv[m, 0]
+            rv = v - self.uv[m, 1]
+            f += 0.5 * float(np.sum(ru**2 + rv**2))
+            gx = ru * self.cam.fx / z
+            gy = rv * self.cam.fy / z
+            gz = -(ru * (u - self.cam.cx) + rv * (v - self.cam.cy)) / z
+            g[m] += np.stack([gx, gy, gz], axis=1)
+        if np.any(self.has3d):
+            r = (X - self.xyz)[self.has3d]
+            f += 0.5 * self.w_3d * float(np.sum(r**2))
+            g[self.has3d] += self.w_3d * r
+        if np.any(self.surf_mask) and self.w_surface > 0:
+            r = (X[:, 2] - self.surf_target)[self.surf_mask]
+            f += 0.5 * self.w_surface * float(np.sum(r**2))
+            g[self.surf_mask, 2] += self.w_surface * r
+        if len(self.flat_k) and self.w_flat > 0:
+            r = X[self.flat_k, 2] - X[self.flat_p, 2]
+            f += 0.5 * self.w_flat * float(np.sum(r**2))
+            np.add.at(g[:, 2], self.flat_k, self.w_flat * r)
+            np.add.at(g[:, 2], self.flat_p, -self.w_flat * r)
+        if np.any(self.free) and self.w_free > 0:
+            r = (X - self.x0)[self.free]
+            f += 0.5 * self.w_free * float(np.sum(r**2))
+            g[self.free] += self.w_free * r
+        if self.soft is not None:
+            c, jac = self._bone_eq(X)
+            f += 0.5 * self.soft * float(np.sum(c**2))
+            g += self.soft * np.einsum("b,bjk->jk", c, jac)
+        if self.use_angles:
+            v, jac = self._angles(X)
+            short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
+            f += 0.5 * float(np.sum(self.angle_row_w * short**2))
+            g += np.einsum("r,rjk->jk", self.angle_row_w * short, jac)
+        grad = (self.sc3 * g).ravel()
+        if self.elastic:
+            sl = x[3 * self.j :]
+            f += self.w_elastic * _SCALE_Z * float(np.sum(sl))
+            grad = np.concatenate([grad, np.full(len(sl), self.w_elastic * _SCALE_Z)])
+        return f, grad
+
+    # -- constraints (in mm), Jacobians w.r.t. joints (rows, J, 3)
+    def _bone_eq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p, c = self.bones[:, 0], self.bones[:, 1]
+        v = X[c] - X[p]
+        n = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        jac = np.zeros((len(p), self.j, 3))
+        rows = np.arange(len(p))
+        unit = v / n[:, None]
+        jac[rows, c] = unit
+        jac[rows, p] -= unit
+        return n - self.d, jac
+
+    def _cached(self, name: str, x: np.ndarray):
+        """SLSQP asks for a constraint and its Jacobian at the same x: evaluate once."""
+        hit = self._cache.get(name)
+        if hit is not None and np.array_equal(hit[0], x):
+            return hit[1]
+        X = self.pose(x)
+        val = self._bone_eq(X) if name == "eq" else self._ineq(X)
+        self._cache[name] = (x.copy(), val)
+        return val
+
+    def eq(self, x: np.ndarray) -> np.ndarray:
+        return self._cached("eq", x)[0]
+
+    def eq_jac(self, x: np.ndarray) -> np.ndarray:
+        jac = (self._cached("eq", x)[1] * self.sc3).reshape(len(self.d), -1)
+        if self.n_slack:
+            jac = np.hstack([jac, np.zeros((len(jac), self.n_slack))])
+        return jac
+
+    def _ineq(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        vals = []
+        jacs = []
+        if len(self.ord_k):
+            r = len(self.ord_k)
+            val = self.ord_s * (X[self.ord_k, 2] - X[self.ord_p, 2]) - self.margin
+            jac = np.zeros((r, self.j, 3))
+            rows = np.arange(r)
+            jac[rows, self.ord_k, 2] = self.ord_s
+            jac[rows, self.ord_p, 2] -= self.ord_s
+            vals.append(val)
+            jacs.append(jac)
+        if not vals:
+            return np.zeros(0), np.zeros((0, self.j, 3))
+        return np.concatenate(vals), np.concatenate(jacs, axis=0)
+
+    def ineq(self, x: np.ndarray) -> np.ndarray:
+        val = self._cached("ineq", x)[0]
+        if self.elastic:
+            X = self.pose(x)
+            sl = _SCALE_Z * x[3 * self.j :]
+            lo = X[self.el_lo, 2] - self.z_lo[self.el_lo] + sl[self.slot[self.el_lo]]
+            hi = self.z_hi[self.el_hi] - X[self.el_hi, 2] + sl[self.slot[self.el_hi]]
+            val = np.concatenate([val, lo, hi])
+        return val
+
+    def ineq_jac(self, x: np.ndarray) -> np.ndarray:
+        jac = self._cached("ineq", x)[1]
+        # (rows, J, 3) -> (rows, 3J); explicit width, since there may be no rows (elastic mode
+        # with every depth bound turned into a slack row below)
+        jac = (jac * self.sc3).reshape(jac.shape[0], 3 * self.j)
+        if self.elastic:
+            ns = self.n_slack
+            jac = np.hstack([jac, np.zeros((len(jac), ns))])
+            nl, nh = len(self.el_lo), len(self.el_hi)
+            extra = np.zeros((nl + nh, self.n_var))
+            extra[np.arange(nl), 3 * self.el_lo + 2] = _SCALE_Z
+            extra[np.arange(nl), 3 * self.j + self.slot[self.el_lo]] = _SCALE_Z
+            extra[nl + np.arange(nh), 3 * self.el_hi + 2] = -_SCALE_Z
+            extra[nl + np.arange(nh), 3 * self.j + self.slot[self.el_hi]] = _SCALE_Z
+            jac = np.vstack([jac, extra])
+        return jac
+
+    def num_ineq(self) -> int:
+        n = len(self.ord_k)
+        if self.elastic:
+            n += len(self.el_lo) + len(self.el_hi)
+        return n

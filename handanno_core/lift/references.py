@@ -1,0 +1,263 @@
+"""Lift all references: bone-length and surface-offset re-estimation rounds (:func:`lift_references`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..annotation import AnnotationError, FrameAnnotation
+from ..camera import CameraIntrinsics
+from ..skeleton import Skeleton
+from .initial import initial_bone_lengths
+from .solve import LiftResult, lift_frame
+
+
+@dataclass
+class LiftSet:
+    """Lifted references: ``joints_mm[f]`` ``(J, 3)``, ``confidence[f]`` ``(J,)``, bones ``(B,)`` mm."""
+
+    joints_mm: dict[int, np.ndarray]
+    confidence: dict[int, np.ndarray]
+    bone_lengths_mm: np.ndarray
+    results: dict[int, LiftResult] = field(default_factory=dict)
+    bone_history_mm: list[np.ndarray] = field(default_factory=list)
+    #: ``(J,)`` mm: the surface offsets the references were lifted with (self-calibrated)
+    surface_offsets_mm: np.ndarray | None = None
+    #: ``(B,)`` number of references in which both ends of each bone are annotated
+    bone_votes: np.ndarray | None = None
+
+
+def surface_correction(
+    annotations: dict[int, FrameAnnotation],
+    results: dict[int, LiftResult],
+    skeleton: Skeleton,
+    surface_depth_mm: float,
+    min_samples: int = 8,
+) -> np.ndarray:
+    """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
+
+    For every annotated visible joint with an observed depth (and no elastic slack) the residual
+    ``z_lifted - (D + o + surface_depth_mm)`` is how much deeper below the observed surface the
+    lift put the joint centre than the offset assumed; the correction of a joint group
+    (:meth:`Skeleton.surface_groups`: same level along the chains) is the median over its samples
+    (0 with fewer than ``min_samples``). Fingertips are the anchor (their offset is defined: the
+    tip lies on the surface) and are never corrected: a uniform change of every offset is
+    otherwise indistinguishable from a change of the hand's scale.
+    """
+    groups = skeleton.surface_groups()
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    res_by_group: dict[int, list[np.ndarray]] = {}
+    for f, r in results.items():
+        ann = annotations[f]
+        d = r.observed_depth_mm
+        ok = ann.has_2d & ann.visible & np.isfinite(d)
+        ok[r.slack_joints] = False
+        resid = r.joints_mm[:, 2] - d - offsets - surface_depth_mm
+        for g in np.unique(groups[ok]):
+            res_by_group.setdefault(int(g), []).append(resid[ok & (groups == g)])
+    corr = np.zeros(skeleton.num_joints)
+    for g, parts in res_by_group.items():
+        vals = np.concatenate(parts)
+        if g >= 0 and len(vals) >= min_samples:
+            corr[groups == g] = float(np.median(vals))
+    return corr
+
+
+# ---------------------------------------------------------------------------------------- refs
+def _lift_job(args: tuple) -> LiftResult:
+    ann, depth, camera, skeleton, bones, kwargs = args
+    return lift_frame(ann, depth, camera, skeleton, bones, **kwargs)
+
+
+def _run_all(jobs: list[tuple], workers: int, progress) -> list[LiftResult]:
+    out: list[LiftResult] = []
+    total = len(jobs)
+    if workers > 1 and total > 1:
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            for i, r in enumerate(
+                ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))
+            ):
+                out.append(r)
+                if progress is not None:
+                    progress(i + 1, total)
+    else:
+        for i, job in enumerate(jobs):
+            out.append(_lift_job(job))
+            if progress is not None:
+                progress(i + 1, total)
+    return out
+
+
+def _better(a: LiftResult, b: LiftResult) -> LiftResult:
+    """The converged result with the lower objective (``a`` on ties)."""
+    if a.converged != b.converged:
+        return a if a.converged else b
+    return b if b.objective < a.objective - 1e-9 else a
+
+
+def lift_references(
+    annotations: dict[int, FrameAnnotation],
+    depth_of: Callable[[int], np.ndarray],
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    *,
+    bone_lengths_mm: np.ndarray | None = None,
+    pin_bone_lengths: bool = False,
+    eps_mm: float = 15.0,
+    angle_limits: bool = True,
+    workers: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+    max_rounds: int = 10,
+    bone_tol_mm: float = 0.1,
+    soft_bone_weight: float = 0.05,
+    min_bone_votes: int = 3,
+    calibrate_surface: bool = True,
+    offset_tol_mm: float = 0.5,
+    max_calibrations: int = 3,
+    stretch_tolerance: float = 0.2,
+    **lift_kwargs,
+) -> LiftSet:
+    """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
+
+    annotations: frame -> :class:`FrameAnnotation`. depth_of(frame) -> ``(H, W)`` mm.
+    bone_lengths_mm: ``(B,)`` starting lengths (default: the template times the hand scale
+    measured on the annotations, :func:`initial_bone_lengths`).
+    pin_bone_lengths: keep ``bone_lengths_mm`` fixed (no re-estimation; requires the lengths).
+    Re-estimation rounds (see module docstring) run until no bone changes by more than
+    ``bone_tol_mm`` (and no surface offset by more than ``offset_tol_mm``) or ``max_rounds``.
+    A bone is re-estimated only where both its joints are annotated in at least
+    ``min_bone_votes`` references; the others keep the template times the global scale of the
+    re-estimated ones (median ratio to the template). calibrate_surface: re-estimate the depth of
+    joint centres below the observed surface per joint group in every round
+    (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
+    A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
+    ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
+    bone's spread over the references) longer or shorter than the final estimate is reported
+    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
+    every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
+    round).
+    """
+    frames = sorted(int(f) for f in annotations)
+    for f in frames:
+        if not isinstance(annotations[f], FrameAnnotation):
+            raise AnnotationError(f"frame {f}: expected a FrameAnnotation")
+        annotations[f].validate(skeleton.num_joints, where=f"frame {f}")
+    if pin_bone_lengths and bone_lengths_mm is None:
+        raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
+    depths = {f: np.asarray(depth_of(f)) for f in frames}
+    anns = {f: annotations[f] for f in frames}
+    if bone_lengths_mm is not None:
+        bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
+    elif frames:
+        bones = initial_bone_lengths(anns, depths, camera, skeleton)
+    else:
+        bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+    history = [bones.copy()]
+    sk = skeleton
+    surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
+    kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
+    inits: dict[int, np.ndarray] = {}
+    soft_lengths = None
+    votes = (
+        np.stack([anns[f].annotated for f in frames])
+        if frames
+        else np.zeros((0, sk.num_joints), dtype=bool)
+    )
+    bmask = votes[:, sk.bones[:, 0]] & votes[:, sk.bones[:, 1]]  # (F, B) both ends annotated
+    voted = bmask.sum(axis=0) >= min_bone_votes
+    tmpl = (
+        np.asarray(sk.template_bone_lengths_mm, dtype=np.float64)
+        if sk.template_bone_lengths_mm is not None
+        else None
+    )
+    calibrations = 0
+    if not pin_bone_lengths and len(frames) > 0:
+        for _ in range(max_rounds + max_calibrations):
+            jobs = [
+                (
+                    anns[f],
+                    depths[f],
+                    camera,
+                    sk,
+                    bones,
+                    dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
+                )
+                for f in frames
+            ]
+            res = _run_all(jobs, workers, progress)
+            poses = np.stack([r.joints_mm for r in res])
+            soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
+            new = bones.copy()
+            if np.any(voted):
+                new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+                if tmpl is not None and not np.all(voted):
+                    # bones without enough evidence: template times the global scale
+                    scale = float(np.median(new[voted] / tmpl[voted]))
+                    new[~voted] = tmpl[~voted] * scale
+            change = float(np.max(np.abs(new - bones)))
+            bones = new
+            history.append(bones.copy())
+            inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
+            if change >= bone_tol_mm:
+                continue
+            # bones converged: calibrate the surface offsets only now (while the bones are still
+            # off, the residuals measure the bones' error, and offsets would absorb it)
+            if not calibrate_surface or calibrations >= max_calibrations:
+                break
+            corr = surface_correction(anns, dict(zip(frames, res, strict=True)), sk, surface_depth)
+            calibrations += 1
+            if float(np.max(np.abs(corr))) < offset_tol_mm:
+                break
+            offsets = np.asarray(sk.surface_offsets_mm) + corr
+            sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
+    jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
+    res = _run_all(jobs, workers, progress)
+    if inits:
+        # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
+        # from the cold start and keep the better objective (one more lift per reference; see
+        # benchmarks/results/design_measurements.md)
+        cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
+        cold = _run_all(cold_jobs, workers, None)
+        res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+    if soft_lengths is not None:
+        dev = np.abs(soft_lengths - bones)
+        rel = dev / bones
+        # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
+        # the references (noisy clicks spread every bone; only an outlier frame is stretched)
+        with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
+            spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
+            wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
+        for i, r in enumerate(res):
+            if np.any(wants[i]):
+                b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
+                r.stretched = True
+                r.converged = False
+                r.confidence = r.confidence * 0.5
+                r.message = (
+                    f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
+                    f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
+                    f"frame against {bones[b]:.1f} mm estimated; {r.message}"
+                )
+    results = dict(zip(frames, res, strict=True))
+    n_stretched = sum(r.stretched for r in res)
+    if n_stretched:
+        warnings.warn(
+            f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
+            "lengths (LiftResult.stretched); check their 2D annotations",
+            stacklevel=2,
+        )
+    return LiftSet(
+        joints_mm={f: r.joints_mm for f, r in results.items()},
+        confidence={f: r.confidence for f, r in results.items()},
+        bone_lengths_mm=bones,
+        results=results,
+        bone_history_mm=history,
+        surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
+        bone_votes=bmask.sum(axis=0),
+    )

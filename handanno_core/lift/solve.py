@@ -1,0 +1,321 @@
+"""Lift one frame: :func:`lift_frame` (hard solve, elastic fallback, confidence)."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import partial
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ..annotation import AnnotationError, FrameAnnotation
+from ..blas import single_blas_thread
+from ..camera import CameraIntrinsics
+from ..skeleton import Skeleton
+from .initial import initial_pose
+from .problem import _Problem
+
+
+# ---------------------------------------------------------------------------------------- results
+@dataclass
+class LiftResult:
+    """One lifted frame.
+
+    joints_mm: ``(J, 3)`` camera frame, mm. confidence: ``(J,)`` in [0, 1] (low for unannotated
+    joints and joints without valid depth). reprojection_px: ``(J,)`` distance between the lifted
+    joint's projection and its 2D annotation (NaN where there is no 2D). observed_depth_mm: ``(J,)``
+    depth ``D_k`` used for the joint's interval (NaN where none). bone_error_mm: largest
+    ``| |X_c - X_p| - d_b |`` at the solution. elastic: the frame was solved with L1-penalised
+    interval violations and some depth interval is violated by more than 0.5 mm (its observed
+    depth is probably wrong: a 2D point off the finger); slack_joints: those joints ``(S,)``.
+    stretched: set by :func:`lift_references` when the frame's clicks only fit with some bone
+    more than 20 % off the estimated length (then ``converged`` is False).
+    """
+
+    joints_mm: np.ndarray
+    confidence: np.ndarray
+    converged: bool
+    iterations: int
+    reprojection_px: np.ndarray
+    observed_depth_mm: np.ndarray
+    bone_error_mm: float
+    elastic: bool = False
+    slack_joints: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    message: str = ""
+    time_s: float = 0.0
+    objective: float = float("nan")
+    stretched: bool = False
+
+
+# ---------------------------------------------------------------------------------------- lift
+def _check_inputs(annotation: FrameAnnotation, skeleton: Skeleton, bone_lengths_mm) -> np.ndarray:
+    if not isinstance(annotation, FrameAnnotation):
+        raise AnnotationError(f"expected a FrameAnnotation, got {type(annotation).__name__}")
+    annotation.validate(skeleton.num_joints)
+    d = np.asarray(bone_lengths_mm, dtype=np.float64)
+    if d.shape != (len(skeleton.bones),) or not np.all(np.isfinite(d)) or np.any(d <= 0):
+        raise ValueError(
+            f"bone_lengths_mm must be {len(skeleton.bones)} positive finite lengths, got {d!r}"
+        )
+    return d
+
+
+#: scipy SLSQP's exit status "Iteration limit reached"
+_SLSQP_ITERATION_LIMIT = 9
+#: constraints (bones, rows) met to this (mm) count as met; slacks above it as used
+_FEASIBLE_MM = 0.5
+#: weight (px^2/mm^2) pulling unannotated joints towards their start (keeps them defined)
+_W_FREE = 1e-3
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """How the app's live re-lift starts a solve (none of it is a parameter of the problem).
+
+    ``init_mm``: ``(J, 3)`` mm start pose (NaN rows: the annotation's own start), e.g. the previous
+    solution while a joint is dragged. ``start_elastic``: solve the elastic problem first instead of
+    only after the hard one failed (a frame whose previous lift needed slack: the hard solve would
+    spend its iterations failing again); an elastic solution whose slacks are all zero meets every
+    hard constraint and is reported as such (``elastic=False``). ``elastic_joints``: with
+    ``start_elastic``, give slacks only to these joints (the previous lift's ``slack_joints``); if
+    the other intervals cannot be met either, every joint gets one."""
+
+    init_mm: np.ndarray | None = None
+    start_elastic: bool = False
+    elastic_joints: np.ndarray | None = None
+
+
+def lift_frame(
+    annotation: FrameAnnotation,
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    *,
+    eps_mm: float = 15.0,
+    angle_limits: bool = True,
+    init_mm: np.ndarray | None = None,
+    order_margin_mm: float = 10.0,
+    w_3d: float = 1.0,
+    w_surface: float = 0.1,
+    surface_depth_mm: float = 3.0,
+    w_flat: float = 0.01,
+    w_angle: float = 1.0,
+    w_angle_inner: float = 0.0,
+    depth_near_px: int = 1,
+    soft_bones: float | None = None,
+    right_hand: bool = True,
+    elastic_weight: float = 2.0,
+    start_elastic: bool = False,
+    elastic_joints: np.ndarray | None = None,
+    max_iter: int = 200,
+    tol: float = 1e-6,
+    warm: WarmStart | None = None,
+) -> LiftResult:
+    """Lift one annotated frame to 3D (see the module docstring for the problem).
+
+    annotation: the frame's :class:`FrameAnnotation` (J joints; validated, AnnotationError if bad).
+    depth: ``(H, W)`` mm, 0 = invalid. bone_lengths_mm: ``(B,)`` mm, bone ``b`` = ``skeleton.bones[b]``.
+    eps_mm: width of a visible joint's interval behind ``D + o``. angle_limits: thesis Eq. 5 limits.
+    order_margin_mm: depth-order margin. w_3d: weight (px^2 per mm^2) of joints placed in 3D.
+    w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
+    w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
+    w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
+    soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
+    (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
+    ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
+    Returns a :class:`LiftResult`.
+    """
+    t0 = time.perf_counter()
+    d = _check_inputs(annotation, skeleton, bone_lengths_mm)
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
+    x0_pose, d_obs = initial_pose(
+        annotation, depth, camera, skeleton, d, depth_near_px=depth_near_px
+    )
+    if warm is None:
+        warm = WarmStart(init_mm, start_elastic, elastic_joints)
+    elif init_mm is not None or start_elastic or elastic_joints is not None:
+        raise ValueError("pass the warm start either as warm= or as its fields, not both")
+    if warm.init_mm is not None:
+        init = np.asarray(warm.init_mm, dtype=np.float64)
+        if init.shape != x0_pose.shape:
+            raise ValueError(f"init_mm must be {x0_pose.shape}, got {init.shape}")
+        x0_pose = np.where(np.isfinite(init), init, x0_pose)
+    base = _Problem(
+        annotation,
+        d_obs,
+        camera,
+        skeleton,
+        d,
+        x0_pose,
+        eps_mm=eps_mm,
+        angle_limits=angle_limits,
+        order_margin_mm=order_margin_mm,
+        w_3d=w_3d,
+        w_surface=w_surface,
+        surface_depth_mm=surface_depth_mm,
+        w_flat=w_flat,
+        w_angle=w_angle,
+        w_angle_inner=w_angle_inner,
+        w_free=_W_FREE,
+        soft_bones=soft_bones,
+        right_hand=right_hand,
+    )
+    hard_bones = soft_bones is None
+    # start inside the depth bounds
+    z0 = np.clip(x0_pose[:, 2], base.z_lo, base.z_hi)
+    solve = partial(_solve_from, base, x0_pose, z0, hard_bones, max_iter, tol)
+    res, prob = (None, base) if warm.start_elastic else solve()
+    slack_joints = np.zeros(0, dtype=np.int64)
+    if res is None or not (
+        _acceptable(res, prob, hard_bones)
+        # a feasible iterate that only ran out of iterations is kept: elastic mode is for
+        # infeasibility, and re-solving would spend as many iterations again
+        or (res.status == _SLSQP_ITERATION_LIMIT and _feasible(res, prob, hard_bones))
+    ):
+        # infeasible or failed: the observed depth under some joint is probably wrong (2D on
+        # the wrong surface). Re-solve in elastic mode from the original start.
+        res2 = None
+        if warm.start_elastic and warm.elastic_joints is not None and len(warm.elastic_joints):
+            res2, prob2 = solve(elastic=elastic_weight, joints=warm.elastic_joints)
+            if not _feasible(res2, prob2, hard_bones):
+                res2 = None  # another interval cannot be met either: relax them all
+        if res2 is None:
+            res2, prob2 = solve(elastic=elastic_weight)
+        if np.all(np.isfinite(res2.x)):
+            res, prob = res2, prob2
+            slack_joints = prob.el_joints[prob.slacks_mm(res.x) > _FEASIBLE_MM]
+        elif res is None:
+            res, prob = solve()
+    ok = _acceptable(res, prob, soft_bones is None)  # constraints really hold (SLSQP can claim
+    # success in elastic mode with violated angle rows; report that as not converged)
+    X = prob.pose(res.x)
+    proj = camera.project(X)
+    reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
+    bone_err = float(np.max(np.abs(skeleton.bone_lengths(X) - d)))
+    conf = _confidence(annotation, d_obs, reproj, ok)
+    return LiftResult(
+        joints_mm=X,
+        confidence=conf,
+        converged=ok,
+        iterations=int(res.nit),
+        reprojection_px=reproj,
+        observed_depth_mm=np.where(prob.has2d, d_obs, np.nan),
+        bone_error_mm=bone_err,
+        elastic=len(slack_joints) > 0,
+        slack_joints=slack_joints,
+        message=str(res.message),
+        time_s=time.perf_counter() - t0,
+        objective=float(res.fun),
+    )
+
+
+def _solve_from(
+    base: _Problem,
+    x0_pose: np.ndarray,
+    z0: np.ndarray,
+    hard_bones: bool,
+    max_iter: int,
+    tol: float,
+    elastic: float | None = None,
+    joints: np.ndarray | None = None,
+):
+    """Solve ``base`` from ``x0_pose`` (joints without a slack moved inside their interval,
+    ``z0``): with hard depth intervals, or in elastic mode (slack weight ``elastic``) with slacks
+    on the intervals of ``joints`` (all when None). Returns ``(scipy result, problem solved)``."""
+    if elastic is None:
+        prob = base.with_start(x0_pose, z0)
+    else:
+        prob = base.with_start(x0_pose, z0, elastic=True, weight=elastic, joints=joints)
+    return _solve(prob, hard_bones, max_iter, tol), prob
+
+
+def _solve(prob: _Problem, hard_bones: bool, max_iter: int, tol: float):
+    constraints = []
+    if hard_bones:
+        constraints.append({"type": "eq", "fun": prob.eq, "jac": prob.eq_jac})
+    if prob.num_ineq():
+        constraints.append({"type": "ineq", "fun": prob.ineq, "jac": prob.ineq_jac})
+    with warnings.catch_warnings(), single_blas_thread():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return minimize(
+            prob.objective,
+            np.zeros(prob.n_var),
+            jac=True,
+            method="SLSQP",
+            bounds=prob.bounds(),
+            constraints=constraints,
+            options={"maxiter": max_iter, "ftol": tol},
+            callback=None if prob.elastic else _StallGuard(prob, hard_bones),
+        )
+
+
+class _StallGuard:
+    """SLSQP callback that stops a hard solve whose constraint violation is stuck.
+
+    On an infeasible frame SLSQP's linearised subproblems are inconsistent and the iterate stops
+    moving: the violation stays at its first value until the iteration limit, time wasted before
+    the elastic re-solve, while feasible solves reduce it below 5 mm within a few iterations
+    (figures: ``benchmarks/results/design_measurements.md``). A violation above ``min_mm`` that has not
+    dropped by 1 % over ``window`` iterations ends the solve (scipy's StopIteration protocol).
+    """
+
+    def __init__(self, prob: _Problem, hard_bones: bool, window: int = 4, min_mm: float = 5.0):
+        self.prob, self.hard_bones = prob, hard_bones
+        self.window, self.min_mm = window, min_mm
+        self.history: list[float] = []
+
+    def __call__(self, intermediate_result) -> None:
+        v = _violation_mm(self.prob, intermediate_result.x, self.hard_bones)
+        self.history.append(v)
+        if len(self.history) > self.window and v > self.min_mm:
+            before = self.history[-1 - self.window]
+            if before - v < 0.01 * before:
+                raise StopIteration
+
+
+def _violation_mm(prob: _Problem, x: np.ndarray, hard_bones: bool) -> float:
+    """Largest violation (mm) of the bone equalities and inequality rows at ``x`` (inf if NaN)."""
+    if not np.all(np.isfinite(x)):
+        return float("inf")
+    # eq/ineq are cached per x: the SLSQP callback and the acceptance test reuse the solver's values
+    v = float(np.max(np.abs(prob.eq(x)))) if hard_bones else 0.0
+    if prob.num_ineq():
+        v = max(v, -float(np.min(prob.ineq(x))))
+    return v
+
+
+def _feasible(res, prob: _Problem, hard_bones: bool) -> bool:
+    """Bones and inequality rows hold to 0.5 mm at ``res.x`` (bounds hold by construction)."""
+    return _violation_mm(prob, res.x, hard_bones) <= _FEASIBLE_MM
+
+
+def _acceptable(res, prob: _Problem, hard_bones: bool) -> bool:
+    """Feasible and SLSQP reports convergence."""
+    return _feasible(res, prob, hard_bones) and bool(res.success)
+
+
+def _confidence(
+    ann: FrameAnnotation, d_obs: np.ndarray, reproj: np.ndarray, converged: bool
+) -> np.ndarray:
+    """Heuristic per-joint confidence in [0, 1].
+
+    1.0 for a visible joint with 2D and valid depth, 0.8 if occluded, 0.5 with 2D but no valid
+    depth, 0.9 for a joint placed in 3D, 0.2 for an unannotated joint; times
+    ``exp(-(reprojection / 5 px)^2)`` and 0.5 when SLSQP did not converge.
+    """
+    has2d, has3d = ann.has_2d, ann.has_3d
+    c = np.full(len(has2d), 0.2)
+    c[has3d] = 0.9
+    c[has2d & np.isfinite(d_obs) & ann.visible] = 1.0
+    c[has2d & np.isfinite(d_obs) & ~ann.visible] = 0.8
+    c[has2d & ~np.isfinite(d_obs)] = 0.5
+    r = np.where(np.isfinite(reproj), reproj, 0.0)
+    c = c * np.exp(-((r / 5.0) ** 2))
+    if not converged:
+        c *= 0.5
+    return c

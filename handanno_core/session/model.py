@@ -1,0 +1,80 @@
+"""The session file's data model (pydantic): dataset, camera, settings, selection, annotations, review
+state; the session's file names and errors.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from ..camera import CameraIntrinsics
+from ..crops import DEFAULT_CROP
+
+SESSION_FILE = "session.json"
+JOURNAL_FILE = "journal.jsonl"
+CROPS_FILE = "crops.npy"
+CROPS_META_FILE = "crops_meta.npz"
+LOCK_FILE = "session.lock"
+
+
+class SessionError(RuntimeError):
+    """A session folder is missing, corrupt or cannot be written. The message names the file."""
+
+
+class SessionLockedError(SessionError):
+    """Another process (named in the message by PID and command) is writing this session."""
+
+
+# ---------------------------------------------------------------------------------------------
+# The persistent model
+
+
+class DatasetSpec(BaseModel):
+    path: str
+    format: str
+    intrinsics: CameraIntrinsics | None = None
+    depth_scale_mm: float | None = None
+
+
+class Settings(BaseModel):
+    cube_mm: float = DEFAULT_CROP.cube_mm
+    crop_size: int = DEFAULT_CROP.size
+    descriptor: str = "downsampled"
+    eps_mm: float = 15.0
+    angle_limits: bool = True
+    aligner: str = "dis"
+
+
+class SelectionModel(BaseModel):
+    strategy: str | None = None
+    reference_frames: list[int] = Field(default_factory=list)
+    parent: list[int] = Field(default_factory=list)
+    threshold: float | None = None
+    ref_fraction: float | None = None
+    #: frames the selection could not use (unreadable, or no hand pixels): never references
+    skipped_frames: list[int] = Field(default_factory=list)
+
+
+class SessionModel(BaseModel):
+    version: int = 1
+    name: str
+    dataset: DatasetSpec
+    frames: int
+    camera: CameraIntrinsics
+    skeleton: str = "msra21"
+    sequence_breaks: list[int] = Field(default_factory=list)
+    settings: Settings = Field(default_factory=Settings)
+    selection: SelectionModel = Field(default_factory=SelectionModel)
+    #: frame index (as a string key) -> FrameAnnotation.to_json()
+    annotations: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    bone_lengths_mm: list[float] | None = None
+    bones_pinned: bool = False
+    #: frame -> "accepted" | "flagged"
+    review: dict[str, str] = Field(default_factory=dict)
+    #: frames that became references through review corrections (annotation cost beyond the selection)
+    corrections: list[int] = Field(default_factory=list)
+    journal_seq: int = 0
+    #: random id of this session, part of every journal entry's checksum (so an entry copied from
+    #: another session's journal is refused); empty in sessions made before journal checksums.
+    session_id: str = ""

@@ -333,6 +333,9 @@ class Session:
             target = stack[-1]
             return self._commit(parse_command(target.command), client, "redo", target.seq)
 
+    def can_undo(self, client: str = "cli") -> bool:
+        return bool(self._undo.get(client))
+
     def can_redo(self, client: str = "cli") -> bool:
         return bool(self._redo.get(client))
 

@@ -100,7 +100,6 @@ import dataclasses
 import time
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -109,6 +108,7 @@ from scipy.optimize import minimize
 from .annotation import AnnotationError, FrameAnnotation
 from .blas import single_blas_thread
 from .camera import CameraIntrinsics
+from .parallel import Runner
 from .skeleton import Skeleton
 
 __all__ = [
@@ -1076,25 +1076,6 @@ def _lift_job(args: tuple) -> LiftResult:
     return lift_frame(ann, depth, camera, skeleton, bones, **kwargs)
 
 
-def _run_all(jobs: list[tuple], workers: int, progress, stage: str) -> list[LiftResult]:
-    out: list[LiftResult] = []
-    total = len(jobs)
-    if workers > 1 and total > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for i, r in enumerate(
-                ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))
-            ):
-                out.append(r)
-                if progress is not None:
-                    progress(i + 1, total)
-    else:
-        for i, job in enumerate(jobs):
-            out.append(_lift_job(job))
-            if progress is not None:
-                progress(i + 1, total)
-    return out
-
-
 def _better(a: LiftResult, b: LiftResult) -> LiftResult:
     """The converged result with the lower objective (``a`` on ties)."""
     if a.converged != b.converged:
@@ -1191,6 +1172,7 @@ def lift_references(
     eps_mm: float = 15.0,
     angle_limits: bool = True,
     workers: int = 1,
+    scheduler=None,
     progress: Callable[[int, int], None] | None = None,
     max_rounds: int = 10,
     bone_tol_mm: float = 0.1,
@@ -1218,9 +1200,12 @@ def lift_references(
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
     ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
     bone's spread over the references) longer or shorter than the final estimate is reported
-    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
-    every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
-    round).
+    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it.
+    workers > 1 lifts frames in processes, ``scheduler`` (``"tcp://HOST:PORT"``) on a Dask
+    cluster (:class:`handanno_core.parallel.Runner`: each round is a map over the references, the
+    bone estimate a reduction here; depth maps are sent once). progress(done, total) is called
+    after every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one
+    entry per round).
     """
     frames = sorted(int(f) for f in annotations)
     for f in frames:
@@ -1231,6 +1216,22 @@ def lift_references(
         raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
     depths = {f: np.asarray(depth_of(f)) for f in frames}
     anns = {f: annotations[f] for f in frames}
+    with Runner(workers, scheduler) as runner:
+        return _lift_rounds(
+            anns, depths, {f: runner.share(depths[f]) for f in frames}, runner, camera, skeleton,
+            bone_lengths_mm, pin_bone_lengths, eps_mm, angle_limits, progress, max_rounds,
+            bone_tol_mm, soft_bone_weight, min_bone_votes, calibrate_surface, offset_tol_mm,
+            max_calibrations, stretch_tolerance, lift_kwargs,
+        )  # fmt: skip
+
+
+def _lift_rounds(
+    anns, depths, shared, runner, camera, skeleton, bone_lengths_mm, pin_bone_lengths, eps_mm,
+    angle_limits, progress, max_rounds, bone_tol_mm, soft_bone_weight, min_bone_votes,
+    calibrate_surface, offset_tol_mm, max_calibrations, stretch_tolerance, lift_kwargs,
+) -> LiftSet:  # fmt: skip
+    """The body of :func:`lift_references` (``shared``: the depth maps' handles on the runner)."""
+    frames = sorted(anns)
     if bone_lengths_mm is not None:
         bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
     elif frames:
@@ -1261,7 +1262,7 @@ def lift_references(
             jobs = [
                 (
                     anns[f],
-                    depths[f],
+                    shared[f],
                     camera,
                     sk,
                     bones,
@@ -1269,7 +1270,7 @@ def lift_references(
                 )
                 for f in frames
             ]
-            res = _run_all(jobs, workers, progress, "bones")
+            res = runner.map(_lift_job, jobs, progress)
             poses = np.stack([r.joints_mm for r in res])
             soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
             new = bones.copy()
@@ -1295,14 +1296,14 @@ def lift_references(
                 break
             offsets = np.asarray(sk.surface_offsets_mm) + corr
             sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
-    jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
-    res = _run_all(jobs, workers, progress, "final")
+    jobs = [(anns[f], shared[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
+    res = runner.map(_lift_job, jobs, progress)
     if inits:
         # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
         # from the cold start and keep the better objective (measured: worst joint 20 -> 10 mm
         # on the synthetic sequence, at the cost of one more lift per reference)
         cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
-        cold = _run_all(cold_jobs, workers, None, "final-cold")
+        cold = runner.map(_lift_job, cold_jobs)
         res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
     if soft_lengths is not None:
         dev = np.abs(soft_lengths - bones)

@@ -200,7 +200,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="solve in pieces: each sequence between breaks, long ones in windows of this many "
         "frames (memory bounded by the window; resumable after a kill)",
     )
-    p.add_argument("--overlap", type=int, help="frames shared by consecutive windows (default 48)")
+    p.add_argument(
+        "--overlap",
+        type=int,
+        help="frames shared by consecutive windows (default: 48, at most a quarter of the window)",
+    )
     p.add_argument("--workers", type=int, default=1, help="local processes (pieces in parallel)")
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
     p.add_argument(

@@ -596,7 +596,9 @@ def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap,
         cube_mm=session.model.settings.cube_mm,
         hand_model=use_model,
         window=window or DEFAULT_WINDOW,
-        overlap=DEFAULT_OVERLAP if overlap is None else overlap,
+        overlap=min(DEFAULT_OVERLAP, (window or DEFAULT_WINDOW) // 4)
+        if overlap is None
+        else overlap,
         workers=workers,
         scheduler=scheduler,
         checkpoint_dir=folder,

@@ -212,3 +212,18 @@ def test_local_processes_and_a_dask_cluster_give_identical_lift_propagation_refi
         np.testing.assert_array_equal(other[1].joints_mm, here[1].joints_mm)
         np.testing.assert_array_equal(other[1].confidence, here[1].confidence)
         np.testing.assert_array_equal(other[2].joints_mm, here[2].joints_mm)
+
+
+def test_hand_model_is_personalized_once_and_given_to_every_piece(scene, monkeypatch):
+    from handanno_core import handmodel
+
+    made = []
+    personalize = handmodel.personalize
+    monkeypatch.setattr(
+        handmodel, "personalize", lambda *a, **k: made.append(1) or personalize(*a, **k)
+    )
+    prob = dict(scene["problem"], iterations=2)
+    res = refine_pieces(scene["init"], window=36, overlap=12, hand_model=True, **prob)
+    assert made == [1] and len(res.pieces) == 4  # one model for all pieces
+    assert np.isfinite(res.joints_mm).all()
+    # (frames whose model energy rose keep their initialization, bones and all, as in refine)

@@ -24,7 +24,7 @@ spread of the per-folder means.
 
     nice .venv/bin/python benchmarks/bench_scale.py [--folders 153] [--frames-per-folder 500]
         [--ref-fraction 0.05] [--workers 2] [--window 1024] [--dask] [--compare-whole]
-        [--data DIR] [--work DIR] [--json benchmarks/results/scale.json]
+        [--hands subject|folder] [--data DIR] [--work DIR] [--json benchmarks/results/scale.json]
 
 The dataset is kept in ``--data`` (reused when complete). Writes the JSON given by ``--json``.
 """
@@ -69,16 +69,31 @@ GESTURES = [
 ]
 
 
-def generate(data: Path, folders: int, frames: int, workers: int) -> float:
-    """Render the dataset (folders already complete are kept); returns seconds spent."""
-    from handanno_core.synth import generate_sequence
+def generate(data: Path, folders: int, frames: int, workers: int, hands: str) -> float:
+    """Render the dataset (folders already complete are kept); returns seconds spent.
+
+    Folder ``k`` is subject ``P{k // 17}``, gesture ``k % 17``, motion seed ``1000 + k``. Its hand:
+    ``hands="subject"`` one hand per subject (``make_hand_model(subject)``, as in MSRA where the
+    17 gestures of a subject share a hand), ``"folder"`` the seed's own hand (every folder a
+    different hand, as ``generate_sequence`` does)."""
+    from handanno_core import synth
 
     t0 = time.perf_counter()
     for k in range(folders):
-        out = data / f"P{k // len(GESTURES)}" / GESTURES[k % len(GESTURES)]
+        subject, gesture = divmod(k, len(GESTURES))
+        out = data / f"P{subject}" / GESTURES[gesture]
         if (out / "joint.txt").exists() and (out / f"{frames - 1:06d}_depth.bin").exists():
             continue
-        generate_sequence(out, frames=frames, seed=1000 + k, progress=False, workers=workers)
+        seed = 1000 + k
+        if hands == "folder":
+            synth.generate_sequence(out, frames=frames, seed=seed, progress=False, workers=workers)
+            continue
+        motion = synth.synthesize_motion(frames, seed, model=synth.make_hand_model(subject))
+        synth.write_sequence(
+            out, motion.model, motion.joints_mm, motion.rotation, seed=seed,
+            forearm=synth.forearm_directions(motion.joints_mm, motion.rotation, "hand", seed),
+            info=synth.describe_motion(motion, seed), progress=False, workers=workers,
+        )  # fmt: skip
     return time.perf_counter() - t0
 
 
@@ -200,6 +215,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--window", type=int, default=1024)
     ap.add_argument("--small-window", type=int, default=200)
+    ap.add_argument("--hands", choices=["subject", "folder"], default="subject")
     ap.add_argument("--dask", action="store_true")
     ap.add_argument("--compare-whole", action="store_true")
     ap.add_argument("--data", type=Path, default=Path("/tmp/handanno-scale-data"))
@@ -208,7 +224,7 @@ def main() -> None:
     a = ap.parse_args()
 
     frames = a.folders * a.frames_per_folder
-    gen_s = generate(a.data, a.folders, a.frames_per_folder, a.workers)
+    gen_s = generate(a.data, a.folders, a.frames_per_folder, a.workers, a.hands)
     if a.work.exists():
         shutil.rmtree(a.work)
     a.work.mkdir(parents=True)
@@ -218,6 +234,7 @@ def main() -> None:
     s = sessions / "local"
     doc: dict = {
         "dataset": f"{a.folders} synthetic MSRA-layout folders x {a.frames_per_folder} frames",
+        "hands": a.hands,
         "frames": frames,
         "ref_fraction": a.ref_fraction,
         "workers": a.workers,

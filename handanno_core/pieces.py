@@ -38,6 +38,7 @@ uninterrupted one bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import tempfile
@@ -183,13 +184,35 @@ def _solve(task: _Task) -> tuple[int, np.ndarray, int, bool, float]:
 
 
 def _digest(*parts) -> str:
+    """Hash of arrays (exact bytes), dataclasses, containers and scalars (full-precision repr),
+    the same in every process (no pickling: a set's pickle depends on the string hash seed)."""
     h = hashlib.blake2b(digest_size=16)
-    for p in parts:
-        if isinstance(p, np.ndarray):
-            h.update(str((p.dtype, p.shape)).encode())
-            h.update(np.ascontiguousarray(p).tobytes())
+
+    def feed(obj) -> None:
+        if isinstance(obj, np.ndarray):
+            h.update(f"a{obj.dtype}{obj.shape}".encode())
+            h.update(np.ascontiguousarray(obj).tobytes())
+        elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            h.update(type(obj).__name__.encode())
+            for f in dataclasses.fields(obj):
+                h.update(f.name.encode())
+                feed(getattr(obj, f.name))
+        elif isinstance(obj, dict):
+            h.update(b"{")
+            for k in sorted(obj, key=repr):
+                feed(k)
+                feed(obj[k])
+        elif isinstance(obj, list | tuple):
+            h.update(b"(")
+            for v in obj:
+                feed(v)
+        elif isinstance(obj, set | frozenset):
+            h.update(repr(sorted(obj, key=repr)).encode())
         else:
-            h.update(repr(p).encode())
+            h.update(repr(obj).encode())
+
+    for p in parts:
+        feed(p)
     return h.hexdigest()
 
 
@@ -198,10 +221,10 @@ def _task_key(task: _Task, extra_key: str) -> str:
         (f, np.asarray(a.uv_px, dtype=np.float64), np.asarray(a.visible))
         for f, a in sorted(task.annotations.items())
     ]
-    kw = {k: v for k, v in task.kwargs.items() if k not in ("camera", "skeleton")}
+    kw = task.kwargs
     return _digest(
         task.piece, task.frames, task.init, task.boxes, task.centres, task.refs, task.closest,
-        task.fixed, anns, kw, task.kwargs["camera"], task.kwargs["skeleton"].name, extra_key,
+        task.fixed, anns, kw, extra_key,
     )  # fmt: skip
 
 

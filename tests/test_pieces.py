@@ -115,8 +115,9 @@ def test_checkpoints_resume_exactly_and_stale_ones_are_not_used(scene, tmp_path)
     assert any("resuming: 2 of 4 pieces done" in m and "from piece 2" in m for m in lines), lines
     assert any("unreadable checkpoint" in m for m in lines)
     np.testing.assert_array_equal(again.joints_mm, first.joints_mm)
-    # other inputs: every checkpoint is stale
-    moved = refine_pieces(init + 0.5, window=36, overlap=12, checkpoint_dir=ck, **prob)
+    # other inputs (here bone lengths moved by 1e-9 mm): every checkpoint is stale
+    prob["bone_lengths_mm"] = prob["bone_lengths_mm"] + 1e-9
+    moved = refine_pieces(init, window=36, overlap=12, checkpoint_dir=ck, **prob)
     assert moved.resumed == []
 
 

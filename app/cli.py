@@ -178,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("lift", "lift annotated references to 3D and estimate the bone lengths")
     session_arg(p)
     p.add_argument("--workers", type=int, default=1, help="local processes")
+    p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
 
     p = add("propagate", "propagate references to every frame")
     session_arg(p)
@@ -193,6 +194,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("refine", "global refinement of all frames")
     session_arg(p)
     p.add_argument("--model", action="store_true", help=use_model)
+    p.add_argument(
+        "--window",
+        type=int,
+        help="solve in pieces: each sequence between breaks, long ones in windows of this many "
+        "frames (memory bounded by the window; resumable after a kill)",
+    )
+    p.add_argument(
+        "--overlap",
+        type=int,
+        help="frames shared by consecutive windows (default: 48, at most a quarter of the window)",
+    )
+    p.add_argument("--workers", type=int, default=1, help="local processes (pieces in parallel)")
+    p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
+    p.add_argument(
+        "--restart", action="store_true", help="ignore the checkpoints of a killed piecewise run"
+    )
 
     p = add("export", "export the result")
     session_arg(p)
@@ -424,7 +441,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     elif cmd == "lift":
         session = _open(args, write=True)
         warn_incomplete_references(session)
-        pipeline.lift(session, workers=args.workers)
+        pipeline.lift(session, workers=args.workers, scheduler=args.scheduler)
     elif cmd == "propagate":
         session = _open(args, write=True)
         bar, update = _progress_bar("propagate")
@@ -445,7 +462,16 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         def report(iteration: int, energy: float) -> None:
             print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
 
-        result = pipeline.refine(session, progress=report, use_model=args.model)
+        result = pipeline.refine(
+            session,
+            progress=report,
+            use_model=args.model,
+            window=args.window,
+            overlap=args.overlap,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            resume=not args.restart,
+        )
         print(
             f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
         )

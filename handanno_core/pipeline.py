@@ -357,11 +357,18 @@ def annotate_from_gt(
 
 
 def lift(
-    session: Session, *, workers: int = 1, quiet: bool = False, progress: Progress = None
+    session: Session,
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    quiet: bool = False,
+    progress: Progress = None,
 ) -> dict[int, np.ndarray]:
     """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths.
 
-    ``progress(done, total)`` is called after every frame of every bone-estimation round."""
+    ``workers`` local processes or ``scheduler`` (``"tcp://HOST:PORT"``, a Dask cluster) lift the
+    references in parallel. ``progress(done, total)`` is called after every frame of every
+    bone-estimation round."""
     from .lift import lift_references
 
     sequence = session.open_sequence()
@@ -381,6 +388,7 @@ def lift(
         eps_mm=session.model.settings.eps_mm,
         angle_limits=session.model.settings.angle_limits,
         workers=workers,
+        scheduler=scheduler,
         progress=progress,
     )
     results = session.load_results()
@@ -470,6 +478,10 @@ def propagate(
     return result
 
 
+#: checkpoints of a refinement in pieces (deleted once its result is saved)
+REFINE_PIECES_DIR = "refine-pieces"
+
+
 def refine(
     session: Session,
     *,
@@ -477,24 +489,30 @@ def refine(
     save: bool = True,
     quiet: bool = False,
     use_model: bool = False,
+    window: int | None = None,
+    overlap: int | None = None,
+    workers: int = 1,
+    scheduler: str | None = None,
+    resume: bool = True,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
 
     References start from their current lifted pose (a reference made by a review correction has a
     fresh lift but an old propagated ``init_mm``), every other frame from its propagated pose.
+    With ``window`` (frames), ``workers > 1`` or ``scheduler`` the problem is solved in pieces
+    (:mod:`handanno_core.pieces`: each sequence between breaks, long ones in overlapping windows,
+    pieces in parallel; returns a ``PiecesResult``), checkpointed per piece in the session's
+    ``refine-pieces/`` folder so that a killed run resumes (``resume=False`` ignores them).
     """
+    if window is not None or workers > 1 or scheduler is not None:
+        return _refine_pieces(
+            session, quiet=quiet, save=save, use_model=use_model, window=window,
+            overlap=overlap, workers=workers, scheduler=scheduler, resume=resume,
+        )  # fmt: skip
     from .refine import refine as run_refine
 
-    crops, centres, boxes = ensure_crops(session, quiet=quiet)
-    results = session.load_results()
-    init = np.array(results["init_mm"], dtype=np.float64)
+    crops, centres, boxes, init = _refine_inputs(session, quiet)
     refs = session.reference_frames
-    lifted_refs = refs[np.all(np.isfinite(results["lifted_mm"][refs]), axis=(1, 2))]
-    init[lifted_refs] = results["lifted_mm"][lifted_refs]
-    if not np.isfinite(init).any():
-        raise SessionError(
-            f"{session.folder}: nothing propagated yet; run `handanno propagate` first"
-        )
     result = run_refine(
         init,
         crops=crops,
@@ -513,6 +531,63 @@ def refine(
     )
     if save:
         session.save_results(final_mm=result.joints_mm)
+    return result
+
+
+def _refine_inputs(session: Session, quiet: bool):
+    """Crops, centres, boxes and the initialization (lifted references over propagation)."""
+    crops, centres, boxes = ensure_crops(session, quiet=quiet)
+    results = session.load_results()
+    init = np.array(results["init_mm"], dtype=np.float64)
+    refs = session.reference_frames
+    lifted_refs = refs[np.all(np.isfinite(results["lifted_mm"][refs]), axis=(1, 2))]
+    init[lifted_refs] = results["lifted_mm"][lifted_refs]
+    if not np.isfinite(init).any():
+        raise SessionError(
+            f"{session.folder}: nothing propagated yet; run `handanno propagate` first"
+        )
+    return crops, centres, boxes, init
+
+
+def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap, workers,
+                   scheduler, resume):  # fmt: skip
+    """:func:`refine` in pieces (see there)."""
+    import shutil
+
+    from .pieces import DEFAULT_OVERLAP, DEFAULT_WINDOW, refine_pieces
+
+    crops, centres, boxes, init = _refine_inputs(session, quiet)
+    refs = session.reference_frames
+    folder = session.folder / REFINE_PIECES_DIR
+    if not resume and folder.exists():
+        shutil.rmtree(folder)
+    result = refine_pieces(
+        init,
+        crops=crops,
+        boxes=boxes,
+        centres_mm=centres,
+        camera=session.camera,
+        skeleton=session.skeleton,
+        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
+        reference_frames=refs,
+        reference_annotations=session.annotations(refs),
+        closest_reference=root_reference(session.parent),
+        sequence_breaks=session.model.sequence_breaks,
+        cube_mm=session.model.settings.cube_mm,
+        hand_model=use_model,
+        window=window or DEFAULT_WINDOW,
+        overlap=min(DEFAULT_OVERLAP, (window or DEFAULT_WINDOW) // 4)
+        if overlap is None
+        else overlap,
+        workers=workers,
+        scheduler=scheduler,
+        checkpoint_dir=folder,
+        checkpoint_key=str(crops_fingerprint(session.folder / CROPS_FILE)),
+        log=lambda m: _log(m, quiet),
+    )
+    if save:
+        session.save_results(final_mm=result.joints_mm)
+        shutil.rmtree(folder, ignore_errors=True)
     return result
 
 

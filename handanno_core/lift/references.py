@@ -5,13 +5,13 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..annotation import AnnotationError, FrameAnnotation
 from ..camera import CameraIntrinsics
+from ..parallel import Runner
 from ..skeleton import Skeleton
 from .initial import initial_bone_lengths
 from .solve import LiftResult, lift_frame
@@ -74,25 +74,6 @@ def _lift_job(args: tuple) -> LiftResult:
     return lift_frame(ann, depth, camera, skeleton, bones, **kwargs)
 
 
-def _run_all(jobs: list[tuple], workers: int, progress) -> list[LiftResult]:
-    out: list[LiftResult] = []
-    total = len(jobs)
-    if workers > 1 and total > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for i, r in enumerate(
-                ex.map(_lift_job, jobs, chunksize=max(1, total // (4 * workers)))
-            ):
-                out.append(r)
-                if progress is not None:
-                    progress(i + 1, total)
-    else:
-        for i, job in enumerate(jobs):
-            out.append(_lift_job(job))
-            if progress is not None:
-                progress(i + 1, total)
-    return out
-
-
 def _better(a: LiftResult, b: LiftResult) -> LiftResult:
     """The converged result with the lower objective (``a`` on ties)."""
     if a.converged != b.converged:
@@ -111,6 +92,7 @@ def lift_references(
     eps_mm: float = 15.0,
     angle_limits: bool = True,
     workers: int = 1,
+    scheduler=None,
     progress: Callable[[int, int], None] | None = None,
     max_rounds: int = 10,
     bone_tol_mm: float = 0.1,
@@ -138,8 +120,11 @@ def lift_references(
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
     ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
     bone's spread over the references) longer or shorter than the final estimate is reported
-    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it. workers > 1 lifts frames in processes. progress(done, total) is called after
-    every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
+    ``stretched`` (and not ``converged``): the template could only be fitted by stretching it.
+    workers > 1 lifts frames in processes, ``scheduler`` (``"tcp://HOST:PORT"``) on a Dask
+    cluster (:class:`handanno_core.parallel.Runner`: each round is a map over the references, the
+    bone estimate a reduction here; depth maps are sent once). progress(done, total) is called
+    after every frame of every round. Returns a :class:`LiftSet` with ``bone_history_mm`` (one entry per
     round).
     """
     frames = sorted(int(f) for f in annotations)
@@ -151,113 +136,121 @@ def lift_references(
         raise ValueError("pin_bone_lengths=True needs bone_lengths_mm")
     depths = {f: np.asarray(depth_of(f)) for f in frames}
     anns = {f: annotations[f] for f in frames}
-    if bone_lengths_mm is not None:
-        bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
-    elif frames:
-        bones = initial_bone_lengths(anns, depths, camera, skeleton)
-    else:
-        bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
-    history = [bones.copy()]
-    sk = skeleton
-    surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
-    kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
-    inits: dict[int, np.ndarray] = {}
-    soft_lengths = None
-    votes = (
-        np.stack([anns[f].annotated for f in frames])
-        if frames
-        else np.zeros((0, sk.num_joints), dtype=bool)
-    )
-    bmask = votes[:, sk.bones[:, 0]] & votes[:, sk.bones[:, 1]]  # (F, B) both ends annotated
-    voted = bmask.sum(axis=0) >= min_bone_votes
-    tmpl = (
-        np.asarray(sk.template_bone_lengths_mm, dtype=np.float64)
-        if sk.template_bone_lengths_mm is not None
-        else None
-    )
-    calibrations = 0
-    if not pin_bone_lengths and len(frames) > 0:
-        for _ in range(max_rounds + max_calibrations):
-            jobs = [
-                (
-                    anns[f],
-                    depths[f],
-                    camera,
-                    sk,
-                    bones,
-                    dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
-                )
-                for f in frames
-            ]
-            res = _run_all(jobs, workers, progress)
-            poses = np.stack([r.joints_mm for r in res])
-            soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
-            new = bones.copy()
-            if np.any(voted):
-                new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
-                if tmpl is not None and not np.all(voted):
-                    # bones without enough evidence: template times the global scale
-                    scale = float(np.median(new[voted] / tmpl[voted]))
-                    new[~voted] = tmpl[~voted] * scale
-            change = float(np.max(np.abs(new - bones)))
-            bones = new
-            history.append(bones.copy())
-            inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
-            if change >= bone_tol_mm:
-                continue
-            # bones converged: calibrate the surface offsets only now (while the bones are still
-            # off, the residuals measure the bones' error, and offsets would absorb it)
-            if not calibrate_surface or calibrations >= max_calibrations:
-                break
-            corr = surface_correction(anns, dict(zip(frames, res, strict=True)), sk, surface_depth)
-            calibrations += 1
-            if float(np.max(np.abs(corr))) < offset_tol_mm:
-                break
-            offsets = np.asarray(sk.surface_offsets_mm) + corr
-            sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
-    jobs = [(anns[f], depths[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames]
-    res = _run_all(jobs, workers, progress)
-    if inits:
-        # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
-        # from the cold start and keep the better objective (one more lift per reference; see
-        # benchmarks/results/design_measurements.md)
-        cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
-        cold = _run_all(cold_jobs, workers, None)
-        res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
-    if soft_lengths is not None:
-        dev = np.abs(soft_lengths - bones)
-        rel = dev / bones
-        # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
-        # the references (noisy clicks spread every bone; only an outlier frame is stretched)
-        with warnings.catch_warnings(), np.errstate(invalid="ignore"):
-            warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
-            spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
-            wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
-        for i, r in enumerate(res):
-            if np.any(wants[i]):
-                b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
-                r.stretched = True
-                r.converged = False
-                r.confidence = r.confidence * 0.5
-                r.message = (
-                    f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
-                    f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
-                    f"frame against {bones[b]:.1f} mm estimated; {r.message}"
-                )
-    results = dict(zip(frames, res, strict=True))
-    n_stretched = sum(r.stretched for r in res)
-    if n_stretched:
-        warnings.warn(
-            f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
-            "lengths (LiftResult.stretched); check their 2D annotations",
-            stacklevel=2,
+    with Runner(workers, scheduler) as runner:
+        shared = {f: runner.share(depths[f]) for f in frames}
+        if bone_lengths_mm is not None:
+            bones = np.asarray(bone_lengths_mm, dtype=np.float64).copy()
+        elif frames:
+            bones = initial_bone_lengths(anns, depths, camera, skeleton)
+        else:
+            bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
+        history = [bones.copy()]
+        sk = skeleton
+        surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
+        kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
+        inits: dict[int, np.ndarray] = {}
+        soft_lengths = None
+        votes = (
+            np.stack([anns[f].annotated for f in frames])
+            if frames
+            else np.zeros((0, sk.num_joints), dtype=bool)
         )
-    return LiftSet(
-        joints_mm={f: r.joints_mm for f, r in results.items()},
-        confidence={f: r.confidence for f, r in results.items()},
-        bone_lengths_mm=bones,
-        results=results,
-        bone_history_mm=history,
-        surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
-        bone_votes=bmask.sum(axis=0),
-    )
+        bmask = votes[:, sk.bones[:, 0]] & votes[:, sk.bones[:, 1]]  # (F, B) both ends annotated
+        voted = bmask.sum(axis=0) >= min_bone_votes
+        tmpl = (
+            np.asarray(sk.template_bone_lengths_mm, dtype=np.float64)
+            if sk.template_bone_lengths_mm is not None
+            else None
+        )
+        calibrations = 0
+        if not pin_bone_lengths and len(frames) > 0:
+            for _ in range(max_rounds + max_calibrations):
+                jobs = [
+                    (
+                        anns[f],
+                        shared[f],
+                        camera,
+                        sk,
+                        bones,
+                        dict(kw, soft_bones=soft_bone_weight, init_mm=inits.get(f)),
+                    )
+                    for f in frames
+                ]
+                res = runner.map(_lift_job, jobs, progress)
+                poses = np.stack([r.joints_mm for r in res])
+                soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
+                new = bones.copy()
+                if np.any(voted):
+                    new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+                    if tmpl is not None and not np.all(voted):
+                        # bones without enough evidence: template times the global scale
+                        scale = float(np.median(new[voted] / tmpl[voted]))
+                        new[~voted] = tmpl[~voted] * scale
+                change = float(np.max(np.abs(new - bones)))
+                bones = new
+                history.append(bones.copy())
+                inits = {f: r.joints_mm for f, r in zip(frames, res, strict=True)}
+                if change >= bone_tol_mm:
+                    continue
+                # bones converged: calibrate the surface offsets only now (while the bones are still
+                # off, the residuals measure the bones' error, and offsets would absorb it)
+                if not calibrate_surface or calibrations >= max_calibrations:
+                    break
+                corr = surface_correction(
+                    anns, dict(zip(frames, res, strict=True)), sk, surface_depth
+                )
+                calibrations += 1
+                if float(np.max(np.abs(corr))) < offset_tol_mm:
+                    break
+                offsets = np.asarray(sk.surface_offsets_mm) + corr
+                sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
+        jobs = [
+            (anns[f], shared[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames
+        ]
+        res = runner.map(_lift_job, jobs, progress)
+        if inits:
+            # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
+            # from the cold start and keep the better objective (one more lift per reference; see
+            # benchmarks/results/design_measurements.md)
+            cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
+            cold = runner.map(_lift_job, cold_jobs)
+            res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+        if soft_lengths is not None:
+            dev = np.abs(soft_lengths - bones)
+            rel = dev / bones
+            # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
+            # the references (noisy clicks spread every bone; only an outlier frame is stretched)
+            with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+                warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
+                spread = (
+                    1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
+                )
+                wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
+            for i, r in enumerate(res):
+                if np.any(wants[i]):
+                    b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
+                    r.stretched = True
+                    r.converged = False
+                    r.confidence = r.confidence * 0.5
+                    r.message = (
+                        f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
+                        f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
+                        f"frame against {bones[b]:.1f} mm estimated; {r.message}"
+                    )
+        results = dict(zip(frames, res, strict=True))
+        n_stretched = sum(r.stretched for r in res)
+        if n_stretched:
+            warnings.warn(
+                f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
+                "lengths (LiftResult.stretched); check their 2D annotations",
+                stacklevel=2,
+            )
+        return LiftSet(
+            joints_mm={f: r.joints_mm for f, r in results.items()},
+            confidence={f: r.confidence for f, r in results.items()},
+            bone_lengths_mm=bones,
+            results=results,
+            bone_history_mm=history,
+            surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
+            bone_votes=bmask.sum(axis=0),
+        )

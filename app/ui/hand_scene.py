@@ -236,8 +236,7 @@ class HandScene:
 
     # ------------------------------------------------------------------ frame and camera
     def show_frame(self, data: FrameData, wrist_mm: np.ndarray | None, *, image: bool) -> None:
-        """Load ``data``'s cloud (cleaned by :func:`~handanno_core.cloud.clean_hand_cloud`, with
-        ``wrist_mm`` (J, 3) nothing past the wrist plane) and depth image into the nodes."""
+        """Load ``data``'s cloud (:meth:`show_cloud`) and depth image into the nodes."""
         geo = data.geometry
         with self.lock, self.client.atomic():
             self.data = data
@@ -250,17 +249,13 @@ class HandScene:
             self.image.visible = image and data.depth is not None
 
     def show_cloud(self, data: FrameData, wrist_mm: np.ndarray | None) -> None:
-        """Load ``data``'s cloud, cleaned by :func:`~handanno_core.cloud.clean_hand_cloud` (with
-        ``wrist_mm`` (J, 3): nothing past the wrist plane), into the cloud node."""
-        geo = data.geometry
-        keep, _ = clean_hand_cloud(
-            geo.cloud_mm, geo.camera, joints_mm=wrist_mm, skeleton=self.skeleton
-        )
+        """Load ``data``'s cloud (``clean_hand_cloud``: cut at the plane of ``wrist_mm`` (J, 3))."""
+        geo, sk = data.geometry, self.skeleton
+        keep, _ = clean_hand_cloud(geo.cloud_mm, geo.camera, joints_mm=wrist_mm, skeleton=sk)
         pts, rgb = geo.cloud_mm[keep], geo.cloud_rgb[keep]
         with self.lock, self.client.atomic():
-            self.cloud.points = geo.to_scene(pts if len(pts) else geo.centre_mm[None]).astype(
-                np.float32
-            )
+            shown = pts if len(pts) else geo.centre_mm[None]
+            self.cloud.points = geo.to_scene(shown).astype(np.float32)
             self.cloud.colors = rgb if len(pts) else np.zeros((1, 3), np.uint8)
             self.cloud.point_size = float(1.6 * geo.centre_mm[2] / geo.camera.fx / 1000.0)
             self.cloud.visible = len(pts) > 0

@@ -172,7 +172,6 @@ def _solve(task: _Task) -> tuple[int, np.ndarray, int, bool, float]:
             crops=task.crops.take(task.frames),
             boxes=task.boxes,
             centres_mm=task.centres,
-            depth_of=None,
             reference_frames=task.refs,
             reference_annotations=task.annotations,
             closest_reference=task.closest,

@@ -83,7 +83,7 @@ def test_plan_covers_every_frame_cuts_at_breaks_and_shares_exactly_the_overlap()
 
 def test_windowed_solve_is_close_to_the_whole_solve(scene):
     gt, init, prob = scene["gt"], scene["init"], scene["problem"]
-    whole = refine(init, depth_of=None, **prob)
+    whole = refine(init, **prob)
     pieces = refine_pieces(init, window=36, overlap=12, **prob)
     assert len(pieces.pieces) == 4  # 56 frames -> 2 windows, 40 frames -> 2 windows
     diff = np.linalg.norm(pieces.joints_mm - whole.joints_mm, axis=-1)

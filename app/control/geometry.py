@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from handanno_core.camera import CameraIntrinsics
+from handanno_core.crops import DEFAULT_CROP
 
 #: at most this many cloud points are sent per frame.
 MAX_CLOUD_POINTS = 50_000
@@ -151,7 +152,7 @@ def build_frame_geometry(
     camera: CameraIntrinsics,
     centre_mm: np.ndarray,
     *,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     max_points: int = MAX_CLOUD_POINTS,
 ) -> FrameGeometry:
     """Crop the hand's point cloud (points within a ``cube_mm`` cube around ``centre_mm``, at most

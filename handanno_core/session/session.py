@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from .. import forest
 from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
 from ..fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
@@ -491,16 +492,23 @@ class Session:
 
     # ------------------------------------------------------------------ bulk state (not journaled edits)
     def set_selection(self, selection: dict[str, Any]) -> None:
-        """Store a new reference selection (from ``handanno select``); snapshot immediately."""
+        """Store a new reference selection (from ``handanno select``); snapshot immediately.
+        ``ValueError`` unless its parents are a forest rooted exactly at its references
+        (:func:`handanno_core.forest.validate`)."""
         with self.lock:
             parent = list(map(int, selection["parent"]))
             if len(parent) != self.num_frames:
                 raise ValueError(
                     f"selection has {len(parent)} parents for {self.num_frames} frames"
                 )
+            refs = sorted(map(int, selection["reference_frames"]))
+            try:
+                forest.validate(np.asarray(parent), np.asarray(refs, dtype=np.int64))
+            except ValueError as exc:
+                raise ValueError(f"selection for {self.folder}: {exc}") from None
             self.model.selection = SelectionModel(
                 strategy=selection.get("strategy"),
-                reference_frames=sorted(map(int, selection["reference_frames"])),
+                reference_frames=refs,
                 parent=parent,
                 threshold=selection.get("threshold"),
                 ref_fraction=selection.get("ref_fraction"),

@@ -319,20 +319,20 @@ class Session:
         return entry
 
     def undo(self, client: str = "cli") -> JournalEntry | None:
-        with self.lock:
-            stack = self._undo.get(client)
-            if not stack:
-                return None
-            target = stack[-1]
-            return self._commit(parse_command(target.inverse), client, "undo", target.seq)
+        return self._step_back_or_forth(client, "undo")
 
     def redo(self, client: str = "cli") -> JournalEntry | None:
+        return self._step_back_or_forth(client, "redo")
+
+    def _step_back_or_forth(self, client: str, kind: str) -> JournalEntry | None:
+        """Undo (apply the inverse of) or redo (apply again) the top of ``client``'s stack."""
         with self.lock:
-            stack = self._redo.get(client)
+            stack = (self._undo if kind == "undo" else self._redo).get(client)
             if not stack:
                 return None
             target = stack[-1]
-            return self._commit(parse_command(target.command), client, "redo", target.seq)
+            command = target.inverse if kind == "undo" else target.command
+            return self._commit(parse_command(command), client, kind, target.seq)
 
     def can_undo(self, client: str = "cli") -> bool:
         return bool(self._undo.get(client))

@@ -50,6 +50,37 @@ from .model import (
 log = logging.getLogger(__name__)
 
 
+def _parse_entry(raw: bytes, session_id: str) -> JournalEntry:
+    """One journal line as an entry; ``ValueError``/``ValidationError`` when it is not JSON, not
+    an object, fails its checksum or is not an entry."""
+    doc = json.loads(raw)
+    if not isinstance(doc, dict):
+        raise ValueError("not a JSON object")
+    crc = doc.pop("crc", None)  # absent in journals written before checksums
+    if crc is not None and crc != entry_checksum(session_id, doc):
+        raise ValueError(
+            "checksum mismatch (a damaged line, or an entry copied from another session's journal)"
+        )
+    return JournalEntry.model_validate(doc)
+
+
+def _check_sequence(
+    where: str, entry: JournalEntry, previous: int | None, journal_seq: int
+) -> None:
+    """``SessionError`` unless ``entry`` follows ``previous`` (or, first, the snapshot's
+    ``journal_seq``)."""
+    if previous is None and entry.seq > journal_seq + 1:
+        raise SessionError(
+            f"{where}: journal starts at sequence {entry.seq} but {SESSION_FILE} holds "
+            f"edits up to {journal_seq} only (entries are missing)"
+        )
+    if previous is not None and entry.seq != previous + 1:
+        raise SessionError(
+            f"{where}: sequence {entry.seq} follows {previous} (expected {previous + 1}: "
+            "an entry is missing or repeated, e.g. by a second writer)"
+        )
+
+
 def _one_line(exc: Exception) -> str:
     if isinstance(exc, ValidationError):
         err = exc.errors()[0]
@@ -167,14 +198,15 @@ class Session:
             where = f"{path}:{number}"
             last = complete == len(data) and all(not rest.strip() for rest in lines[number:])
             try:
-                entry = self._parse_entry(raw)
+                entry = _parse_entry(raw, self.model.session_id)
             except (ValidationError, ValueError) as exc:
                 if last:
                     # A last line that never completed was never acknowledged: cut at next append.
                     good_end = start
                     break
                 raise SessionError(f"{where}: corrupt entry: {_one_line(exc)}") from exc
-            self._check_sequence(where, entry, entries[-1][1].seq if entries else None)
+            previous = entries[-1][1].seq if entries else None
+            _check_sequence(where, entry, previous, self.model.journal_seq)
             entries.append((number, entry))
         if entries and entries[-1][1].seq < self.model.journal_seq:
             raise SessionError(
@@ -194,33 +226,6 @@ class Session:
             self.model.journal_seq = max(self.model.journal_seq, entries[-1][1].seq)
         self._next_seq = self.model.journal_seq + 1
         self._journal_size, self._journal_seen = good_end, len(data)
-
-    def _parse_entry(self, raw: bytes) -> JournalEntry:
-        """One journal line as an entry; ``ValueError``/``ValidationError`` when it is not JSON, not
-        an object, fails its checksum or is not an entry."""
-        doc = json.loads(raw)
-        if not isinstance(doc, dict):
-            raise ValueError("not a JSON object")
-        crc = doc.pop("crc", None)  # absent in journals written before checksums
-        if crc is not None and crc != entry_checksum(self.model.session_id, doc):
-            raise ValueError(
-                "checksum mismatch (a damaged line, or an entry copied from another "
-                "session's journal)"
-            )
-        return JournalEntry.model_validate(doc)
-
-    def _check_sequence(self, where: str, entry: JournalEntry, previous: int | None) -> None:
-        """``SessionError`` unless ``entry`` follows ``previous`` (or, first, the snapshot)."""
-        if previous is None and entry.seq > self.model.journal_seq + 1:
-            raise SessionError(
-                f"{where}: journal starts at sequence {entry.seq} but {SESSION_FILE} holds "
-                f"edits up to {self.model.journal_seq} only (entries are missing)"
-            )
-        if previous is not None and entry.seq != previous + 1:
-            raise SessionError(
-                f"{where}: sequence {entry.seq} follows {previous} (expected {previous + 1}: "
-                "an entry is missing or repeated, e.g. by a second writer)"
-            )
 
     def _replay_entry(self, where: str, entry: JournalEntry) -> None:
         """Check an entry (and its inverse) against the session, apply it if the snapshot does

@@ -382,6 +382,49 @@ def warn_incomplete_references(session) -> list[str]:
     return lines
 
 
+def _propagate(args) -> None:
+    """``handanno propagate``."""
+    from handanno_core import pipeline
+
+    session = _open(args, write=True)
+    bar, update = _progress_bar("propagate")
+    result = pipeline.propagate(
+        session,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        aligner=args.aligner,
+        progress=update,
+        use_model=args.model,
+    )
+    bar.close()
+    done = int(result.joints_mm.shape[0] - len(result.skipped))
+    print(f"propagated {done} of {session.num_frames} frames")
+
+
+def _refine(args) -> None:
+    """``handanno refine``."""
+    from handanno_core import pipeline
+
+    session = _open(args, write=True)
+
+    def report(iteration: int, energy: float) -> None:
+        print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
+
+    result = pipeline.refine(
+        session,
+        progress=report,
+        use_model=args.model,
+        window=args.window,
+        overlap=args.overlap,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        resume=not args.restart,
+    )
+    print(
+        f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
+    )
+
+
 def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     from handanno_core import pipeline
 
@@ -443,38 +486,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         warn_incomplete_references(session)
         pipeline.lift(session, workers=args.workers, scheduler=args.scheduler)
     elif cmd == "propagate":
-        session = _open(args, write=True)
-        bar, update = _progress_bar("propagate")
-        result = pipeline.propagate(
-            session,
-            workers=args.workers,
-            scheduler=args.scheduler,
-            aligner=args.aligner,
-            progress=update,
-            use_model=args.model,
-        )
-        bar.close()
-        done = int(result.joints_mm.shape[0] - len(result.skipped))
-        print(f"propagated {done} of {session.num_frames} frames")
+        _propagate(args)
     elif cmd == "refine":
-        session = _open(args, write=True)
-
-        def report(iteration: int, energy: float) -> None:
-            print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
-
-        result = pipeline.refine(
-            session,
-            progress=report,
-            use_model=args.model,
-            window=args.window,
-            overlap=args.overlap,
-            workers=args.workers,
-            scheduler=args.scheduler,
-            resume=not args.restart,
-        )
-        print(
-            f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
-        )
+        _refine(args)
     elif cmd == "export":
         from handanno_core.export import export_session
 

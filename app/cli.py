@@ -154,6 +154,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("info", "print a session's summary")
     session_arg(p)
 
+    _add_stage_commands(add, session_arg)
+
+    p = add("export", "export the result")
+    session_arg(p)
+    p.add_argument("--format", required=True, choices=["json", "npz", "msra"], help="file format")
+    p.add_argument("-o", "--output", required=True, type=Path, help="file to write")
+
+    p = add("import", "import a handanno JSON export into a session")
+    session_arg(p)
+    p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
+
+    _add_bench_command(add)
+    return parser
+
+
+def _add_stage_commands(add, session_arg) -> None:
+    """The pipeline stages' subcommands: select, annotate-from-gt, lift, propagate, refine."""
     p = add("select", "select reference frames")
     session_arg(p)
     p.add_argument(
@@ -211,15 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--restart", action="store_true", help="ignore the checkpoints of a killed piecewise run"
     )
 
-    p = add("export", "export the result")
-    session_arg(p)
-    p.add_argument("--format", required=True, choices=["json", "npz", "msra"], help="file format")
-    p.add_argument("-o", "--output", required=True, type=Path, help="file to write")
 
-    p = add("import", "import a handanno JSON export into a session")
-    session_arg(p)
-    p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
-
+def _add_bench_command(add) -> None:
+    """``handanno bench``'s options."""
     p = add("bench", "whole pipeline with the simulated annotator; JSON report")
     p.add_argument(
         "dataset", metavar="DATASET", nargs="+", help="datasets and/or suite folders (suite.json)"
@@ -268,7 +279,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="references open pre-filled; the annotator moves only joints > 4 px off",
     )
     p.add_argument("--work-dir", type=Path, help="keep the bench sessions in this folder")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -154,6 +154,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("info", "print a session's summary")
     session_arg(p)
 
+    _add_stage_commands(add, session_arg)
+
+    p = add("export", "export the result")
+    session_arg(p)
+    p.add_argument("--format", required=True, choices=["json", "npz", "msra"], help="file format")
+    p.add_argument("-o", "--output", required=True, type=Path, help="file to write")
+
+    p = add("import", "import a handanno JSON export into a session")
+    session_arg(p)
+    p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
+
+    _add_bench_command(add)
+    return parser
+
+
+def _add_stage_commands(add, session_arg) -> None:
+    """The pipeline stages' subcommands: select, annotate-from-gt, lift, propagate, refine."""
     p = add("select", "select reference frames")
     session_arg(p)
     p.add_argument(
@@ -211,15 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--restart", action="store_true", help="ignore the checkpoints of a killed piecewise run"
     )
 
-    p = add("export", "export the result")
-    session_arg(p)
-    p.add_argument("--format", required=True, choices=["json", "npz", "msra"], help="file format")
-    p.add_argument("-o", "--output", required=True, type=Path, help="file to write")
 
-    p = add("import", "import a handanno JSON export into a session")
-    session_arg(p)
-    p.add_argument("json_file", type=Path, help="a JSON file written by `handanno export`")
-
+def _add_bench_command(add) -> None:
+    """``handanno bench``'s options."""
     p = add("bench", "whole pipeline with the simulated annotator; JSON report")
     p.add_argument(
         "dataset", metavar="DATASET", nargs="+", help="datasets and/or suite folders (suite.json)"
@@ -268,7 +279,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="references open pre-filled; the annotator moves only joints > 4 px off",
     )
     p.add_argument("--work-dir", type=Path, help="keep the bench sessions in this folder")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -382,6 +392,49 @@ def warn_incomplete_references(session) -> list[str]:
     return lines
 
 
+def _propagate(args) -> None:
+    """``handanno propagate``."""
+    from handanno_core import pipeline
+
+    session = _open(args, write=True)
+    bar, update = _progress_bar("propagate")
+    result = pipeline.propagate(
+        session,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        aligner=args.aligner,
+        progress=update,
+        use_model=args.model,
+    )
+    bar.close()
+    done = int(result.joints_mm.shape[0] - len(result.skipped))
+    print(f"propagated {done} of {session.num_frames} frames")
+
+
+def _refine(args) -> None:
+    """``handanno refine``."""
+    from handanno_core import pipeline
+
+    session = _open(args, write=True)
+
+    def report(iteration: int, energy: float) -> None:
+        print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
+
+    result = pipeline.refine(
+        session,
+        progress=report,
+        use_model=args.model,
+        window=args.window,
+        overlap=args.overlap,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        resume=not args.restart,
+    )
+    print(
+        f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
+    )
+
+
 def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     from handanno_core import pipeline
 
@@ -443,38 +496,9 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         warn_incomplete_references(session)
         pipeline.lift(session, workers=args.workers, scheduler=args.scheduler)
     elif cmd == "propagate":
-        session = _open(args, write=True)
-        bar, update = _progress_bar("propagate")
-        result = pipeline.propagate(
-            session,
-            workers=args.workers,
-            scheduler=args.scheduler,
-            aligner=args.aligner,
-            progress=update,
-            use_model=args.model,
-        )
-        bar.close()
-        done = int(result.joints_mm.shape[0] - len(result.skipped))
-        print(f"propagated {done} of {session.num_frames} frames")
+        _propagate(args)
     elif cmd == "refine":
-        session = _open(args, write=True)
-
-        def report(iteration: int, energy: float) -> None:
-            print(f"  iteration {iteration}: energy {energy:.6g}", flush=True)
-
-        result = pipeline.refine(
-            session,
-            progress=report,
-            use_model=args.model,
-            window=args.window,
-            overlap=args.overlap,
-            workers=args.workers,
-            scheduler=args.scheduler,
-            resume=not args.restart,
-        )
-        print(
-            f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"
-        )
+        _refine(args)
     elif cmd == "export":
         from handanno_core.export import export_session
 

@@ -166,6 +166,27 @@ def lift_errors(folder: Path, gt: np.ndarray) -> dict[int, float]:
     }
 
 
+def browser_run(folder: Path, refs: list[int], uv_gt: np.ndarray, sim: dict) -> tuple:
+    """Annotate ``refs`` in headless Chromium: click the ground-truth pixels ``uv_gt`` (N, J, 2),
+    V/D where the simulated annotation ``sim`` differs from the defaults. Returns the seconds per
+    frame, the browser's version and the :class:`Annotator` (its click and settle counts)."""
+    app = serve(folder, host="127.0.0.1", port=free_port(), block=False)
+    per_frame_s: dict[int, float] = {}
+    try:
+        with browser() as b:
+            browser_version = b.version
+            page = open_app(b, app.url)
+            wait_until(lambda: app.annotate_panels(), what="the view of the browser")
+            annotator = Annotator(app, page, folder)
+            annotator.settle()
+            for f in refs:
+                per_frame_s[f] = annotator.annotate(f, uv_gt[f], sim[f].visible, sim[f].depth_order)
+            annotator.settle()
+    finally:
+        app.stop()
+    return per_frame_s, browser_version, annotator
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="frames of the demo sequence")
@@ -193,24 +214,7 @@ def main() -> int:
             sim = simulate_annotations(sequence, refs)  # what annotate_from_gt gives (exact 2D)
         setup_s = time.perf_counter() - t_start
 
-        # --- the browser run ---
-        app = serve(folder, host="127.0.0.1", port=free_port(), block=False)
-        browser_version = ""
-        per_frame_s: dict[int, float] = {}
-        try:
-            with browser() as b:
-                browser_version = b.version
-                page = open_app(b, app.url)
-                wait_until(lambda: app.annotate_panels(), what="the view of the browser")
-                annotator = Annotator(app, page, folder)
-                annotator.settle()
-                for f in refs:
-                    per_frame_s[f] = annotator.annotate(
-                        f, camera.project(gt[f]), sim[f].visible, sim[f].depth_order
-                    )
-                annotator.settle()
-        finally:
-            app.stop()
+        per_frame_s, browser_version, annotator = browser_run(folder, refs, camera.project(gt), sim)
 
         entries = journal(folder)
         clicks = [e["command"] for e in entries if e["command"]["kind"] == "set_2d"]

@@ -7,11 +7,12 @@ Conventions (see DESIGN.md): millimetres in 3D, pixels in 2D, OpenCV camera fram
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .fileio import read_json_object
 
 #: Largest image side accepted (px). Depth sensors stay far below (Kinect v2 512x424, Azure Kinect
 #: 1024x1024, RealSense 1280x720); the cap bounds a frame at 4096 x 4096 x 4 B = 64 MiB of
@@ -120,12 +121,7 @@ class CameraIntrinsics(BaseModel):
     def from_json(cls, path: str | Path) -> CameraIntrinsics:
         """Read ``{"fx":..,"fy":..,"cx":..,"cy":..,"width":..,"height":..}`` (extra keys ignored)."""
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{path}: cannot read camera intrinsics: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: invalid camera intrinsics: expected a JSON object")
+        data = read_json_object(path, "camera intrinsics")
         try:
             return cls.model_validate({k: data[k] for k in data if k in cls.model_fields})
         except ValidationError as exc:

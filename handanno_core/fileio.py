@@ -7,6 +7,7 @@ a crash or a kill hits. Every file gets :data:`FILE_MODE`.
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -64,3 +65,15 @@ def _atomic_write(path: Path, write, suffix: str) -> None:
 def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """Write ``arrays`` as an ``.npz`` that replaces ``path`` only once complete and fsynced."""
     _atomic_write(Path(path), lambda f: np.savez(f, **arrays), ".npz")
+
+
+def read_json_object(path: Path, what: str) -> dict:
+    """The JSON object (a dict) in ``path``; ``ValueError`` naming the file and ``what`` it holds
+    when it cannot be read, is not JSON or is not an object."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read {what}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: invalid {what}: expected a JSON object")
+    return data

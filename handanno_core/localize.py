@@ -67,6 +67,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .camera import CameraIntrinsics
+from .cropspec import DEFAULT_CROP
 from .datasets.base import BadFrameReport, DepthSequence
 
 __all__ = [
@@ -488,7 +489,7 @@ def locate_hand_region(
     max_depth_mm: float = 1500.0,
     band_mm: float = 150.0,
     min_area_mm2: float = MIN_HAND_AREA_MM2,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     prev_centre_mm: np.ndarray | None = None,
     front_mm: float = 40.0,
     hand_length_mm: float = HAND_LENGTH_MM,
@@ -697,7 +698,7 @@ def locate_hands_with_extent(
     sequence: DepthSequence,
     report: BadFrameReport | None = None,
     smooth: bool = True,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     progress: bool = False,
     **locate_kwargs,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -746,7 +747,7 @@ def locate_hands(
     sequence: DepthSequence,
     report: BadFrameReport | None = None,
     smooth: bool = True,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     progress: bool = False,
     **locate_kwargs,
 ) -> np.ndarray:
@@ -758,7 +759,7 @@ def locate_hands(
 
 def session_cube_mm(
     half_extent_mm: np.ndarray,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     *,
     quantile: float = 99.0,
     step_mm: float = 10.0,

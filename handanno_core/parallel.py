@@ -4,7 +4,12 @@
 across calls, so repeated rounds (the lift's bone-length rounds: a map over references, then a
 reduction in the caller) pay the start-up once. ``share(obj)`` puts a large argument on the
 cluster once (``Client.scatter``) and returns a handle that jobs may carry instead of the object;
-locally it is the object itself.
+locally it is the object itself. :meth:`Runner.each` hands every result to a callback as soon as it
+is done (any order): the propagation's and the refinement pieces' back-ends.
+
+Local pools start their processes by ``fresh_processes=True``: forkserver (spawn where there is
+none), not fork, so a caller with threads (the app's background jobs) is safe and workers see
+only what they import; ``False`` forks (cheaper start, the lift's rounds).
 
 A Dask scheduler is given as ``"tcp://HOST:PORT"`` (or as a ``dask.distributed.Client``, used and
 left open). Workers must import this package (same version) and see the session's files under the
@@ -41,9 +46,10 @@ def dask_client(scheduler) -> Iterator[Any]:
 class Runner:
     """``with Runner(workers, scheduler) as r: r.map(fn, jobs)`` -> results in job order."""
 
-    def __init__(self, workers: int = 1, scheduler=None):
+    def __init__(self, workers: int = 1, scheduler=None, *, fresh_processes: bool = False):
         self.workers = max(1, int(workers))
         self.scheduler = scheduler
+        self.fresh_processes = fresh_processes
         self._pool = None
         self._client = None
         self._client_cm = None
@@ -62,11 +68,47 @@ class Runner:
             self._client_cm.__exit__(*exc)
             self._client_cm = self._client = None
 
-    def share(self, obj):
-        """A handle for ``obj`` that jobs can carry (scattered once on a cluster)."""
+    def share(self, obj, *, broadcast: bool = False):
+        """A handle for ``obj`` that jobs can carry (scattered once on a cluster, to every worker
+        with ``broadcast``)."""
         if self._client is None:
             return obj
+        if broadcast:
+            return self._client.scatter(obj, broadcast=True)
         return self._client.scatter(obj, hash=False)
+
+    def _local_pool(self):
+        if self._pool is None:
+            from concurrent.futures import ProcessPoolExecutor
+
+            context = None
+            if self.fresh_processes:
+                import multiprocessing as mp
+
+                method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+                context = mp.get_context(method)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
+        return self._pool
+
+    def each(self, fn: Callable, jobs: list, collect: Callable[[Any], None], *args) -> None:
+        """``collect(fn(*args, job))`` for every job, as each finishes (any order); ``args`` (e.g.
+        :meth:`share` handles) go to every call. In this process when ``workers == 1`` and there
+        is no scheduler."""
+        if self._client is not None:
+            from dask.distributed import as_completed
+
+            futures = [self._client.submit(fn, *args, job, pure=False) for job in jobs]
+            for fut in as_completed(futures):
+                collect(fut.result())
+        elif self.workers > 1:
+            from concurrent.futures import as_completed
+
+            pool = self._local_pool()
+            for fut in as_completed([pool.submit(fn, *args, job) for job in jobs]):
+                collect(fut.result())
+        else:
+            for job in jobs:
+                collect(fn(*args, job))
 
     def map(
         self, fn: Callable, jobs: list, progress: Callable[[int, int], None] | None = None
@@ -85,12 +127,8 @@ class Runner:
                     progress(done, total)
             return out
         if self.workers > 1 and total > 1:
-            if self._pool is None:
-                from concurrent.futures import ProcessPoolExecutor
-
-                self._pool = ProcessPoolExecutor(max_workers=self.workers)
             chunk = max(1, total // (4 * self.workers))
-            for i, r in enumerate(self._pool.map(fn, jobs, chunksize=chunk)):
+            for i, r in enumerate(self._local_pool().map(fn, jobs, chunksize=chunk)):
                 out[i] = r
                 if progress is not None:
                     progress(i + 1, total)

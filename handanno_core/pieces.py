@@ -54,6 +54,7 @@ from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP
 from .fileio import atomic_save_npz
 from .handmodel import Kinematics
+from .parallel import Runner
 from .skeleton import Skeleton
 
 __all__ = ["Piece", "PiecesResult", "plan_pieces", "refine_pieces"]
@@ -351,13 +352,10 @@ def refine_pieces(
             progress(len(solved), len(pieces))
 
     try:
-        if not remote:
-            for task in todo:
-                collect(_solve(task))
-        elif scheduler is not None:
-            _run_dask(scheduler, todo, collect)
-        else:
-            _run_processes(workers, todo, collect)
+        with Runner(
+            min(workers, max(1, len(todo))) if remote else 1, scheduler, fresh_processes=True
+        ) as runner:
+            runner.each(_solve, todo, collect)
     finally:
         if tmpdir is not None:
             for f in Path(tmpdir).iterdir():
@@ -457,19 +455,6 @@ def _say_plan(pieces, todo, resumed, folder, window: int, overlap: int, say) -> 
         )
 
 
-def _run_processes(workers: int, tasks: list[_Task], collect: Callable) -> None:
-    """Solve the pieces in local processes (forkserver, or spawn), collecting as they finish."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(
-        max_workers=min(workers, max(1, len(tasks))), mp_context=mp.get_context(method)
-    ) as pool:
-        for fut in as_completed([pool.submit(_solve, t) for t in tasks]):
-            collect(fut.result())
-
-
 def _blend(pieces: list[Piece], joints: dict[int, np.ndarray], n: int, j: int) -> np.ndarray:
     """(N, J, 3): every piece's frames, shared frames weighted linearly (0 at a piece's edge)."""
     acc = np.zeros((n, j, 3))
@@ -495,14 +480,3 @@ def _onto_bones(joints: np.ndarray, pieces: list[Piece], skeleton: Skeleton, bon
         kin = Kinematics(skeleton, bones)
         joints[shared] = kin.joints(*kin.fit(joints[shared]))
     return joints
-
-
-def _run_dask(scheduler, tasks: list[_Task], collect: Callable) -> None:
-    """Solve the pieces as tasks on a Dask distributed cluster (the crops travel by path)."""
-    from .parallel import dask_client
-
-    with dask_client(scheduler) as client:
-        from dask.distributed import as_completed
-
-        for fut in as_completed([client.submit(_solve, t, pure=False) for t in tasks]):
-            collect(fut.result())

@@ -511,31 +511,18 @@ def refine(
         )  # fmt: skip
     from .refine import refine as run_refine
 
-    crops, centres, boxes, init = _refine_inputs(session, quiet)
-    refs = session.reference_frames
-    result = run_refine(
-        init,
-        crops=crops,
-        boxes=boxes,
-        centres_mm=centres,
-        camera=session.camera,
-        skeleton=session.skeleton,
-        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
-        reference_frames=refs,
-        reference_annotations=session.annotations(refs),
-        closest_reference=root_reference(session.parent),
-        sequence_breaks=session.model.sequence_breaks,
-        cube_mm=session.model.settings.cube_mm,
-        progress=progress,
-        hand_model=use_model,
-    )
+    init, problem = _refine_inputs(session, quiet)
+    result = run_refine(init, progress=progress, hand_model=use_model, **problem)
     if save:
         session.save_results(final_mm=result.joints_mm)
     return result
 
 
-def _refine_inputs(session: Session, quiet: bool):
-    """Crops, centres, boxes and the initialization (lifted references over propagation)."""
+def _refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
+    """The initialization (lifted references over propagation) and the session's refinement
+    problem: the keyword arguments :func:`handanno_core.refine.refine` and
+    :func:`handanno_core.pieces.refine_pieces` share (crops, boxes, centres, camera, skeleton,
+    bones, references and their annotations, closest references, breaks, cube)."""
     crops, centres, boxes = ensure_crops(session, quiet=quiet)
     results = session.load_results()
     init = np.array(results["init_mm"], dtype=np.float64)
@@ -546,7 +533,19 @@ def _refine_inputs(session: Session, quiet: bool):
         raise SessionError(
             f"{session.folder}: nothing propagated yet; run `handanno propagate` first"
         )
-    return crops, centres, boxes, init
+    return init, {
+        "crops": crops,
+        "boxes": boxes,
+        "centres_mm": centres,
+        "camera": session.camera,
+        "skeleton": session.skeleton,
+        "bone_lengths_mm": np.asarray(session.model.bone_lengths_mm),
+        "reference_frames": refs,
+        "reference_annotations": session.annotations(refs),
+        "closest_reference": root_reference(session.parent),
+        "sequence_breaks": session.model.sequence_breaks,
+        "cube_mm": session.model.settings.cube_mm,
+    }
 
 
 def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap, workers,
@@ -556,24 +555,12 @@ def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap,
 
     from .pieces import DEFAULT_OVERLAP, DEFAULT_WINDOW, refine_pieces
 
-    crops, centres, boxes, init = _refine_inputs(session, quiet)
-    refs = session.reference_frames
+    init, problem = _refine_inputs(session, quiet)
     folder = session.folder / REFINE_PIECES_DIR
     if not resume and folder.exists():
         shutil.rmtree(folder)
     result = refine_pieces(
         init,
-        crops=crops,
-        boxes=boxes,
-        centres_mm=centres,
-        camera=session.camera,
-        skeleton=session.skeleton,
-        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
-        reference_frames=refs,
-        reference_annotations=session.annotations(refs),
-        closest_reference=root_reference(session.parent),
-        sequence_breaks=session.model.sequence_breaks,
-        cube_mm=session.model.settings.cube_mm,
         hand_model=use_model,
         window=window or DEFAULT_WINDOW,
         overlap=min(DEFAULT_OVERLAP, (window or DEFAULT_WINDOW) // 4)
@@ -584,6 +571,7 @@ def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap,
         checkpoint_dir=folder,
         checkpoint_key=str(crops_fingerprint(session.folder / CROPS_FILE)),
         log=lambda m: _log(m, quiet),
+        **problem,
     )
     if save:
         session.save_results(final_mm=result.joints_mm)

@@ -68,6 +68,7 @@ from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
 from .forest import descendants, propagation_order
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
+from .parallel import Runner
 from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
@@ -779,10 +780,9 @@ def propagate(
             crops_array=None if remote else crops,
             fit_weights=fit_weights,
         ).with_model(model_obj, known, reference_joints)
-        if scheduler is not None:
-            _run_dask(scheduler, ctx, tasks, out.add_remote)
-        elif remote:
-            _run_pool(workers, ctx, tasks, out.add_remote)
+        if remote:
+            with Runner(workers, scheduler, fresh_processes=True) as runner:
+                runner.each(_run_task, tasks, out.add_remote, runner.share(ctx, broadcast=True))
         else:
             _run_local(ctx, tasks, out)
     return out.result(time.perf_counter() - t0)
@@ -994,35 +994,3 @@ def _run_local(ctx: _Context, tasks: list[_Task], out: _Collector) -> None:
     """Run the tasks in this process, reporting every frame as it is done."""
     for task in tasks:
         out.store(_run_task(ctx, task, out.emit))
-
-
-def _run_pool(workers: int, ctx: _Context, tasks: list[_Task], collect: Callable) -> None:
-    """Run the tasks in a local process pool (forkserver where available)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method)) as pool:
-        futures = [pool.submit(_run_task, ctx, t) for t in tasks]
-        for fut in as_completed(futures):
-            collect(fut.result())
-
-
-def _run_dask(scheduler, ctx: _Context, tasks: list[_Task], collect: Callable) -> None:
-    """Run the tasks on a Dask distributed cluster (``pip install 'handanno[distributed]'``)."""
-    try:
-        from dask.distributed import Client, as_completed
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "scheduler= needs dask.distributed: pip install 'handanno[distributed]'"
-        ) from exc
-    own = not isinstance(scheduler, Client)
-    client = Client(scheduler) if own else scheduler
-    try:
-        ctx_future = client.scatter(ctx, broadcast=True)
-        futures = [client.submit(_run_task, ctx_future, t, pure=False) for t in tasks]
-        for fut in as_completed(futures):
-            collect(fut.result())
-    finally:
-        if own:
-            client.close()

@@ -240,6 +240,44 @@ _MARKER_OFFSET_SD_MM = 10.0
 _COUPLING_MM_PER_DEG = 0.05
 
 
+def _start(y: np.ndarray, markers, bone_idx: list, local_idx: list, template: np.ndarray):
+    """The fit's start: per-frame rotations ``(N, 3, 3)`` from the recorded palm, the hand scale
+    and the palm centres ``(N, 3)`` mm from the recorded wrist-side joints ``y`` (N, K, 3)."""
+
+    def landmark(*joints: int) -> np.ndarray:
+        for joint in joints:
+            hits = [i for i in bone_idx if markers[i].a == joint]
+            if hits:
+                return y[:, hits].mean(axis=1)
+        raise ValueError("markers name no index or little finger joint")
+
+    index_pt, little_pt = landmark(1, 2), landmark(13, 14)
+    finger_pts = y[:, [i for i in bone_idx if markers[i].a in (1, 2, 5, 6, 9, 10, 13, 14)]].mean(1)
+    wrist_pt = y[:, local_idx].mean(axis=1)
+    rot0 = hand_rotation(wrist_pt, index_pt, little_pt, finger_pts)
+    scale0 = float(np.median(np.linalg.norm(finger_pts - wrist_pt, axis=-1)) / 75.0)
+    scale0 = float(np.clip(scale0, 0.6, 1.5))
+    model0 = build_hand_model(template * scale0, scale0)
+    centre0 = wrist_pt + np.einsum("nij,j->ni", rot0, model0.palm_centre - model0.local_base[0])
+    return rot0, scale0, centre0
+
+
+def _stage1_sparsity(m: int, per_frame: int, rows_per_frame: int, n_prior: int, n_shared: int):
+    """Jacobian sparsity of the first stage: each frame's rows see its own pose and the shared
+    unknowns; the prior rows their own shared unknown (bone factors, then marker t/offsets)."""
+    s0 = m * per_frame
+    sparsity = lil_matrix((m * rows_per_frame + n_prior, s0 + n_shared), dtype=np.int8)
+    for f in range(m):
+        sparsity[
+            f * rows_per_frame : (f + 1) * rows_per_frame, f * per_frame : (f + 1) * per_frame
+        ] = 1
+    sparsity[: m * rows_per_frame, s0:] = 1
+    sparsity[m * rows_per_frame : m * rows_per_frame + 21, s0 + 1 : s0 + 22] = 1
+    for k in range(n_prior - 21):
+        sparsity[m * rows_per_frame + 21 + k, s0 + 22 + k] = 1
+    return sparsity
+
+
 def fit_skeleton(
     targets_mm: np.ndarray,
     markers: tuple[Marker, ...],
@@ -268,22 +306,7 @@ def fit_skeleton(
     bone_idx = [i for i, m in enumerate(markers) if m.kind == "bone"]
     local_idx = [i for i, m in enumerate(markers) if m.kind == "local"]
 
-    # --- start: rotation from the recorded palm, centre from the recorded wrist-side joints
-    def landmark(*joints: int) -> np.ndarray:
-        for joint in joints:
-            hits = [i for i in bone_idx if markers[i].a == joint]
-            if hits:
-                return y[:, hits].mean(axis=1)
-        raise ValueError("markers name no index or little finger joint")
-
-    index_pt, little_pt = landmark(1, 2), landmark(13, 14)
-    finger_pts = y[:, [i for i in bone_idx if markers[i].a in (1, 2, 5, 6, 9, 10, 13, 14)]].mean(1)
-    wrist_pt = y[:, local_idx].mean(axis=1)
-    rot0 = hand_rotation(wrist_pt, index_pt, little_pt, finger_pts)
-    scale0 = float(np.median(np.linalg.norm(finger_pts - wrist_pt, axis=-1)) / 75.0)
-    scale0 = float(np.clip(scale0, 0.6, 1.5))
-    model0 = build_hand_model(template * scale0, scale0)
-    centre0 = wrist_pt + np.einsum("nij,j->ni", rot0, model0.palm_centre - model0.local_base[0])
+    rot0, scale0, centre0 = _start(y, markers, bone_idx, local_idx, template)
 
     relaxed = np.clip(np.asarray(GESTURES["relaxed"], dtype=np.float64), PARAM_LO, PARAM_HI)
     per_frame = 21 + 3 + 3
@@ -360,15 +383,7 @@ def fit_skeleton(
     t0 = np.array([markers[i].t for i in bone_idx])
     offset0 = shared0[22 + len(bone_idx) :].copy()
     n_prior = 21 + len(bone_idx) + offset0.size
-    sparsity = lil_matrix((m * rows_per_frame + n_prior, s0 + shared0.size), dtype=np.int8)
-    for f in range(m):
-        sparsity[
-            f * rows_per_frame : (f + 1) * rows_per_frame, f * per_frame : (f + 1) * per_frame
-        ] = 1
-    sparsity[: m * rows_per_frame, s0:] = 1
-    sparsity[m * rows_per_frame : m * rows_per_frame + 21, s0 + 1 : s0 + 22] = 1
-    for k in range(len(bone_idx) + offset0.size):
-        sparsity[m * rows_per_frame + 21 + k, s0 + 22 + k] = 1
+    sparsity = _stage1_sparsity(m, per_frame, rows_per_frame, n_prior, shared0.size)
     sol = least_squares(
         residuals,
         np.concatenate([frames0[sel].ravel(), shared0]),

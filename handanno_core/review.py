@@ -36,6 +36,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .crops import DEFAULT_CROP
 from .sampling import VISIBILITY_MARGIN_MM, visible_by_depth
 from .session import (
     Batch,
@@ -133,7 +134,7 @@ def depth_residuals(
     centres_mm: np.ndarray,
     camera: CameraIntrinsics,
     *,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     surface_offsets_mm: np.ndarray | None = None,
     behind: bool = False,
 ) -> np.ndarray:

@@ -254,6 +254,23 @@ def _entry(
     }
 
 
+def _show(ranking: str, session: Session, results, k: int, reviewed, bad) -> tuple:
+    """The ``k`` frames a review round shows (``(k,)`` int, not the ``reviewed`` ones) by
+    ``ranking``, and the recall of the ``bad`` (N,) frames in the ranking's first 10 %."""
+    from .prefill import cached_crops
+    from .review import pick_frames, rank_priority, recall_at, uniform_pick
+
+    n = session.num_frames
+    if ranking == "uniform":
+        shown = uniform_pick(n, k, exclude=reviewed)
+        top = uniform_pick(n, int(round(0.1 * n)), exclude=reviewed)
+        return shown, float(bad[top].sum() / bad.sum()) if bad.any() else float("nan")
+    breaks = session.model.sequence_breaks
+    priority = rank_priority(ranking, session, results, cached_crops(session))
+    shown = pick_frames(priority, k, exclude=reviewed, sequence_breaks=breaks)
+    return shown, recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
+
+
 def review_rounds(
     session: Session,
     *,
@@ -282,9 +299,7 @@ def review_rounds(
     """
     from . import pipeline
     from .export import best_joints
-    from .prefill import cached_crops
     from .propagate import descendants
-    from .review import pick_frames, rank_priority, recall_at, uniform_pick
 
     sequence = session.open_sequence()
     gt = np.asarray(sequence.ground_truth.joints_mm, dtype=np.float64)
@@ -297,7 +312,6 @@ def review_rounds(
     entries = [_entry(session, gt, 0, len(session.reference_frames), clicked, bad_mm)]
     if not quiet:
         print(f"  {ranking} round 0: {entries[0]}", flush=True)
-    breaks = session.model.sequence_breaks
     for r in range(1, rounds + 1):
         timings: dict[str, float] = {}
         t = time.perf_counter()
@@ -306,14 +320,7 @@ def review_rounds(
         err = _frame_errors(best_joints(results)[0], gt)
         bad = err > bad_mm
         bad[reviewed] = False
-        if ranking == "uniform":
-            shown = uniform_pick(n, k, exclude=reviewed)
-            top = uniform_pick(n, int(round(0.1 * n)), exclude=reviewed)
-            rec10 = float(bad[top].sum() / bad.sum()) if bad.any() else float("nan")
-        else:
-            priority = rank_priority(ranking, session, results, cached_crops(session))
-            shown = pick_frames(priority, k, exclude=reviewed, sequence_breaks=breaks)
-            rec10 = recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
+        shown, rec10 = _show(ranking, session, results, k, reviewed, bad)
         timings["rank"] = round(time.perf_counter() - t, 3)
         if shown.size == 0:
             break

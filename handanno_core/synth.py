@@ -390,6 +390,37 @@ def _max_step_mm(model: HandModel, params: np.ndarray, glob: np.ndarray) -> floa
     return float(np.linalg.norm(np.diff(joints, axis=0), axis=-1).max())
 
 
+def _transition_frames(rng, model, current, params, glob, speed_mm) -> int:
+    """Frames of the transition from keyframe ``current`` to ``params``/``glob``, timed for a
+    target peak joint speed (mm/frame) drawn from ``rng`` (see :func:`synthesize_motion`)."""
+    if speed_mm is None:
+        speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
+    else:
+        speed = rng.uniform(*speed_mm)
+    probe = 60
+    p_probe, g_probe = _segment(current, params, glob, probe)
+    p_probe = np.concatenate([current.params[None], p_probe])
+    g_probe = np.concatenate([current.glob[None], g_probe])
+    step = _max_step_mm(model, p_probe, g_probe)
+    return max(6 if speed_mm is None else 3, int(np.ceil(probe * step / speed)))
+
+
+def _tremor(seed: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth tremor ``(frames, NUM_PARAMS)`` deg and ``(frames, 6)`` (rotation deg, mm): a few
+    slow sinusoids per parameter (own RNG: a shorter sequence's tremor is a prefix)."""
+    rng = np.random.default_rng([seed, 303])
+    t = np.arange(frames)[:, None]
+    tremor_p = np.zeros((frames, NUM_PARAMS))
+    tremor_g = np.zeros((frames, 6))
+    for _ in range(3):
+        period = rng.uniform(25, 90, NUM_PARAMS + 6)
+        phase = rng.uniform(0, 2 * np.pi, NUM_PARAMS + 6)
+        wave = np.sin(2 * np.pi * t / period + phase)
+        tremor_p += 0.6 * wave[:, :NUM_PARAMS]
+        tremor_g += np.array([0.5, 0.5, 0.5, 0.6, 0.6, 0.6]) * wave[:, NUM_PARAMS:]
+    return tremor_p, tremor_g
+
+
 def synthesize_motion(
     frames: int,
     seed: int = 0,
@@ -453,17 +484,7 @@ def synthesize_motion(
         if total >= frames:
             break
         name, rev, params, glob = new_keyframe(len(keyframes), current.gesture)
-        # time the transition for a target peak joint speed (mm/frame)
-        if speed_mm is None:
-            speed = rng.uniform(9.0, 10.0) if rng.random() < 0.12 else rng.uniform(2.5, 6.0)
-        else:
-            speed = rng.uniform(*speed_mm)
-        probe = 60
-        p_probe, g_probe = _segment(current, params, glob, probe)
-        p_probe = np.concatenate([current.params[None], p_probe])
-        g_probe = np.concatenate([current.glob[None], g_probe])
-        step = _max_step_mm(model, p_probe, g_probe)
-        n = max(6 if speed_mm is None else 3, int(np.ceil(probe * step / speed)))
+        n = _transition_frames(rng, model, current, params, glob, speed_mm)
         current.transition = n
         p_seg, g_seg = _segment(current, params, glob, n)
         params_parts.append(p_seg)
@@ -477,17 +498,7 @@ def synthesize_motion(
 
     params_all = np.concatenate(params_parts)[:frames]
     glob_all = np.concatenate(glob_parts)[:frames]
-    # smooth tremor: a few slow sinusoids per parameter (own RNG: a shorter sequence is a prefix)
-    rng = np.random.default_rng([seed, 303])
-    t = np.arange(frames)[:, None]
-    tremor_p = np.zeros((frames, NUM_PARAMS))
-    tremor_g = np.zeros((frames, 6))
-    for _ in range(3):
-        period = rng.uniform(25, 90, NUM_PARAMS + 6)
-        phase = rng.uniform(0, 2 * np.pi, NUM_PARAMS + 6)
-        wave = np.sin(2 * np.pi * t / period + phase)
-        tremor_p += 0.6 * wave[:, :NUM_PARAMS]
-        tremor_g += np.array([0.5, 0.5, 0.5, 0.6, 0.6, 0.6]) * wave[:, NUM_PARAMS:]
+    tremor_p, tremor_g = _tremor(seed, frames)
     params_all = np.clip(params_all + tremor_p, PARAM_LO, PARAM_HI)
     glob_all = glob_all + tremor_g
     rotation = rotation_matrices(glob_all[:, :3])

@@ -149,3 +149,19 @@ def test_session_names_are_confined_to_the_sessions_folder(tmp_path):
             safe_session_path(bad, tmp_path)
     assert resolve_session("x", tmp_path) == (tmp_path / "x").resolve()
     assert resolve_session(str(tmp_path / "y"), "sessions") == tmp_path / "y"
+
+
+@pytest.mark.parametrize(
+    ("refs", "parent", "says"),
+    [
+        ([0, 5], [-1, 0, 3, 2, 3, -1, 5, 6, 7, 8], "cycle"),  # frames 2 and 3 point at each other
+        ([0], [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8], "-1 exactly at the references"),
+    ],
+)
+def test_selection_that_is_not_a_forest_is_refused_and_the_old_one_kept(
+    session, refs, parent, says
+):
+    with pytest.raises(ValueError, match=says):
+        session.set_selection({"reference_frames": refs, "parent": parent})
+    assert session.reference_frames.tolist() == [0, 5]
+    assert session.parent.tolist() == [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8]

@@ -26,6 +26,7 @@ from handanno_core.session import (
 from handanno_core.skeleton import Skeleton
 
 from .events import entry_frame
+from .geometry import surface_under
 
 ClickMode = Literal["2d", "3d"]
 #: the order "D" cycles depth order through.
@@ -242,10 +243,8 @@ def display_joints(
         uv = ann.uv_px[only2d]
         z = np.full(len(uv), float(centre_mm[2]))
         if depth is not None:
-            col = np.clip(np.round(uv[:, 0]).astype(int), 0, camera.width - 1)
-            row = np.clip(np.round(uv[:, 1]).astype(int), 0, camera.height - 1)
-            d = depth[row, col]
-            z = np.where(d > 0, d, z)
+            d = surface_under(depth, uv)
+            z = np.where(np.isfinite(d), d, z)
         out[only2d] = camera.backproject(uv, z)
     return out
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from handanno_core.camera import CameraIntrinsics
+from handanno_core.crops import DEFAULT_CROP
+from handanno_core.sampling import depth_at
 
 #: at most this many cloud points are sent per frame.
 MAX_CLOUD_POINTS = 50_000
@@ -151,7 +153,7 @@ def build_frame_geometry(
     camera: CameraIntrinsics,
     centre_mm: np.ndarray,
     *,
-    cube_mm: float = 220.0,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
     max_points: int = MAX_CLOUD_POINTS,
 ) -> FrameGeometry:
     """Crop the hand's point cloud (points within a ``cube_mm`` cube around ``centre_mm``, at most
@@ -209,6 +211,15 @@ def empty_geometry(camera: CameraIntrinsics, centre_mm: np.ndarray | None = None
     )
 
 
+def surface_under(depth_mm: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
+    """``(P,)`` mm: the depth pixel under each point ``uv_px (P, 2)`` px of ``depth_mm (H, W)``,
+    points off the image clamped onto its border; NaN where that pixel has no depth (the app's
+    display lookup: :func:`handanno_core.sampling.depth_at` without a neighbourhood)."""
+    h, w = np.shape(depth_mm)
+    uv = np.clip(np.asarray(uv_px, dtype=np.float64), 0, [w - 1, h - 1])
+    return depth_at(depth_mm, uv, window=0, near_px=0)
+
+
 #: joints behind the observed surface are drawn this far in front of it
 SURFACE_MARGIN_MM = 6.0
 
@@ -226,11 +237,9 @@ def pull_in_front_of_surface(
     ok = np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
     if not ok.any():
         return out
-    uv = camera.project(out[ok])
-    col = np.clip(np.round(uv[:, 0]).astype(int), 0, camera.width - 1)
-    row = np.clip(np.round(uv[:, 1]).astype(int), 0, camera.height - 1)
-    surface = depth_mm[row, col].astype(np.float64)
+    surface = surface_under(depth_mm, camera.project(out[ok]))
     z = out[ok, 2]
-    pull = (surface > 0) & (z > surface - SURFACE_MARGIN_MM)
+    with np.errstate(invalid="ignore"):
+        pull = np.isfinite(surface) & (z > surface - SURFACE_MARGIN_MM)
     out[ok] *= np.where(pull, (surface - SURFACE_MARGIN_MM) / z, 1.0)[:, None]
     return out

@@ -18,13 +18,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import CameraIntrinsics
+from ..fileio import read_json_object
 from ..skeleton import MSRA21, SKELETONS
 from .base import (
     DatasetError,
@@ -87,11 +87,9 @@ class FolderSequence(FileListSequence):
         meta_path = root / INTRINSICS_FILE
         if meta_path.is_file():
             try:
-                meta = json.loads(meta_path.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
-                raise DatasetError(f"{meta_path}: cannot read: {exc}") from exc
-            if not isinstance(meta, dict):
-                raise DatasetError(f"{meta_path}: expected a JSON object")
+                meta = read_json_object(meta_path, "camera intrinsics")
+            except ValueError as exc:
+                raise DatasetError(str(exc)) from exc
         if intrinsics is None:
             if not meta:
                 raise DatasetError(

@@ -22,6 +22,43 @@ _SCALE_XY = 1.5  # mm per optimisation unit, x and y
 _SCALE_Z = 10.0  # mm per optimisation unit, z (and elastic slacks)
 
 
+def _angle_tiers(skeleton: Skeleton, right_hand: bool, w_angle: float, w_angle_inner: float):
+    """The angle rows' coefficients, per tier a ``(6, A)`` array (cos/sin of the flexion minimum
+    and maximum, sin of the abduction minimum and maximum, A angle joints), and the ``(4 A T,)``
+    row weights."""
+    # soft rows beyond the range real hands were recorded in (weight w_angle) and,
+    # optionally, a second tier beyond the narrower anatomical limits (w_angle_inner;
+    # default 0: chosen on the tune set, synthetic seed 1 + FPHA Subject_1 mean)
+    tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
+    lim = skeleton.angle_limits()
+    if not right_hand:
+        lim = (lim[0], -lim[1][:, ::-1])
+    if w_angle_inner > 0 and not all(
+        np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)
+    ):
+        tiers.append((lim, w_angle_inner))
+    coef, weights = [], []
+    for (fl, ab), w in tiers:
+        # a flexion range of 170 deg or more is no limit (the two half-plane rows can
+        # only express ranges under 180 deg): its rows are switched off
+        on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
+        fl, ab = np.radians(fl), np.radians(ab)
+        coef.append(
+            np.stack(
+                [
+                    on * np.cos(fl[:, 0]),
+                    on * np.sin(fl[:, 0]),
+                    on * np.cos(fl[:, 1]),
+                    on * np.sin(fl[:, 1]),
+                    np.sin(ab[:, 0]),
+                    np.sin(ab[:, 1]),
+                ]
+            )
+        )
+        weights.append(np.full(4 * len(skeleton.angle_joints), w))
+    return coef, np.concatenate(weights)
+
+
 class _Problem(_AngleRows):
     """Objective, constraints and their analytic derivatives for one frame (vectorized)."""
 
@@ -76,10 +113,9 @@ class _Problem(_AngleRows):
         self.flat_p = par_all[self.flat_k]
         self.w_flat = w_flat
         # depth order rows
-        par = skeleton.parent_array
-        sel = (np.asarray(ann.depth_order) != 0) & (par >= 0)
+        sel = (np.asarray(ann.depth_order) != 0) & (par_all >= 0)
         self.ord_k = np.flatnonzero(sel)
-        self.ord_p = par[self.ord_k]
+        self.ord_p = par_all[self.ord_k]
         self.ord_s = np.asarray(ann.depth_order, dtype=np.float64)[self.ord_k]
         self.margin = order_margin_mm
         # angle rows
@@ -91,40 +127,11 @@ class _Problem(_AngleRows):
         if self.use_angles:
             k = skeleton.angle_joints
             self.ak = k
-            self.ap = par[k]
+            self.ap = par_all[k]
             self.ac = skeleton.angle_children
-            # soft rows beyond the range real hands were recorded in (weight w_angle) and,
-            # optionally, a second tier beyond the narrower anatomical limits (w_angle_inner;
-            # default 0: chosen on the tune set, synthetic seed 1 + FPHA Subject_1 mean)
-            tiers = [(skeleton.angle_ranges(right_hand), w_angle)]
-            lim = skeleton.angle_limits()
-            if not right_hand:
-                lim = (lim[0], -lim[1][:, ::-1])
-            if w_angle_inner > 0 and not all(
-                np.array_equal(a, b) for a, b in zip(lim, tiers[0][0], strict=True)
-            ):
-                tiers.append((lim, w_angle_inner))
-            coef, weights = [], []
-            for (fl, ab), w in tiers:
-                # a flexion range of 170 deg or more is no limit (the two half-plane rows can
-                # only express ranges under 180 deg): its rows are switched off
-                on = (np.ptp(fl, axis=1) < 170.0).astype(np.float64)
-                fl, ab = np.radians(fl), np.radians(ab)
-                coef.append(
-                    np.stack(
-                        [
-                            on * np.cos(fl[:, 0]),
-                            on * np.sin(fl[:, 0]),
-                            on * np.cos(fl[:, 1]),
-                            on * np.sin(fl[:, 1]),
-                            np.sin(ab[:, 0]),
-                            np.sin(ab[:, 1]),
-                        ]
-                    )
-                )
-                weights.append(np.full(4 * len(k), w))
-            self.angle_coef = coef  # per tier (6, A): cos/sin fmin, cos/sin fmax, sin amin/amax
-            self.angle_row_w = np.concatenate(weights)
+            self.angle_coef, self.angle_row_w = _angle_tiers(
+                skeleton, right_hand, w_angle, w_angle_inner
+            )
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
             self._setup_angle_levels()

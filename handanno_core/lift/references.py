@@ -81,6 +81,47 @@ def _better(a: LiftResult, b: LiftResult) -> LiftResult:
     return b if b.objective < a.objective - 1e-9 else a
 
 
+def _reestimate_bones(bones: np.ndarray, soft_lengths: np.ndarray, voted: np.ndarray,
+                      tmpl: np.ndarray | None) -> np.ndarray:  # fmt: skip
+    """New bone lengths ``(B,)`` mm: the median over the references of ``soft_lengths`` (F, B)
+    for the ``voted`` bones; the others the template ``tmpl`` times the voted bones' median ratio
+    to it (unchanged without a template or a voted bone)."""
+    new = bones.copy()
+    if np.any(voted):
+        new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+        if tmpl is not None and not np.all(voted):
+            # bones without enough evidence: template times the global scale
+            scale = float(np.median(new[voted] / tmpl[voted]))
+            new[~voted] = tmpl[~voted] * scale
+    return new
+
+
+def _mark_stretched(res: list, soft_lengths: np.ndarray, bones: np.ndarray, sk: Skeleton,
+                    stretch_tolerance: float) -> None:  # fmt: skip
+    """Mark the references whose soft-bone lengths ``soft_lengths`` (F, B) mm want some bone far
+    off the estimate ``bones`` (B,) mm (see :func:`lift_references`): ``stretched``, not
+    ``converged``, half the confidence, the bone in the message."""
+    dev = np.abs(soft_lengths - bones)
+    rel = dev / bones
+    # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
+    # the references (noisy clicks spread every bone; only an outlier frame is stretched)
+    with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
+        spread = 1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
+        wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
+    for i, r in enumerate(res):
+        if np.any(wants[i]):
+            b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
+            r.stretched = True
+            r.converged = False
+            r.confidence = r.confidence * 0.5
+            r.message = (
+                f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
+                f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
+                f"frame against {bones[b]:.1f} mm estimated; {r.message}"
+            )
+
+
 def lift_references(
     annotations: dict[int, FrameAnnotation],
     depth_of: Callable[[int], np.ndarray],
@@ -179,13 +220,7 @@ def lift_references(
                 res = runner.map(_lift_job, jobs, progress)
                 poses = np.stack([r.joints_mm for r in res])
                 soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
-                new = bones.copy()
-                if np.any(voted):
-                    new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
-                    if tmpl is not None and not np.all(voted):
-                        # bones without enough evidence: template times the global scale
-                        scale = float(np.median(new[voted] / tmpl[voted]))
-                        new[~voted] = tmpl[~voted] * scale
+                new = _reestimate_bones(bones, soft_lengths, voted, tmpl)
                 change = float(np.max(np.abs(new - bones)))
                 bones = new
                 history.append(bones.copy())
@@ -216,27 +251,7 @@ def lift_references(
             cold = runner.map(_lift_job, cold_jobs)
             res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
         if soft_lengths is not None:
-            dev = np.abs(soft_lengths - bones)
-            rel = dev / bones
-            # beyond the tolerance, 3 mm, and 4 robust standard deviations of the bone's spread over
-            # the references (noisy clicks spread every bone; only an outlier frame is stretched)
-            with warnings.catch_warnings(), np.errstate(invalid="ignore"):
-                warnings.simplefilter("ignore", RuntimeWarning)  # bones nobody annotated: all NaN
-                spread = (
-                    1.4826 * np.nanmedian(dev, axis=0) if len(dev) >= 5 else np.zeros(len(bones))
-                )
-                wants = (rel > stretch_tolerance) & (dev > 3.0) & (dev > 4.0 * spread)
-            for i, r in enumerate(res):
-                if np.any(wants[i]):
-                    b = int(np.argmax(np.where(wants[i], rel[i], -1.0)))
-                    r.stretched = True
-                    r.converged = False
-                    r.confidence = r.confidence * 0.5
-                    r.message = (
-                        f"stretched: bone {sk.joint_names[sk.bones[b, 0]]}-"
-                        f"{sk.joint_names[sk.bones[b, 1]]} fits {soft_lengths[i, b]:.1f} mm in this "
-                        f"frame against {bones[b]:.1f} mm estimated; {r.message}"
-                    )
+            _mark_stretched(res, soft_lengths, bones, sk, stretch_tolerance)
         results = dict(zip(frames, res, strict=True))
         n_stretched = sum(r.stretched for r in res)
         if n_stretched:

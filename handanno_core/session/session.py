@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from .. import forest
 from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
 from ..fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
@@ -47,6 +48,37 @@ from .model import (
 )
 
 log = logging.getLogger(__name__)
+
+
+def _parse_entry(raw: bytes, session_id: str) -> JournalEntry:
+    """One journal line as an entry; ``ValueError``/``ValidationError`` when it is not JSON, not
+    an object, fails its checksum or is not an entry."""
+    doc = json.loads(raw)
+    if not isinstance(doc, dict):
+        raise ValueError("not a JSON object")
+    crc = doc.pop("crc", None)  # absent in journals written before checksums
+    if crc is not None and crc != entry_checksum(session_id, doc):
+        raise ValueError(
+            "checksum mismatch (a damaged line, or an entry copied from another session's journal)"
+        )
+    return JournalEntry.model_validate(doc)
+
+
+def _check_sequence(
+    where: str, entry: JournalEntry, previous: int | None, journal_seq: int
+) -> None:
+    """``SessionError`` unless ``entry`` follows ``previous`` (or, first, the snapshot's
+    ``journal_seq``)."""
+    if previous is None and entry.seq > journal_seq + 1:
+        raise SessionError(
+            f"{where}: journal starts at sequence {entry.seq} but {SESSION_FILE} holds "
+            f"edits up to {journal_seq} only (entries are missing)"
+        )
+    if previous is not None and entry.seq != previous + 1:
+        raise SessionError(
+            f"{where}: sequence {entry.seq} follows {previous} (expected {previous + 1}: "
+            "an entry is missing or repeated, e.g. by a second writer)"
+        )
 
 
 def _one_line(exc: Exception) -> str:
@@ -166,16 +198,7 @@ class Session:
             where = f"{path}:{number}"
             last = complete == len(data) and all(not rest.strip() for rest in lines[number:])
             try:
-                doc = json.loads(raw)
-                if not isinstance(doc, dict):
-                    raise ValueError("not a JSON object")
-                crc = doc.pop("crc", None)  # absent in journals written before checksums
-                if crc is not None and crc != entry_checksum(self.model.session_id, doc):
-                    raise ValueError(
-                        "checksum mismatch (a damaged line, or an entry copied from another "
-                        "session's journal)"
-                    )
-                entry = JournalEntry.model_validate(doc)
+                entry = _parse_entry(raw, self.model.session_id)
             except (ValidationError, ValueError) as exc:
                 if last:
                     # A last line that never completed was never acknowledged: cut at next append.
@@ -183,16 +206,7 @@ class Session:
                     break
                 raise SessionError(f"{where}: corrupt entry: {_one_line(exc)}") from exc
             previous = entries[-1][1].seq if entries else None
-            if previous is None and entry.seq > self.model.journal_seq + 1:
-                raise SessionError(
-                    f"{where}: journal starts at sequence {entry.seq} but {SESSION_FILE} holds "
-                    f"edits up to {self.model.journal_seq} only (entries are missing)"
-                )
-            if previous is not None and entry.seq != previous + 1:
-                raise SessionError(
-                    f"{where}: sequence {entry.seq} follows {previous} (expected {previous + 1}: "
-                    "an entry is missing or repeated, e.g. by a second writer)"
-                )
+            _check_sequence(where, entry, previous, self.model.journal_seq)
             entries.append((number, entry))
         if entries and entries[-1][1].seq < self.model.journal_seq:
             raise SessionError(
@@ -200,19 +214,7 @@ class Session:
                 f"edits up to {self.model.journal_seq} (the journal was cut)"
             )
         for number, entry in entries:
-            try:
-                command = parse_command(entry.command)
-                command.check(self)
-                parse_command(entry.inverse).check(self)
-                if entry.seq > self.model.journal_seq:
-                    command.apply(self)
-            except (ValidationError, ValueError, TypeError, IndexError, KeyError) as exc:
-                kind = entry.command.get("kind", "?")
-                raise SessionError(
-                    f"{path}:{number}: {kind} entry #{entry.seq} does not fit this session: "
-                    f"{_one_line(exc)}"
-                ) from exc
-            self._track_undo(entry)
+            self._replay_entry(f"{path}:{number}", entry)
         if good_end < len(data):
             log.warning(
                 "%s: ignoring a torn last entry (%d bytes, never acknowledged); it is cut "
@@ -224,6 +226,22 @@ class Session:
             self.model.journal_seq = max(self.model.journal_seq, entries[-1][1].seq)
         self._next_seq = self.model.journal_seq + 1
         self._journal_size, self._journal_seen = good_end, len(data)
+
+    def _replay_entry(self, where: str, entry: JournalEntry) -> None:
+        """Check an entry (and its inverse) against the session, apply it if the snapshot does
+        not hold it yet, and put it on its client's undo stack."""
+        try:
+            command = parse_command(entry.command)
+            command.check(self)
+            parse_command(entry.inverse).check(self)
+            if entry.seq > self.model.journal_seq:
+                command.apply(self)
+        except (ValidationError, ValueError, TypeError, IndexError, KeyError) as exc:
+            kind = entry.command.get("kind", "?")
+            raise SessionError(
+                f"{where}: {kind} entry #{entry.seq} does not fit this session: {_one_line(exc)}"
+            ) from exc
+        self._track_undo(entry)
 
     # ------------------------------------------------------------------ derived views
     @property
@@ -318,20 +336,20 @@ class Session:
         return entry
 
     def undo(self, client: str = "cli") -> JournalEntry | None:
-        with self.lock:
-            stack = self._undo.get(client)
-            if not stack:
-                return None
-            target = stack[-1]
-            return self._commit(parse_command(target.inverse), client, "undo", target.seq)
+        return self._step_back_or_forth(client, "undo")
 
     def redo(self, client: str = "cli") -> JournalEntry | None:
+        return self._step_back_or_forth(client, "redo")
+
+    def _step_back_or_forth(self, client: str, kind: str) -> JournalEntry | None:
+        """Undo (apply the inverse of) or redo (apply again) the top of ``client``'s stack."""
         with self.lock:
-            stack = self._redo.get(client)
+            stack = (self._undo if kind == "undo" else self._redo).get(client)
             if not stack:
                 return None
             target = stack[-1]
-            return self._commit(parse_command(target.command), client, "redo", target.seq)
+            command = target.inverse if kind == "undo" else target.command
+            return self._commit(parse_command(command), client, kind, target.seq)
 
     def can_undo(self, client: str = "cli") -> bool:
         return bool(self._undo.get(client))
@@ -491,16 +509,23 @@ class Session:
 
     # ------------------------------------------------------------------ bulk state (not journaled edits)
     def set_selection(self, selection: dict[str, Any]) -> None:
-        """Store a new reference selection (from ``handanno select``); snapshot immediately."""
+        """Store a new reference selection (from ``handanno select``); snapshot immediately.
+        ``ValueError`` unless its parents are a forest rooted exactly at its references
+        (:func:`handanno_core.forest.validate`)."""
         with self.lock:
             parent = list(map(int, selection["parent"]))
             if len(parent) != self.num_frames:
                 raise ValueError(
                     f"selection has {len(parent)} parents for {self.num_frames} frames"
                 )
+            refs = sorted(map(int, selection["reference_frames"]))
+            try:
+                forest.validate(np.asarray(parent), np.asarray(refs, dtype=np.int64))
+            except ValueError as exc:
+                raise ValueError(f"selection for {self.folder}: {exc}") from None
             self.model.selection = SelectionModel(
                 strategy=selection.get("strategy"),
-                reference_frames=sorted(map(int, selection["reference_frames"])),
+                reference_frames=refs,
                 parent=parent,
                 threshold=selection.get("threshold"),
                 ref_fraction=selection.get("ref_fraction"),

@@ -116,6 +116,37 @@ def hand_pixels(ctx: Ctx) -> tuple[np.ndarray, np.ndarray]:
     raise AssertionError("no second hand pixel found")
 
 
+def _ring_band(ctx: Ctx, joint: int) -> tuple[float, float]:
+    """Screen point on the band of ``joint``'s 2D ring, on the side away from its joint sphere."""
+    page, view = ctx.page, ctx.view
+    ring = drawn(page, "/hand/handles2d")["instances"][joint]
+    centre = np.asarray(screen_of(page, "/hand/handles2d", ring))
+    outer_m = float(view.hand.handles2d.batched_scales[joint])
+    edge = screen_of(page, "/hand/handles2d", ring + [outer_m, 0, 0])
+    outer = np.linalg.norm(np.asarray(edge) - centre)
+    away = centre - np.asarray(ctx.joint_point(joint))
+    away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
+    return tuple(centre + 0.85 * outer * away)
+
+
+def _undo_redo_by_hotkeys(ctx: Ctx, frame: int) -> None:
+    """Ctrl+Z undoes the last edit (joint 0 visible again, journaled as undo); Ctrl+Shift+Z
+    redoes it."""
+    page, folder = ctx.page, ctx.folder
+    ctx.settle()
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    n = len(journal(folder))
+    page.keyboard.press("Control+z")
+    wait_until(
+        lambda: len(journal(folder)) > n and journal(folder)[-1]["action"] == "undo",
+        what="an undo entry",
+    )
+    assert reopen(folder).annotation(frame).visible[0]
+    page.keyboard.press("Control+Shift+z")
+    wait_until(lambda: journal(folder)[-1]["action"] == "redo", what="a redo entry")
+    assert not reopen(folder).annotation(frame).visible[0]
+
+
 def test_annotate_flow(ctx: Ctx):
     page, folder, view = ctx.page, ctx.folder, ctx.view
     frame = view.frame
@@ -146,19 +177,9 @@ def test_annotate_flow(ctx: Ctx):
     # 1b. Drag joint 1's 2D ring by its band, on the side away from the joint sphere in front of
     # it (these two clicks are no hand, so the lift does not reproject exactly onto them), 25 px
     # to the right: the 2D position moves by the drag, not to the point where the ring was grabbed.
-    def ring_band() -> tuple[float, float]:
-        ring = drawn(page, "/hand/handles2d")["instances"][1]
-        centre = np.asarray(screen_of(page, "/hand/handles2d", ring))
-        outer_m = float(view.hand.handles2d.batched_scales[1])
-        edge = screen_of(page, "/hand/handles2d", ring + [outer_m, 0, 0])
-        outer = np.linalg.norm(np.asarray(edge) - centre)
-        away = centre - np.asarray(ctx.joint_point(1))
-        away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1 else np.array([1.0, 0.0])
-        return tuple(centre + 0.85 * outer * away)
-
     ctx.settle()  # the lift moves the joint spheres in front of the rings
     screen_per_px = ctx.image_point(uv1 + (10.0, 0.0))[0] - ctx.image_point(uv1)[0]
-    drag_gesture(page, ring_band, (25, 0), settle=ctx.settle)
+    drag_gesture(page, lambda: _ring_band(ctx, 1), (25, 0), settle=ctx.settle)
     wait_until(
         lambda: len([e for e in journal(folder) if e["command"]["kind"] == "set_2d"]) == 3,
         what="a 2D ring drag edit",
@@ -206,19 +227,7 @@ def test_annotate_flow(ctx: Ctx):
     )
 
     # 4. Undo with Ctrl+Z (hotkey through viser's command layer): visibility is back, journaled as undo.
-    ctx.settle()
-    page.evaluate("() => document.activeElement && document.activeElement.blur()")
-    n = len(journal(folder))
-    page.keyboard.press("Control+z")
-    wait_until(
-        lambda: len(journal(folder)) > n and journal(folder)[-1]["action"] == "undo",
-        what="an undo entry",
-    )
-    assert reopen(folder).annotation(frame).visible[0]
-    # ... and redo with Ctrl+Shift+Z.
-    page.keyboard.press("Control+Shift+z")
-    wait_until(lambda: journal(folder)[-1]["action"] == "redo", what="a redo entry")
-    assert not reopen(folder).annotation(frame).visible[0]
+    _undo_redo_by_hotkeys(ctx, frame)
 
     # 5. Next frame by hotkey N: the view moves to the next reference frame.
     page.evaluate("() => document.activeElement && document.activeElement.blur()")

@@ -48,6 +48,11 @@ def run_session(base: Session, folder: Path) -> Session:
         base.model.skeleton,
         base.model.sequence_breaks,
     )
+    with session.lock:
+        # the base's crops were cut with its (possibly grown) cube: without its settings the
+        # symlinked cache would not match and every run would cut all crops again
+        session.model.settings = base.model.settings.model_copy()
+        session.save()
     for name in (CROPS_FILE, CROPS_META_FILE):
         (folder / name).symlink_to((base.folder / name).resolve())
     return session

@@ -362,3 +362,22 @@ def test_cli_suite_command(tmp_path, capsys, monkeypatch):
     manifest = json.loads((out / "suite.json").read_text())
     assert [e["name"] for e in manifest["sequences"]] == ["report-x"]
     assert len(open_sequence(out / "report-x")) == 30
+
+
+def test_bench_runs_share_the_base_crop_cache_with_a_grown_cube(tmp_path):
+    from handanno_core import pipeline
+
+    data = synth.generate_sequence(tmp_path / "seq", frames=6, seed=1, progress=False, workers=1)
+    base = pipeline.new_session(tmp_path / "base", data, format="msra", overwrite=True)
+    with base.lock:
+        base.model.settings.cube_mm = 260.0  # as if the hand had grown the cube
+        base.save()
+    pipeline.ensure_crops(base, quiet=True)
+    stamp = (tmp_path / "base" / "crops.npy").stat().st_mtime_ns
+    run = bench.run_session(base, tmp_path / "run")
+    assert run.model.settings.cube_mm == 260.0
+    assert isinstance(
+        pipeline._cached_crops(run, run.folder / "crops.npy", run.folder / "crops_meta.npz"), tuple
+    )
+    pipeline.ensure_crops(run, quiet=True)
+    assert (tmp_path / "base" / "crops.npy").stat().st_mtime_ns == stamp  # not cut again

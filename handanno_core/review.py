@@ -1,6 +1,6 @@
 """Review engine (no viser): which frames to show the annotator, and what a review edit does.
 
-Used by the app's review view (``app/review_state.py`` re-exports these names) and by the bench's
+Used by the app's review tab (``app/control/review.py``, ``app/control/live.py``) and by the bench's
 simulated review loop (:mod:`handanno_core.review_loop`).
 
 * :func:`frame_scores` - a pure-numpy per-frame score in [0, 1] (1 = trustworthy) from the

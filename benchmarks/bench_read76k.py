@@ -30,25 +30,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-GESTURES = [
-    "1",
-    "2",
-    "3",
-    "4",
-    "5",
-    "6",
-    "7",
-    "8",
-    "9",
-    "I",
-    "IP",
-    "L",
-    "MP",
-    "RP",
-    "T",
-    "TIP",
-    "Y",
-]
+from handanno_core.datasets.msra import GESTURES  # noqa: E402
+
 SUBJECTS = [f"P{k}" for k in range(9)]
 BOX = 40
 

@@ -46,30 +46,11 @@ def run_session(folder: Path, variants: dict[str, RefineWeights]) -> dict:
     session = Session.open(folder)
     try:
         gt = session.open_sequence().ground_truth.joints_mm
-        crops, centres, boxes = pipeline.ensure_crops(session, quiet=True)
-        results = session.load_results()
-        init = np.array(results["init_mm"], dtype=np.float64)
-        refs = session.reference_frames
-        lifted = refs[np.all(np.isfinite(results["lifted_mm"][refs]), axis=(1, 2))]
-        init[lifted] = results["lifted_mm"][lifted]
+        init, problem = pipeline.refine_inputs(session, quiet=True)
         row = {"frames": session.num_frames, "init": _errors(init, gt), "variants": {}}
         for name, weights in variants.items():
             t = time.perf_counter()
-            out = refine(
-                init,
-                crops=crops,
-                boxes=boxes,
-                centres_mm=centres,
-                camera=session.camera,
-                skeleton=session.skeleton,
-                bone_lengths_mm=np.asarray(session.model.bone_lengths_mm),
-                reference_frames=refs,
-                reference_annotations=session.annotations(refs),
-                closest_reference=pipeline.root_reference(session.parent),
-                sequence_breaks=session.model.sequence_breaks,
-                cube_mm=session.model.settings.cube_mm,
-                weights=weights,
-            )
+            out = refine(init, weights=weights, **problem)
             row["variants"][name] = {
                 "final": _errors(out.joints_mm, gt),
                 "time_s": round(time.perf_counter() - t, 1),

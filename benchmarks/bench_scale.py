@@ -47,26 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from handanno_core.bench import machine_description  # noqa: E402
-
-GESTURES = [
-    "1",
-    "2",
-    "3",
-    "4",
-    "5",
-    "6",
-    "7",
-    "8",
-    "9",
-    "I",
-    "IP",
-    "L",
-    "MP",
-    "RP",
-    "T",
-    "TIP",
-    "Y",
-]
+from handanno_core.datasets.msra import GESTURES  # noqa: E402
 
 
 def generate(data: Path, folders: int, frames: int, workers: int, hands: str) -> float:

@@ -511,14 +511,14 @@ def refine(
         )  # fmt: skip
     from .refine import refine as run_refine
 
-    init, problem = _refine_inputs(session, quiet)
+    init, problem = refine_inputs(session, quiet)
     result = run_refine(init, progress=progress, hand_model=use_model, **problem)
     if save:
         session.save_results(final_mm=result.joints_mm)
     return result
 
 
-def _refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
+def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
     """The initialization (lifted references over propagation) and the session's refinement
     problem: the keyword arguments :func:`handanno_core.refine.refine` and
     :func:`handanno_core.pieces.refine_pieces` share (crops, boxes, centres, camera, skeleton,
@@ -555,7 +555,7 @@ def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap,
 
     from .pieces import DEFAULT_OVERLAP, DEFAULT_WINDOW, refine_pieces
 
-    init, problem = _refine_inputs(session, quiet)
+    init, problem = refine_inputs(session, quiet)
     folder = session.folder / REFINE_PIECES_DIR
     if not resume and folder.exists():
         shutil.rmtree(folder)

@@ -30,3 +30,22 @@ def build_review_session(folder: Path, data: Path) -> Path:
     session.model.settings.aligner = "dis"  # the fast aligner keeps these tests in their budget
     session.close()
     return folder
+
+
+def synth_data(tmp_path_factory, name: str, frames: int, seed: int) -> Path:
+    """A synthetic sequence of ``frames`` frames in a fresh temporary folder ``name``."""
+    from handanno_core.synth import generate_sequence
+
+    out = tmp_path_factory.mktemp(name) / "data"
+    generate_sequence(out, frames=frames, seed=seed, progress=False)
+    return out
+
+
+def open_review_session(folder: Path, data: Path):
+    """Body of a pytest fixture (``yield from``): the review session built in ``folder``, closed
+    after the test."""
+    from handanno_core.session import Session
+
+    session = Session.open(build_review_session(folder, data))
+    yield session
+    session.close()

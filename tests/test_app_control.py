@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from review_session import STEP, build_review_session
+from review_session import STEP, open_review_session, synth_data
 
 from app.control.annotate import AnnotateState, display_joints
 from app.control.context import AppContext
@@ -19,25 +19,19 @@ from handanno_core.annotation import FrameAnnotation
 from handanno_core.camera import CameraIntrinsics
 from handanno_core.results import Stage, update_lifted
 from handanno_core.review import rank_priority
-from handanno_core.session import Session, SetJoint2D, SetReview
+from handanno_core.session import SetJoint2D, SetReview
 
 FRAMES = 40
 
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory) -> Path:
-    from handanno_core.synth import generate_sequence
-
-    out = tmp_path_factory.mktemp("control-data") / "data"
-    generate_sequence(out, frames=FRAMES, seed=2, progress=False)
-    return out
+    return synth_data(tmp_path_factory, "control-data", FRAMES, seed=2)
 
 
 @pytest.fixture()
 def session(data_dir, tmp_path):
-    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
-    yield s
-    s.close()
+    yield from open_review_session(tmp_path / "sess", data_dir)
 
 
 @pytest.fixture()

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_session import propagated_cli_session
 
 from app.cli import main
 from handanno_core.datasets import open_sequence
@@ -49,13 +50,8 @@ def world(tmp_path_factory):
     """A 20-frame synthetic MSRA dataset and a session on it, propagated and exported as JSON."""
     root = tmp_path_factory.mktemp("bad")
     data, sessions = root / "data", root / "sessions"
-    assert main(["synth", str(data), "--frames", "20", "--seed", "2", "--workers", "1"]) == 0
+    propagated_cli_session(root, frames=20, seed=2)
     base = ["--sessions-dir", str(sessions)]
-    assert main([*base, "new", "s", str(data)]) == 0
-    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.1"]) == 0
-    assert main([*base, "annotate-from-gt", "s"]) == 0
-    assert main([*base, "lift", "s"]) == 0
-    assert main([*base, "propagate", "s"]) == 0
     assert (
         main(["export", str(sessions / "s"), "--format", "json", "-o", str(root / "e.json")]) == 0
     )

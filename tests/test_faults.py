@@ -305,18 +305,9 @@ def test_undo_is_scoped_per_client_per_joint_and_per_field(tmp_path):
 @pytest.fixture(scope="module")
 def propagated(tmp_path_factory):
     """A 40-frame synthetic session, selected, annotated from ground truth, lifted, propagated."""
-    from app.cli import main
+    from cli_session import propagated_cli_session
 
-    root = tmp_path_factory.mktemp("faults")
-    data, sessions = root / "data", root / "sessions"
-    assert main(["synth", str(data), "--frames", "40", "--seed", "5", "--workers", "1"]) == 0
-    base = ["--sessions-dir", str(sessions)]
-    assert main([*base, "new", "s", str(data)]) == 0
-    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.1"]) == 0
-    assert main([*base, "annotate-from-gt", "s"]) == 0
-    assert main([*base, "lift", "s"]) == 0
-    assert main([*base, "propagate", "s"]) == 0
-    return sessions / "s"
+    return propagated_cli_session(tmp_path_factory.mktemp("faults"), frames=40, seed=5)
 
 
 def _kill_when(proc: subprocess.Popen, marker: str, timeout_s: float = 90.0) -> str:

@@ -124,18 +124,9 @@ def test_checkpoints_resume_exactly_and_stale_ones_are_not_used(scene, tmp_path)
 @pytest.fixture(scope="module")
 def propagated_session(tmp_path_factory):
     """A 72-frame synthetic session (selected, annotated from ground truth, lifted, propagated)."""
-    from app.cli import main
+    from cli_session import propagated_cli_session
 
-    root = tmp_path_factory.mktemp("pieces-cli")
-    data, sessions = root / "data", root / "sessions"
-    assert main(["synth", str(data), "--frames", "72", "--seed", "4", "--workers", "1"]) == 0
-    base = ["--sessions-dir", str(sessions)]
-    assert main([*base, "new", "s", str(data)]) == 0
-    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.1"]) == 0
-    assert main([*base, "annotate-from-gt", "s"]) == 0
-    assert main([*base, "lift", "s"]) == 0
-    assert main([*base, "propagate", "s"]) == 0
-    return sessions / "s"
+    return propagated_cli_session(tmp_path_factory.mktemp("pieces-cli"), frames=72, seed=4)
 
 
 @pytest.mark.slow

@@ -7,28 +7,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from review_session import STEP, build_review_session
+from review_session import STEP, open_review_session, synth_data
 
 from handanno_core.prefill import _nearest_known, _segment_ids, prefill_reference, prefill_uv
-from handanno_core.session import Session
 
 FRAMES = 30
 
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory) -> Path:
-    from handanno_core.synth import generate_sequence
-
-    out = tmp_path_factory.mktemp("prefill-data") / "data"
-    generate_sequence(out, frames=FRAMES, seed=2, progress=False)
-    return out
+    return synth_data(tmp_path_factory, "prefill-data", FRAMES, seed=2)
 
 
 @pytest.fixture()
 def session(data_dir, tmp_path):
-    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
-    yield s
-    s.close()
+    yield from open_review_session(tmp_path / "sess", data_dir)
 
 
 def errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:

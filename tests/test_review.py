@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from review_session import build_review_session
+from review_session import open_review_session, synth_data
 
 from app.control.jobs import PARTIAL_FILE, ReviewRunner
 from app.control.live import LiveResults
@@ -151,18 +151,12 @@ def test_smooth_in_time_and_centre_drift():
 # ------------------------------------------------------------------------------------------ session fixture
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory) -> Path:
-    from handanno_core.synth import generate_sequence
-
-    out = tmp_path_factory.mktemp("review-data") / "data"
-    generate_sequence(out, frames=FRAMES, seed=1, progress=False)
-    return out
+    return synth_data(tmp_path_factory, "review-data", FRAMES, seed=1)
 
 
 @pytest.fixture()
 def session(data_dir, tmp_path):
-    s = Session.open(build_review_session(tmp_path / "sess", data_dir))
-    yield s
-    s.close()
+    yield from open_review_session(tmp_path / "sess", data_dir)
 
 
 def digest(path: Path) -> str:

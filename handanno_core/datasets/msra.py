@@ -33,6 +33,26 @@ from .base import DatasetError, DepthSequence, FrameError, GroundTruth, natural_
 FRAME_SUFFIX = "_depth.bin"
 JOINT_FILE = "joint.txt"
 CAMERA_FILE = "camera.json"
+#: the 17 gesture folders of every MSRA-2015 subject (``P0`` ... ``P8``), in the dataset's order
+GESTURES = (
+    "1",
+    "2",
+    "3",
+    "4",
+    "5",
+    "6",
+    "7",
+    "8",
+    "9",
+    "I",
+    "IP",
+    "L",
+    "MP",
+    "RP",
+    "T",
+    "TIP",
+    "Y",
+)
 _HEADER = np.dtype("<i4")
 _DEPTH = np.dtype("<f4")
 #: folders below the dataset root searched for gesture folders (root/P0/1 is depth 2).

@@ -451,12 +451,17 @@ def unexplained_foreground(
     *,
     radius_px: float = 6.0,
     stride: int = 4,
+    frames: np.ndarray | None = None,
+    chunk_frames: int = 256,
 ) -> np.ndarray:
     """``(N,)`` share of the hand's pixels in the crop (normalized depth < 1) farther than
     ``radius_px`` crop pixels from every projected bone: a finger the skeleton does not cover (a
     2D model-fit residual). Crop pixels are sampled every ``stride``. NaN without joints or hand.
 
     ``crops`` (N, S, S), ``boxes`` (N, 4) as :mod:`handanno_core.crops`; ``bones`` (B, 2).
+    ``frames``: only these frames (indices; the others stay NaN), e.g. the frames whose joints
+    changed. Vectorized over the hand pixels of ``chunk_frames`` frames at a time; a frame's value
+    depends on nothing else (not on the chunking, nor on ``frames``).
     """
     from .crops import image_to_crop
 
@@ -468,18 +473,31 @@ def unexplained_foreground(
     gy, gx = np.meshgrid(grid, grid, indexing="ij")
     pix = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)  # (P, 2) crop px
     b = np.asarray(bones, dtype=np.int64)
-    ok = np.flatnonzero(np.all(np.isfinite(j), axis=(1, 2)))
-    for f in ok:
-        fg = np.asarray(crops[f][gy, gx]).ravel() < 0.999
-        if not fg.any():
-            continue
-        xy = image_to_crop(camera.project(j[f]), np.asarray(boxes[f], dtype=np.float64))
-        p0, p1 = xy[b[:, 0]], xy[b[:, 1]]  # (B, 2)
-        q = pix[fg][:, None, :]  # (P, 1, 2)
+    todo = np.arange(n) if frames is None else np.unique(np.asarray(frames, dtype=np.int64))
+    ok = todo[np.all(np.isfinite(j[todo]), axis=(1, 2))]
+    step = max(int(chunk_frames), 1)
+    for start in range(0, ok.size, step):
+        chunk = ok[start : start + step]
+        sampled = np.asarray(crops[chunk])[:, stride // 2 :: stride, stride // 2 :: stride]
+        fg = sampled.reshape(len(chunk), -1) < 0.999  # (C, P), pixels as ``pix``
+        xy = image_to_crop(
+            camera.project(j[chunk]), np.asarray(boxes[chunk], dtype=np.float64)[:, None, :]
+        )  # (C, J, 2)
+        p0, p1 = xy[:, b[:, 0]], xy[:, b[:, 1]]  # (C, B, 2)
         d = p1 - p0
-        t = np.clip(np.sum((q - p0) * d, axis=-1) / np.maximum(np.sum(d * d, axis=-1), 1e-9), 0, 1)
-        dist = np.linalg.norm(q - (p0 + t[..., None] * d), axis=-1).min(axis=1)
-        out[f] = float(np.mean(dist > radius_px))
+        dd = np.maximum(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1], 1e-9)  # (C, B)
+        which, where = np.nonzero(fg)  # the hand pixels of the chunk: (M,) frame, (M,) pixel
+        # per (hand pixel, bone), x and y apart (reductions over a length-2 axis are slow)
+        qx, qy = pix[where, 0][:, None], pix[where, 1][:, None]  # (M, 1)
+        x0, y0 = p0[which, :, 0], p0[which, :, 1]  # (M, B)
+        dx, dy = d[which, :, 0], d[which, :, 1]
+        t = np.clip(((qx - x0) * dx + (qy - y0) * dy) / dd[which], 0, 1)
+        ex, ey = qx - (x0 + t * dx), qy - (y0 + t * dy)
+        dist = np.sqrt(ex * ex + ey * ey).min(axis=1)  # (M,) crop px to the nearest bone
+        count = np.bincount(which, minlength=len(chunk))
+        far = np.bincount(which, weights=dist > radius_px, minlength=len(chunk))
+        has = count > 0
+        out[chunk[has]] = far[has] / count[has]
     return out
 
 
@@ -518,6 +536,7 @@ def review_evidence(
     crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     *,
     extra: dict[str, np.ndarray] | None = None,
+    unexplained: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-frame evidence ``{name: (N,)}`` that a frame's shown skeleton (refined, else
     propagated, else lifted) is wrong, larger = worse, NaN = unavailable. No ground truth.
@@ -534,6 +553,8 @@ def review_evidence(
     ``hops`` propagation steps from the reference; ``gap`` frames (in time) to the reference.
     ``extra``: further terms ``{name: (N,)}`` (e.g. a model-fit residual) passed through.
     ``crop_data`` = ``(crops, centres_mm, boxes)`` (:func:`handanno_core.prefill.cached_crops`).
+    ``unexplained``: :func:`unexplained_foreground` of these joints (N,) when the caller keeps it
+    up to date itself (the app recomputes only frames whose joints changed); else computed here.
     """
     from .export import best_joints
     from .pipeline import root_reference
@@ -555,8 +576,10 @@ def review_evidence(
             warnings.simplefilter("ignore", RuntimeWarning)
             ev["depth_mm"] = np.nanmean(res, axis=1)
             ev["depth_max_mm"] = np.nanmax(res, axis=1)
-        ev["unexplained"] = unexplained_foreground(
-            joints, crops, boxes, session.camera, skeleton.bones
+        ev["unexplained"] = (
+            unexplained_foreground(joints, crops, boxes, session.camera, skeleton.bones)
+            if unexplained is None
+            else np.asarray(unexplained, dtype=np.float64)
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -731,16 +754,19 @@ def rank_priority(
     crop_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     *,
     extra: dict[str, np.ndarray] | None = None,
+    unexplained: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(N,)`` priority of ``ranking`` (larger = show first; NaN = nothing to show): ``"evidence"``
     (:func:`evidence_priority`), ``"score"`` (the app's ranking until now: ``1 -``
-    :func:`session_scores`), ``"uniform"`` (all equal; use :func:`uniform_pick`)."""
+    :func:`session_scores`), ``"uniform"`` (all equal; use :func:`uniform_pick`). ``unexplained``
+    goes to :func:`review_evidence`."""
     from .export import best_joints
 
     joints, _ = best_joints(results)
     has = np.all(np.isfinite(joints), axis=(1, 2))
     if ranking == "evidence":
-        p = evidence_priority(review_evidence(session, results, crop_data, extra=extra))
+        ev = review_evidence(session, results, crop_data, extra=extra, unexplained=unexplained)
+        p = evidence_priority(ev)
         p = smooth_in_time(p, SMOOTH[0], SMOOTH[1], session.model.sequence_breaks)
     elif ranking == "score":
         p = 1.0 - session_scores(session, joints, results["confidence"], crop_data).score

@@ -49,6 +49,7 @@ def review(session):
 
 def set_priority(state: ReviewState, priority: np.ndarray) -> None:
     state.live.priority = lambda: priority  # type: ignore[method-assign]
+    state.live.ranking = lambda wait_s=None: priority  # type: ignore[method-assign]
 
 
 # ------------------------------------------------------------------------------------------ events
@@ -135,6 +136,65 @@ def test_live_priority_is_the_engines_evidence_ranking(review):
     session = review.session
     expected = rank_priority("evidence", session, session.load_results(), None)
     np.testing.assert_allclose(review.live.priority(), expected, equal_nan=True)
+
+
+def test_background_ranking_follows_the_results_and_updates_only_changed_frames(
+    data_dir, tmp_path
+):
+    """The ranking thread ranks the current results, again after a change, and its incremental
+    unexplained-foreground term equals the engine's full computation."""
+    from large_session import build_large_session
+
+    from handanno_core.export import best_joints
+    from handanno_core.prefill import cached_crops
+    from handanno_core.review import unexplained_foreground
+    from handanno_core.session import Session
+
+    folder = build_large_session(tmp_path / "big", data_dir, 3, crop_size=32)
+    session = Session.open(folder)
+    ranked: list[int] = []
+    live = LiveResults(session, on_ranked=ranked.append)
+    try:
+        first = live.ranking(wait_s=None)
+        crop_data = cached_crops(session)
+        expected = rank_priority("evidence", session, session.load_results(), crop_data)
+        np.testing.assert_array_equal(first, expected)
+        assert ranked == [live.version]
+        moved = live.frame(5)[0] + 30.0
+        live.put(5, moved, None, Stage.REFINED)
+        second = live.ranking(wait_s=None)
+        results = {k: v.copy() for k, v in live.results.items()}
+        np.testing.assert_array_equal(second, rank_priority("evidence", session, results, crop_data))
+        assert second[5] != first[5] and ranked[-1] == live.version
+        crops, _, boxes = crop_data
+        full = unexplained_foreground(
+            best_joints(results)[0], crops, boxes, session.camera, session.skeleton.bones
+        )
+        np.testing.assert_array_equal(live._ux, full)
+    finally:
+        live.stop_ranking()
+        session.close()
+
+
+def test_unexplained_foreground_of_some_frames_equals_all_frames(data_dir, tmp_path):
+    from large_session import build_large_session
+
+    from handanno_core.export import best_joints
+    from handanno_core.prefill import cached_crops
+    from handanno_core.review import unexplained_foreground
+    from handanno_core.session import Session
+
+    session = Session.open(build_large_session(tmp_path / "big", data_dir, 2, crop_size=32))
+    crops, _, boxes = cached_crops(session)
+    joints = best_joints(session.load_results())[0]
+    args = (crops, boxes, session.camera, session.skeleton.bones)
+    full = unexplained_foreground(joints, *args)
+    assert np.isfinite(full).all() and np.ptp(full) > 0
+    some = unexplained_foreground(joints, *args, frames=np.array([7, 3, 70]), chunk_frames=2)
+    np.testing.assert_array_equal(some[[3, 7, 70]], full[[3, 7, 70]])
+    assert np.isnan(np.delete(some, [3, 7, 70])).all()
+    np.testing.assert_array_equal(unexplained_foreground(joints, *args, chunk_frames=5), full)
+    session.close()
 
 
 # ------------------------------------------------------------------------------------------ results

@@ -23,7 +23,7 @@ from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, Session
 
 from .annotate import AnnotateState, template_hand
-from .events import EventBus, UpdateTopic, entry_update, job_update, lift_update
+from .events import EventBus, Update, UpdateTopic, entry_update, job_update, lift_update
 from .frames import FrameStore
 from .jobs import LiftFunction, LiftOutcome, LiftWorker, ReviewRunner
 from .live import LiveResults
@@ -52,7 +52,8 @@ class AppContext:
             on_result=self._on_lift,
             initial_guess=self.prefill,
         )
-        self.live = LiveResults(session)
+        self.live = LiveResults(session, on_ranked=self._on_ranked)
+        self.live.start_ranking()  # ranked in the background from the start (seconds at 76k frames)
         options: dict[str, Any] = {"lift_for": self._lift_for}
         options.update(review_options or {})
         self.runner = ReviewRunner(session, self.live, **options)
@@ -113,6 +114,9 @@ class AppContext:
         if event != "progress":
             self.bus.publish(job_update(event, frame))
 
+    def _on_ranked(self, version: int) -> None:
+        self.bus.publish(Update(frozenset({UpdateTopic.RANKING})))
+
     def _tick(self) -> None:
         """Publish job progress at most every ``tick_s`` (when it changed)."""
         shown: tuple = ()
@@ -143,4 +147,5 @@ class AppContext:
         self._stop.set()
         self.runner.stop()
         self.worker.stop()
+        self.live.stop_ranking()
         self.session.close()

@@ -26,6 +26,7 @@ class UpdateTopic(Enum):
     LIFT = auto()  # the live lift worker lifted a frame
     RESULTS = auto()  # results.npz or the live results changed (lift all, propagation, import)
     JOB = auto()  # a background job's progress or phase changed
+    RANKING = auto()  # the background review ranking of the live results is new
 
 
 #: journal command kind -> topics it touches (a batch: the union of its commands')

@@ -7,33 +7,62 @@ for review with the engine's evidence ranking (:func:`handanno_core.review.rank_
 ``"evidence"``) and scores them (:func:`handanno_core.review.session_scores`), both cached per
 version. The crop cache is read through :func:`handanno_core.prefill.cached_crops` (never computed
 from the UI).
+
+The ranking scales with the session (seconds for 76,000 frames), so the app never computes it on
+a UI thread: :meth:`LiveResults.start_ranking` starts one background thread that re-ranks after
+every change (coalesced: at most one ranking in flight, and while results keep changing, it rests
+between rankings), and :meth:`LiveResults.ranking` answers with the
+newest ranking at once. The costliest per-frame term (:func:`handanno_core.review.unexplained_foreground`)
+is recomputed only for frames whose joints changed.
 """
 
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Callable
 
 import numpy as np
 
 from handanno_core.export import best_joints
 from handanno_core.results import Stage
-from handanno_core.review import FrameScores, rank_priority, session_scores
+from handanno_core.review import FrameScores, rank_priority, session_scores, unexplained_foreground
 from handanno_core.session import Session
 
 #: the results key each stage's joints are written to
 _STAGE_KEY = {Stage.LIFTED: "lifted_mm", Stage.PROPAGATED: "init_mm", Stage.REFINED: "final_mm"}
+#: how long :meth:`LiveResults.ranking` waits for the ranking of the current results before it
+#: answers with the previous one (small sessions are ranked well within it: their answers are
+#: always current)
+RANK_WAIT_S = 0.15
+#: the ranking thread rests as long as its last ranking took, at most this long, before it ranks
+#: changed results again (while a job changes results, ranking takes at most about half a core)
+RANK_REST_S = 2.0
 
 
 class LiveResults:
     """Thread-safe live results; ``version`` grows with every change. ``joints_mm`` (N, J, 3) is
-    the best stage per frame, ``stage`` (N,) int8 its :class:`Stage`."""
+    the best stage per frame, ``stage`` (N,) int8 its :class:`Stage`. ``on_ranked``: called (on
+    the ranking thread) with the results version of every new background ranking."""
 
-    def __init__(self, session: Session):
+    def __init__(self, session: Session, on_ranked: Callable[[int], None] | None = None):
         self.session = session
         self._lock = threading.Lock()
         self.version = 0
         self._cache: dict[str, tuple[int, object]] = {}
         self._crops: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # the background ranking: (results version, priority (N,)) of the newest one
+        self.on_ranked = on_ranked
+        self._ranked: tuple[int, np.ndarray] | None = None
+        self._rank_cv = threading.Condition()
+        self._rank_thread: threading.Thread | None = None
+        self._rank_stop = False
+        #: seconds the last ranking took (also how long the thread rests while results change)
+        self.rank_seconds = 0.0
+        # unexplained_foreground per frame, and the joints it was computed for
+        self._ux: np.ndarray | None = None
+        self._ux_joints: np.ndarray | None = None
+        self._ux_lock = threading.Lock()
         self.reload()
 
     def reload(self) -> None:
@@ -50,6 +79,7 @@ class LiveResults:
                 else np.asarray(self.session.model.bone_lengths_mm, dtype=np.float64)
             )
             self.version += 1
+        self._changed()
 
     def put(
         self, frame: int, joints_mm: np.ndarray, confidence: np.ndarray | None, stage: int
@@ -61,6 +91,7 @@ class LiveResults:
                 self.confidence[frame] = confidence
             self.stage[frame] = stage
             self.version += 1
+        self._changed()
 
     def put_all(self, joints_mm: np.ndarray, stage: int) -> None:
         ok = np.all(np.isfinite(joints_mm), axis=(1, 2))
@@ -69,6 +100,7 @@ class LiveResults:
             self.joints_mm[ok] = joints_mm[ok]
             self.stage[ok] = stage
             self.version += 1
+        self._changed()
 
     def frame(self, frame: int) -> tuple[np.ndarray, int]:
         with self._lock:
@@ -85,14 +117,19 @@ class LiveResults:
             self._crops = cached_crops(self.session)
         return self._crops
 
+    def _snapshot(self) -> tuple[int, dict[str, np.ndarray], np.ndarray | None]:
+        with self._lock:
+            return (
+                self.version,
+                {k: v.copy() for k, v in self.results.items()},
+                self.bone_lengths_mm,
+            )
+
     def _cached(self, name: str, compute) -> object:
         cached = self._cache.get(name)
         if cached is not None and cached[0] == self.version:
             return cached[1]
-        with self._lock:
-            version = self.version
-            results = {k: v.copy() for k, v in self.results.items()}
-            bones_mm = self.bone_lengths_mm
+        version, results, bones_mm = self._snapshot()
         value = compute(results, bones_mm)
         self._cache[name] = (version, value)
         return value
@@ -113,11 +150,114 @@ class LiveResults:
 
         return self._cached("scores", compute)  # type: ignore[return-value]
 
+    # ------------------------------------------------------------------ the review ranking
     def priority(self) -> np.ndarray:
-        """``(N,)`` review priority, larger = show first, NaN = no skeleton: the engine's
-        ``"evidence"`` ranking (:func:`~handanno_core.review.rank_priority`), cached per version."""
+        """``(N,)`` review priority of the current results, larger = show first, NaN = no
+        skeleton: the engine's ``"evidence"`` ranking (:func:`~handanno_core.review.rank_priority`),
+        cached per version. Computed on the calling thread when not cached: the app uses
+        :meth:`ranking` instead."""
+        return self._cached("priority", self._rank)  # type: ignore[return-value]
 
-        def compute(results: dict[str, np.ndarray], _bones: np.ndarray | None) -> np.ndarray:
-            return rank_priority("evidence", self.session, results, self._crop_data())
+    def _rank(self, results: dict[str, np.ndarray], _bones: np.ndarray | None) -> np.ndarray:
+        """The evidence ranking of ``results``, its unexplained-foreground term recomputed only
+        for frames whose shown joints changed since the last ranking."""
+        crop_data = self._crop_data()
+        unexplained = None
+        if crop_data is not None:
+            crops, _, boxes = crop_data
+            joints, _ = best_joints(results)
+            with self._ux_lock:  # one ranking at a time updates the per-frame term
+                if self._ux is None or self._ux_joints is None:
+                    todo = np.arange(len(joints))
+                    self._ux = np.full(len(joints), np.nan)
+                else:
+                    old = self._ux_joints
+                    same = (joints == old) | (np.isnan(joints) & np.isnan(old))
+                    todo = np.flatnonzero(~np.all(same, axis=(1, 2)))
+                if todo.size:
+                    fresh = unexplained_foreground(
+                        joints, crops, boxes, self.session.camera, self.session.skeleton.bones,
+                        frames=todo,
+                    )  # fmt: skip
+                    self._ux[todo] = fresh[todo]
+                self._ux_joints = joints
+                unexplained = self._ux.copy()
+        return rank_priority("evidence", self.session, results, crop_data, unexplained=unexplained)
 
-        return self._cached("priority", compute)  # type: ignore[return-value]
+    def start_ranking(self) -> None:
+        """Start the background ranking thread (it ranks the current results at once, then again
+        after every change). Idempotent."""
+        with self._rank_cv:
+            if self._rank_thread is not None or self._rank_stop:
+                return
+            self._rank_thread = threading.Thread(
+                target=self._rank_loop, name="handanno-ranking", daemon=True
+            )
+            self._rank_thread.start()
+
+    def stop_ranking(self, timeout: float = 30.0) -> None:
+        with self._rank_cv:
+            self._rank_stop = True
+            self._rank_cv.notify_all()
+            thread = self._rank_thread
+        if thread is not None:
+            thread.join(timeout)
+
+    def _changed(self) -> None:
+        with self._rank_cv:
+            self._rank_cv.notify_all()
+
+    def _rank_loop(self) -> None:
+        import traceback
+
+        while True:
+            with self._rank_cv:
+                while not self._rank_stop and (
+                    self._ranked is not None and self._ranked[0] == self.version
+                ):
+                    self._rank_cv.wait()
+                if self._rank_stop:
+                    return
+            try:
+                t0 = time.monotonic()
+                version, results, bones = self._snapshot()
+                priority = self._rank(results, bones)
+                self.rank_seconds = time.monotonic() - t0
+            except Exception:  # a failed ranking keeps the previous one; retry after a pause
+                traceback.print_exc()
+                time.sleep(5.0)
+                continue
+            with self._rank_cv:
+                self._ranked = (version, priority)
+                self._cache["priority"] = (version, priority)
+                self._rank_cv.notify_all()
+            if self.on_ranked is not None:
+                try:
+                    self.on_ranked(version)
+                except Exception:
+                    traceback.print_exc()
+            # results still changing (a job): rest as long as the ranking took, at most RANK_REST_S
+            rest_until = time.monotonic() + min(self.rank_seconds, RANK_REST_S)
+            with self._rank_cv:
+                while not self._rank_stop and time.monotonic() < rest_until:
+                    self._rank_cv.wait(rest_until - time.monotonic())
+
+    def ranking(self, wait_s: float | None = RANK_WAIT_S) -> np.ndarray | None:
+        """The newest review priority ``(N,)`` (as :meth:`priority`) without ranking on this
+        thread: the one of the current results if the background thread has it within ``wait_s``
+        seconds (None: wait as long as it takes), else the previous one; None while none has been
+        computed yet. Starts the background thread if needed."""
+        self.start_ranking()
+        deadline = None if wait_s is None else time.monotonic() + wait_s
+        with self._rank_cv:
+            while self._ranked is None or self._ranked[0] != self.version:
+                left = None if deadline is None else deadline - time.monotonic()
+                if (left is not None and left <= 0) or self._rank_stop:
+                    break
+                self._rank_cv.wait(left)
+            return None if self._ranked is None else self._ranked[1]
+
+    def ranked_version(self) -> int:
+        """The results version of the newest ranking (-1 before the first)."""
+        ranked = self._ranked
+        return -1 if ranked is None else ranked[0]

@@ -6,7 +6,8 @@ Edits return the acknowledged :class:`~handanno_core.session.JournalEntry` and r
 panel turns those into notifications.
 
 The walk: :meth:`ReviewState.next_worst` shows frames by decreasing review priority (the engine's
-``"evidence"`` ranking, :meth:`LiveResults.priority`), never a reference, a frame with a review
+``"evidence"`` ranking, the newest one :meth:`LiveResults.ranking` has: ranked in the background,
+so a step costs O(N) numpy and never a ranking), never a reference, a frame with a review
 status (accepted or flagged) or a frame the walk already showed, and no frame within
 :data:`NEIGHBOUR_RADIUS` frames of one it showed while any other frame is left.
 """
@@ -53,21 +54,30 @@ class ReviewState:
 
     def next_worst(self) -> int | None:
         """Go to the next frame of the walk (see the module docstring); None when none is left."""
-        priority = np.asarray(self.live.priority(), dtype=np.float64)
+        ranked = self.live.ranking()
+        if ranked is None:  # nothing ranked yet (a session just opened): wait for the first
+            ranked = self.live.ranking(wait_s=None)
+        priority = np.asarray(ranked, dtype=np.float64)
         n = len(priority)
-        done = {int(k) for k in self.session.model.review}
-        done |= {int(f) for f in self.session.reference_frames} | set(self.walked)
+        walked = np.asarray(self.walked, dtype=np.int64)
+        done = np.concatenate(
+            [
+                np.fromiter(map(int, self.session.model.review), dtype=np.int64),
+                self.session.reference_frames,
+                walked,
+            ]
+        )
         ok = np.isfinite(priority)
-        ok[[f for f in done if 0 <= f < n]] = False
+        ok[done[(done >= 0) & (done < n)]] = False
         near = np.zeros(n, dtype=bool)
-        for f in self.walked:
-            near[max(f - NEIGHBOUR_RADIUS, 0) : f + NEIGHBOUR_RADIUS + 1] = True
+        around = (walked[:, None] + np.arange(-NEIGHBOUR_RADIUS, NEIGHBOUR_RADIUS + 1)).ravel()
+        near[around[(around >= 0) & (around < n)]] = True
         cand = np.flatnonzero(ok & ~near)
         if cand.size == 0:
             cand = np.flatnonzero(ok)
         if cand.size == 0:
             return None
-        frame = int(cand[np.lexsort((cand, -priority[cand]))][0])
+        frame = int(cand[np.argmax(priority[cand])])  # the first of equals: the earliest frame
         self.walked.append(frame)
         return self.go_to(frame)
 

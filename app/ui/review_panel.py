@@ -2,9 +2,16 @@
 
 Panel: "Propagate & refine" (the context's background :class:`~app.control.jobs.ReviewRunner`,
 with a progress bar; propagated skeletons appear while it runs), "Lift all references", a
-timeline slider with play/pause (reference frames marked), the review priority as a uPlot chart
-(the shown frame is a marker point, not a line), "Next worst frame", Accept / Flag / Clear,
-"Show labels" and "Show depth image", export (JSON / NPZ / MSRA download) and JSON import.
+timeline slider with play/pause (reference frames marked, up to :data:`MAX_MARKS` of them), the
+review priority as a uPlot chart (the shown frame is a marker point, not a line), "Next worst
+frame", Accept / Flag / Clear, "Show labels" and "Show depth image", export (JSON / NPZ / MSRA
+download) and JSON import.
+
+Sized for long sessions (76,000 frames): the chart has at most about :data:`PLOT_POINTS` points,
+one per frame below that, else the worst priority of each bin of consecutive frames
+(:func:`handanno_core.aggregate.summarize_bins`, bins cut at sequence breaks); it is redrawn only
+when the background ranking is new or the shown frame moves to another bin, and nothing here
+ranks frames (the context's :class:`~app.control.live.LiveResults` ranks in the background).
 
 Dragging a joint of a propagated frame is a correction (:meth:`ReviewState.move_joint`). Every
 action is a method of :class:`~app.control.review.ReviewState`; this module only shows results.
@@ -20,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import viser.uplot
 
+from handanno_core.aggregate import bin_edges, summarize_bins
 from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, SessionError
 
@@ -31,9 +39,10 @@ from .hand_scene import Drawing
 if TYPE_CHECKING:
     from .client_ui import ClientUI
 
-#: while a job runs, the priority plot (the evidence ranking of every frame) is redrawn at most
-#: this often
-PLOT_EVERY_S = 2.0
+#: the priority chart's number of points (bins of consecutive frames beyond it)
+PLOT_POINTS = 1000
+#: reference frames marked on the timeline slider (none in sessions with more references)
+MAX_MARKS = 60
 STAGE_TEXT = {0: "not computed yet", 1: "lifted", 2: "propagated", 3: "refined"}
 
 
@@ -60,8 +69,10 @@ class ReviewWidgets:
     saved_md: Any
 
 
-def make_review_widgets(gui: Any, n: int, refs: list[int]) -> ReviewWidgets:
-    x = np.arange(n, dtype=np.float64)
+def make_review_widgets(gui: Any, n: int, refs: list[int], edges: np.ndarray) -> ReviewWidgets:
+    """The widgets; ``edges`` (K+1,): the frame bins of the priority chart."""
+    x = edges[:-1].astype(np.float64)
+    k = len(x)
     status_md = gui.add_markdown("")
     run_button = gui.add_button(
         "Propagate & refine", hint="Propagate every frame, then refine (background)"
@@ -72,7 +83,7 @@ def make_review_widgets(gui: Any, n: int, refs: list[int]) -> ReviewWidgets:
     )
     cancel_button = gui.add_button("Cancel run", color="red", disabled=True)
     run_bar, run_md = gui.add_progress_bar(0.0, animated=False), gui.add_markdown("*no run yet*")
-    marks = tuple((f, "") for f in refs[:60]) if refs else None
+    marks = tuple((f, "") for f in refs) if 0 < len(refs) <= MAX_MARKS else None
     slider = gui.add_slider("Frame", min=0, max=max(n - 1, 1), step=1, initial_value=0, marks=marks)
     play_nav = gui.add_button_group("Playback", ("◀", "Play", "▶"))
     worst_button = gui.add_button(
@@ -81,7 +92,7 @@ def make_review_widgets(gui: Any, n: int, refs: list[int]) -> ReviewWidgets:
     review_buttons = gui.add_button_group("Review", ("Accept", "Flag", "Clear"))
     frame_md = gui.add_markdown("")
     plot = gui.add_uplot(
-        data=(x, np.zeros(n), np.full(n, np.nan)),
+        data=(x, np.zeros(k), np.full(k, np.nan)),
         series=(
             viser.uplot.Series(label="frame"),
             viser.uplot.Series(label="priority", stroke="#1f77b4", width=1.5),
@@ -122,12 +133,16 @@ class ReviewPanel:
         self.runner = ui.ctx.runner
         self.state = ui.ctx.review_state(ui.name)
         refs = [int(f) for f in self.session.reference_frames]
-        self.w = make_review_widgets(self.client.gui, self.session.num_frames, refs)
+        n = self.session.num_frames
+        #: the priority chart's bins of frames (one per frame in sessions up to PLOT_POINTS)
+        self._edges = bin_edges(n, PLOT_POINTS, self.session.model.sequence_breaks)
+        self.w = make_review_widgets(self.client.gui, n, refs, self._edges)
         self.frame_data: FrameData | None = None
         self._joints_mm = np.full((self.session.skeleton.num_joints, 3), np.nan)
         self._playing = False
-        self._shown_version = -1
-        self._plot_at = 0.0
+        #: (ranking version, marker bin) the chart shows; the ranking's per-bin maxima
+        self._plot_shown: tuple[int, int] = (-2, -1)
+        self._plot_y: tuple[int, np.ndarray] = (-2, np.zeros(len(self._edges) - 1))
         #: (entry seq, perf_counter at ack) of this client's review edits (benchmarks, tests)
         self.acks: list[tuple[int, float]] = []
         self._bind()
@@ -257,6 +272,17 @@ class ReviewPanel:
             time.sleep(max(0.0, 1.0 / fps - (time.monotonic() - t0)))
 
     def go_worst(self) -> int | None:
+        if self.live.ranking(wait_s=0.0) is None:  # just opened: the first ranking is not ready
+            self.client.add_notification(
+                "Ranking frames",
+                f"ranking {self.session.num_frames} frames for review; the worst one follows",
+                auto_close_seconds=4.0,
+            )
+            threading.Thread(target=self._go_worst, name="handanno-worst", daemon=True).start()
+            return None
+        return self._go_worst()
+
+    def _go_worst(self) -> int | None:
         frame = self.state.next_worst()
         if frame is None:
             self.client.add_notification(
@@ -349,7 +375,7 @@ class ReviewPanel:
                 self.render_skeleton()
         if update.job == "finished" or update.topics & {UpdateTopic.REVIEW, UpdateTopic.REFERENCES}:
             self.refresh(force=True)
-        elif UpdateTopic.JOB in update.topics:
+        elif update.topics & {UpdateTopic.JOB, UpdateTopic.RANKING}:
             self.refresh()
         if (
             UpdateTopic.ANNOTATION in update.topics
@@ -363,7 +389,8 @@ class ReviewPanel:
             )  # fmt: skip
 
     def refresh(self, force: bool = False) -> None:
-        """Update the panel (run progress, frame text, priority plot)."""
+        """Update the panel (run progress, frame text, priority chart: redrawn when the ranking
+        is new or the shown frame's bin changed; ``force`` is kept for callers)."""
         st, w = self.runner.status, self.w
         n = self.session.num_frames
         w.run_bar.value = float(st.percent) if st.phase != "idle" else 0.0
@@ -380,21 +407,26 @@ class ReviewPanel:
         review = self.session.model.review.get(str(self.frame))
         bits = ["reference" if is_ref else STAGE_TEXT[Stage(stage)]] + ([review] if review else [])
         w.frame_md.content = f"**Review frame {self.frame}** ({', '.join(bits)})"
-        # the ranking of every frame is recomputed at most every PLOT_EVERY_S while a job runs
-        due = not st.running or time.monotonic() - self._plot_at >= PLOT_EVERY_S
-        if force or (self.live.version != self._shown_version and due):
-            self._shown_version = self.live.version
-            self._plot_at = time.monotonic()
-            self._refresh_plot()
+        self._refresh_plot()
 
     def _refresh_plot(self) -> None:
-        n = self.session.num_frames
-        p = np.asarray(self.live.priority(), dtype=np.float64)
-        top = np.nanmax(p) if np.isfinite(p).any() else 0.0
-        p = np.nan_to_num(p / top if top > 0 else p, nan=0.0)
-        marker = np.full(n, np.nan)
-        marker[self.frame] = 1.05
-        self.w.plot.data = (np.arange(n, dtype=np.float64), p, marker)
+        """Redraw the priority chart if the ranking or the shown frame's bin changed (O(K) for
+        K bins, plus O(N) numpy once per new ranking)."""
+        edges = self._edges
+        shown = (self.live.ranked_version(), int(np.searchsorted(edges, self.frame, "right") - 1))
+        if shown == self._plot_shown:
+            return
+        if self._plot_y[0] != shown[0]:
+            p = self.live.ranking(wait_s=0.0)  # the newest; never ranks on this thread
+            y = np.zeros(len(edges) - 1)
+            if p is not None and np.isfinite(p).any():
+                top = np.nanmax(p)
+                y = np.nan_to_num(summarize_bins(p / top if top > 0 else p, edges).max, nan=0.0)
+            self._plot_y = (shown[0], y)
+        marker = np.full(len(edges) - 1, np.nan)
+        marker[shown[1]] = 1.05
+        self.w.plot.data = (edges[:-1].astype(np.float64), self._plot_y[1], marker)
+        self._plot_shown = shown
 
     def close(self) -> None:
         self._playing = False

@@ -113,6 +113,8 @@ class Session:
         self._journal_seen: int | None = 0
         #: results written inside :meth:`staged_results` on this thread (not on disk yet)
         self._stage = threading.local()
+        #: frame -> (its stored annotation, complete?): :meth:`is_annotated`'s memo
+        self._complete: dict[int, tuple[dict[str, Any], bool]] = {}
 
     # ------------------------------------------------------------------ create / open
     @classmethod
@@ -292,8 +294,19 @@ class Session:
         return out
 
     def is_annotated(self, frame: int) -> bool:
+        """Every joint of ``frame`` placed. Memoized per stored annotation (commands replace a
+        frame's annotation, never edit it in place), so :meth:`progress` over thousands of
+        references parses only what changed."""
+        data = self.model.annotations.get(str(frame))
+        if data is None:
+            return False
+        memo = self._complete.get(frame)
+        if memo is not None and memo[0] is data:
+            return memo[1]
         ann = self.annotation(frame)
-        return ann is not None and bool(ann.annotated.all())
+        done = ann is not None and bool(ann.annotated.all())
+        self._complete[frame] = (data, done)
+        return done
 
     def progress(self) -> tuple[int, int]:
         """(annotated references, references)."""

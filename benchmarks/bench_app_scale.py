@@ -9,7 +9,8 @@ chart updated). Actions:
 * ``timeline``: move the review timeline to a random frame (what the slider's callback does);
 * ``step``: one frame forward (the slider's arrow, playback);
 * ``next_worst``: "Next worst frame" (the walk over the background ranking);
-* ``accept``: "Accept" (journals and fsyncs the status, then goes on to the next worst frame).
+* ``accept``: "Accept" (journals and fsyncs the status, then goes on to the next worst frame);
+* ``annotate_next``: the Annotate tab's next reference frame (its frame list).
 
 Reported per action: median, p95 and max (ms). Also: the open time (``serve`` called -> session
 opened, journal replayed, app context ready), the first page's UI built (browser connected ->
@@ -88,6 +89,76 @@ def wait_for(pred, timeout=300.0, what="condition"):
     raise TimeoutError(f"timed out waiting for {what}")
 
 
+def prepare(args: argparse.Namespace, tmp: Path) -> tuple[Path, str]:
+    """The folder to serve (a light copy) and a description of the session."""
+    if args.session is not None:
+        return light_copy(args.session.resolve(), tmp / "session"), str(args.session)
+    from large_session import build_large_session
+
+    from handanno_core.synth import generate_sequence
+
+    root = args.keep or tmp
+    base = root / "base"
+    if not (base / "joint.txt").exists():
+        generate_sequence(base, frames=args.base_frames, seed=0, progress=False, workers=1)
+    built = root / "tiled"
+    if not (built / "session.json").exists():
+        build_large_session(built, base, args.copies)
+    source = f"tiled: {args.copies} x {args.base_frames}-frame synthetic sequence"
+    return light_copy(built, tmp / "session"), source
+
+
+def drive(app, actions: int, t_serve: float) -> dict:
+    """Connect a headless Chromium, wait for the first ranking, time every action."""
+    from playwright.sync_api import sync_playwright
+
+    rng = np.random.default_rng(0)
+    n = app.session.num_frames
+    times: dict[str, list[float]] = {
+        "timeline": [], "step": [], "next_worst": [], "accept": [], "annotate_next": [],
+    }  # fmt: skip
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=shutil.which("chromium"), headless=True, args=CHROMIUM_ARGS
+        )
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        t_page = time.perf_counter()
+        page.goto(app.url)
+        ui = wait_for(lambda: (app.clients() or [None])[0], what="the page's UI")
+        ui.flush(120)
+        ui_s = time.perf_counter() - t_page
+        panel = ui.review
+
+        def timed(name: str, action) -> None:
+            start = time.perf_counter()
+            action()
+            ui.flush(120)
+            times[name].append(1000 * (time.perf_counter() - start))
+
+        for _ in range(actions):
+            timed("annotate_next", ui.annotate.next_frame)
+        ui.show("review")
+        ui.flush(120)
+        app.ctx.live.ranking(wait_s=None)
+        ranked_s = time.perf_counter() - t_serve
+        for _ in range(actions):
+            f = int(rng.integers(0, n))
+            timed("timeline", lambda f=f: panel.show_frame(f))
+            timed("step", lambda: panel.step_frame(+1))
+        for _ in range(actions):
+            timed("next_worst", panel.go_worst)
+        for _ in range(actions):
+            timed("accept", panel.accept)
+        assert panel.frame == panel.state.walked[-1], "accept did not go on to the next worst"
+        browser.close()
+    return {
+        "first_page_ui_s": round(ui_s, 2),
+        "first_ranking_ready_s": round(ranked_s, 1),
+        "one_ranking_s": round(app.ctx.live.rank_seconds, 1),
+        "actions": {k: stats(v) for k, v in times.items() if v},
+    }
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--session", type=Path, help="an existing session (served from a light copy)")
@@ -98,73 +169,19 @@ def main() -> int:
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks/results/app_scale.json")
     args = ap.parse_args()
 
-    from playwright.sync_api import sync_playwright
-
     from app.ui.server import serve
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-app-scale-"))
     t0 = time.perf_counter()
-    if args.session is not None:
-        folder = light_copy(args.session.resolve(), tmp / "session")
-        source = str(args.session)
-    else:
-        from large_session import build_large_session
-
-        from handanno_core.synth import generate_sequence
-
-        root = args.keep or tmp
-        base = root / "base"
-        if not (base / "joint.txt").exists():
-            generate_sequence(base, frames=args.base_frames, seed=0, progress=False, workers=1)
-        built = root / "tiled"
-        if not (built / "session.json").exists():
-            build_large_session(built, base, args.copies)
-        folder = light_copy(built, tmp / "session")
-        source = f"tiled: {args.copies} x {args.base_frames}-frame synthetic sequence"
+    folder, source = prepare(args, tmp)
     setup_s = time.perf_counter() - t0
     load = [round(os.getloadavg()[0], 2)]
-    rng = np.random.default_rng(0)
-    times: dict[str, list[float]] = {"timeline": [], "step": [], "next_worst": [], "accept": []}
-
     t_serve = time.perf_counter()
     app = serve(folder, port=free_port(), block=False)
     open_s = time.perf_counter() - t_serve
     n = app.session.num_frames
     try:
-        with sync_playwright() as p:
-            browser = p.chromium.launch(
-                executable_path=shutil.which("chromium"), headless=True, args=CHROMIUM_ARGS
-            )
-            page = browser.new_page(viewport={"width": 1280, "height": 720})
-            t_page = time.perf_counter()
-            page.goto(app.url)
-            ui = wait_for(lambda: (app.clients() or [None])[0], what="the page's UI")
-            ui.flush(120)
-            ui_s = time.perf_counter() - t_page
-            panel = ui.review
-            ranked_s = None
-
-            def timed(name: str, action) -> None:
-                start = time.perf_counter()
-                action()
-                ui.flush(120)
-                times[name].append(1000 * (time.perf_counter() - start))
-
-            ui.show("review")
-            ui.flush(120)
-            app.ctx.live.ranking(wait_s=None)
-            ranked_s = time.perf_counter() - t_serve
-            for _ in range(args.actions):
-                f = int(rng.integers(0, n))
-                timed("timeline", lambda f=f: panel.show_frame(f))
-                timed("step", lambda: panel.step_frame(+1))
-            for _ in range(args.actions):
-                timed("next_worst", panel.go_worst)
-            for _ in range(args.actions):
-                timed("accept", panel.accept)
-            assert panel.frame == panel.state.walked[-1], "accept did not go on to the next worst"
-            browser.close()
-        rank_s = app.ctx.live.rank_seconds
+        measured = drive(app, args.actions, t_serve)
     finally:
         app.stop()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -178,10 +195,8 @@ def main() -> int:
         "frames": n,
         "open_s": round(open_s, 2),
         "open_meaning": "serve() called -> session opened, journal replayed, app context ready",
-        "first_page_ui_s": round(ui_s, 2),
-        "first_ranking_ready_s": round(ranked_s, 1),
-        "one_ranking_s": round(rank_s, 1),
-        "actions": {k: stats(v) for k, v in times.items() if v},
+        "first_page_ui_meaning": "page.goto -> the page's panels built and first scene drawn",
+        **measured,
         "conditions": {
             "machine": machine_description(),
             "load_average_1min_start_end": load,

@@ -186,6 +186,12 @@ def _add_stage_commands(add, session_arg) -> None:
         help=f"exact budget as a share of frames (default: {DEFAULT_REF_FRACTION} unless --rho)",
     )
     g.add_argument("--rho", type=float, help="raw cosine-distance threshold instead of a budget")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="local processes building the crop cache (when not built yet; same result)",
+    )
 
     p = add("annotate-from-gt", "simulated annotator from ground truth (benchmarks only)")
     session_arg(p)
@@ -485,7 +491,11 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         if fraction is None and args.rho is None:
             fraction = DEFAULT_REF_FRACTION
         selection = pipeline.select(
-            session, strategy=args.strategy, ref_fraction=fraction, rho=args.rho
+            session,
+            strategy=args.strategy,
+            ref_fraction=fraction,
+            rho=args.rho,
+            workers=args.workers,
         )
         print(f"references: {len(selection.reference_frames)} of {session.num_frames}")
         print(f"figures: {session.folder / 'selection_embedding.png'}")

@@ -137,6 +137,7 @@ def compute_crops(
     report: BadFrameReport | None = None,
     progress: bool = False,
     chunk_frames: int = 256,
+    workers: int = 1,
 ) -> np.ndarray:
     """Normalized crops ``(N, size, size)`` float16 for every frame (see :func:`crop_depth`).
 
@@ -144,7 +145,9 @@ def compute_crops(
     mapping of ``chunk_frames`` frames at a time, flushed and dropped, so resident memory stays
     flat however long the sequence) and returned as ``np.load(out_path, mmap_mode="r")``. Without
     it an in-memory array is returned. Bad frames (``FrameError``, recorded in ``report``; raised
-    if ``report`` is None) and NaN centres stay all +1.
+    if ``report`` is None) and NaN centres stay all +1. ``workers`` > 1 (with ``out_path``):
+    ranges of frames are cut by that many processes, each writing its own part of the file; the
+    same bytes as one process.
     """
     n = len(sequence)
     centres = np.asarray(centres_mm, dtype=np.float64)
@@ -153,62 +156,103 @@ def compute_crops(
     frame_shape = (size, size)
     if out_path is None:
         out = np.full((n, *frame_shape), CropSpec.BACKGROUND, np.float16)
-        target = out
-        offset = None
-    else:
-        out_path = Path(out_path)
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out_path.with_name(out_path.name + ".tmp.npy")
-        header = np.lib.format.open_memmap(
-            tmp, mode="w+", dtype=np.float16, shape=(n, *frame_shape)
+        for a in range(0, n, chunk_frames):
+            b = min(n, a + chunk_frames)
+            out[a:b] = _crop_chunk(sequence, centres, a, b, cube_mm, size, report)
+        return out
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(out_path.name + ".tmp.npy")
+    header = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(n, *frame_shape))
+    offset = int(header.offset)
+    del header
+    file = (str(tmp), offset, frame_shape)
+    if workers > 1 and n > 1:
+        _crop_parallel(
+            sequence, centres, file, cube_mm, size, report, progress, chunk_frames, workers
         )
-        offset = int(header.offset)
-        del header
-        target = None
+    else:
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n, desc="cropping", unit="frame")
+        for a in range(0, n, chunk_frames):
+            b = min(n, a + chunk_frames)
+            _write_chunk(file, a, _crop_chunk(sequence, centres, a, b, cube_mm, size, report))
+            if bar is not None:
+                bar.update(b - a)
+        if bar is not None:
+            bar.close()
+    tmp.replace(out_path)
+    return np.load(out_path, mmap_mode="r")
+
+
+def _crop_chunk(sequence, centres, a, b, cube_mm, size, report) -> np.ndarray:
+    """Crops ``(b - a, size, size)`` float16 of frames ``a..b-1`` (bad frames to ``report``)."""
+    buf = np.full((b - a, size, size), CropSpec.BACKGROUND, np.float16)
+    for i in range(a, b):
+        if not np.all(np.isfinite(centres[i])):
+            continue
+        try:
+            depth = sequence.depth(i)
+        except FrameError as err:
+            if report is None:
+                raise
+            report.errors.append(err)
+            continue
+        buf[i - a] = crop_depth(depth, sequence.camera, centres[i], cube_mm, size)
+    return buf
+
+
+def _write_chunk(file: tuple[str, int, tuple[int, int]], a: int, buf: np.ndarray) -> None:
+    """Write ``buf`` (frames ``a..``) into the ``.npy`` file ``(path, data offset, frame shape)``
+    through a mapping of just those frames (flushed and dropped)."""
+    path, offset, shape = file
+    target = np.memmap(
+        path, dtype=np.float16, mode="r+", offset=offset + a * buf[0].nbytes, shape=buf.shape
+    )
+    target[:] = buf
+    target.flush()
+    del target
+
+
+def _crop_job(sequence, centres, file, cube_mm, size, chunk_frames, job):
+    """One process's share ``job = (a, b)``, cut and written chunk by chunk; bad frames come back
+    as ``(path, frame, problem)`` (a FrameError does not pickle)."""
+    a, b = job
+    report = BadFrameReport()
+    for c in range(a, b, chunk_frames):
+        d = min(b, c + chunk_frames)
+        _write_chunk(file, c, _crop_chunk(sequence, centres, c, d, cube_mm, size, report))
+    return [(e.path, e.frame, e.problem) for e in report.errors]
+
+
+def _crop_parallel(sequence, centres, file, cube_mm, size, report, progress, chunk_frames, workers):
+    from functools import partial
+
+    from .parallel import Runner, frame_ranges
+
+    jobs = frame_ranges(len(sequence), workers)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n, desc="cropping", unit="frame")
-    frame_bytes = size * size * 2
-    for a in range(0, n, chunk_frames):
-        b = min(n, a + chunk_frames)
-        if out_path is not None:
-            target = np.memmap(
-                tmp,
-                dtype=np.float16,
-                mode="r+",
-                offset=offset + a * frame_bytes,
-                shape=(b - a, *frame_shape),
-            )
-            base = a
-        else:
-            base = 0
-        buf = np.full((b - a, *frame_shape), CropSpec.BACKGROUND, np.float16)
-        for i in range(a, b):
-            if not np.all(np.isfinite(centres[i])):
-                continue
-            try:
-                depth = sequence.depth(i)
-            except FrameError as err:
-                if report is None:
-                    raise
-                report.errors.append(err)
-                continue
-            buf[i - a] = crop_depth(depth, sequence.camera, centres[i], cube_mm, size)
-        target[a - base : b - base] = buf
-        if out_path is not None:
-            target.flush()
-            del target
-            target = None
-        if bar is not None:
-            bar.update(b - a)
+        bar = tqdm(total=len(jobs), desc=f"cropping ({workers} processes)", unit="part")
+    with Runner(workers, fresh_processes=True) as runner:
+        done = runner.map(
+            partial(_crop_job, sequence, centres, file, cube_mm, size, chunk_frames),
+            jobs,
+            progress=None if bar is None else lambda *_: bar.update(1),
+        )
     if bar is not None:
         bar.close()
-    if out_path is None:
-        return out
-    tmp.replace(out_path)
-    return np.load(out_path, mmap_mode="r")
+    for bad in done:
+        errors = [FrameError(*e) for e in bad]
+        if errors and report is None:
+            raise errors[0]
+        if report is not None:
+            report.errors.extend(errors)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -219,8 +263,10 @@ def locate_crops(
     spec: CropSpec = DEFAULT_CROP,
     report: BadFrameReport | None = None,
     progress: bool = False,
+    workers: int = 1,
 ) -> tuple[np.ndarray, CropSpec]:
-    """Crop centres ``(N, 3)`` mm of every frame and the spec they hold the hand in.
+    """Crop centres ``(N, 3)`` mm of every frame and the spec they hold the hand in (``workers``
+    processes, see :func:`handanno_core.localize.locate_hands_with_extent`).
 
     :func:`handanno_core.localize.locate_hands_with_extent` at ``spec``'s cube; when the hand does
     not fit (:func:`handanno_core.localize.session_cube_mm`) the cube grows and the frames are
@@ -230,11 +276,15 @@ def locate_crops(
     from .localize import locate_hands_with_extent, session_cube_mm
 
     centres, half = locate_hands_with_extent(
-        sequence, report=report, cube_mm=spec.cube_mm, progress=progress
+        sequence, report=report, cube_mm=spec.cube_mm, progress=progress, workers=workers
     )
     while (cube := session_cube_mm(half, spec.cube_mm)) != spec.cube_mm:
         spec = spec.with_cube(cube)
         centres, half = locate_hands_with_extent(
-            sequence, report=BadFrameReport(), cube_mm=spec.cube_mm, progress=progress
+            sequence,
+            report=BadFrameReport(),
+            cube_mm=spec.cube_mm,
+            progress=progress,
+            workers=workers,
         )
     return centres, spec

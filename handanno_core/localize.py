@@ -700,6 +700,7 @@ def locate_hands_with_extent(
     smooth: bool = True,
     cube_mm: float = DEFAULT_CROP.cube_mm,
     progress: bool = False,
+    workers: int = 1,
     **locate_kwargs,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Hand centres ``(N, 3)`` mm and half extents ``(N, 3)`` mm for every frame of ``sequence``.
@@ -711,18 +712,39 @@ def locate_hands_with_extent(
     ``sequence.sequence_breaks``; a located centre moves at most the slack its hand leaves in
     the crop (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half
     extent`` in z). Centre rows stay NaN only in segments where no frame had a hand; extents stay
-    NaN where the frame had none.
+    NaN where the frame had none. ``workers`` > 1: runs of whole segments are located in that
+    many processes (the hint chain starts afresh at every break anyway), with the same result.
     """
+    n = len(sequence)
+    breaks = set(int(b) for b in sequence.sequence_breaks)
+    if workers > 1 and breaks:
+        raw, half = _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs)
+    else:
+        raw, half = _locate_range(sequence, range(n), report, cube_mm, progress, locate_kwargs)
+    slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
+    return smooth_centres(raw, sorted(breaks), smooth=smooth, max_shift_mm=slack), half
+
+
+def _locate_range(
+    sequence: DepthSequence,
+    frames: range,
+    report: BadFrameReport | None,
+    cube_mm: float,
+    progress: bool,
+    locate_kwargs: dict,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Raw (unsmoothed) centres and half extents ``(N, 3)`` of ``frames`` (the rest NaN); the
+    hint chain starts afresh at ``frames.start``, at every break and after every bad frame."""
     n = len(sequence)
     raw = np.full((n, 3), np.nan)
     half = np.full((n, 3), np.nan)
     breaks = set(int(b) for b in sequence.sequence_breaks)
     prev = None
-    it = sequence.iter_depth(range(n), report=report)
+    it = sequence.iter_depth(frames, report=report)
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(it, total=n, desc="locating hand", unit="frame")
+        it = tqdm(it, total=len(frames), desc="locating hand", unit="frame")
     last = -2
     for i, depth in it:
         if i in breaks or i != last + 1:
@@ -739,8 +761,51 @@ def locate_hands_with_extent(
         half[i] = loc.half_extent_mm
         prev = c if np.all(np.isfinite(c)) else None
         last = i
-    slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
-    return smooth_centres(raw, sorted(breaks), smooth=smooth, max_shift_mm=slack), half
+    return raw, half
+
+
+def _locate_job(sequence, cube_mm: float, locate_kwargs: dict, job: tuple[int, int]):
+    """One process's share: frames ``job = (a, b)``, whole segments. Bad frames come back as
+    ``(path, frame, problem)`` (a FrameError does not pickle)."""
+    a, b = job
+    report = BadFrameReport()
+    raw, half = _locate_range(sequence, range(a, b), report, cube_mm, False, locate_kwargs)
+    bad = [(e.path, e.frame, e.problem) for e in report.errors]
+    return raw[a:b], half[a:b], bad
+
+
+def _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs):
+    """:func:`_locate_range` of every frame, runs of whole segments in ``workers`` processes."""
+    from functools import partial
+
+    from .datasets.base import FrameError
+    from .parallel import Runner, frame_ranges
+
+    n = len(sequence)
+    jobs = frame_ranges(n, workers, breaks=sequence.sequence_breaks)
+    raw = np.full((n, 3), np.nan)
+    half = np.full((n, 3), np.nan)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc=f"locating hand ({workers} processes)", unit="part")
+    with Runner(workers, fresh_processes=True) as runner:
+        done = runner.map(
+            partial(_locate_job, sequence, cube_mm, locate_kwargs),
+            jobs,
+            progress=None if bar is None else lambda *_: bar.update(1),
+        )
+    if bar is not None:
+        bar.close()
+    for (a, b), (r, h, bad) in zip(jobs, done, strict=True):
+        raw[a:b], half[a:b] = r, h
+        errors = [FrameError(*e) for e in bad]
+        if errors and report is None:
+            raise errors[0]
+        if report is not None:
+            report.errors.extend(errors)
+    return raw, half
 
 
 def locate_hands(

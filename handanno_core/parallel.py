@@ -22,7 +22,28 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["Runner", "dask_client"]
+__all__ = ["Runner", "dask_client", "frame_ranges"]
+
+
+def frame_ranges(
+    n: int, workers: int, *, breaks=None, per_worker: int = 4
+) -> list[tuple[int, int]]:
+    """Consecutive ranges ``[(a, b), ...]`` covering frames ``0..n-1``, about ``n / (per_worker *
+    workers)`` frames each (a few jobs per process balance uneven ones). With ``breaks`` (sequence
+    break frames, possibly empty) every range is a run of whole segments: ranges start only at 0
+    or a break (a segment longer than the target is one range)."""
+    target = max(1, -(-n // max(1, per_worker * max(1, int(workers)))))
+    if breaks is None:
+        starts = list(range(0, n, target))
+    else:
+        cuts = sorted({int(b) for b in breaks if 0 < int(b) < n})
+        starts = [0]
+        for c in cuts:
+            if c - starts[-1] >= target:
+                starts.append(c)
+    if n <= 0:
+        return []
+    return list(zip(starts, [*starts[1:], n], strict=True))
 
 
 @contextmanager

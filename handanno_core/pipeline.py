@@ -154,9 +154,14 @@ def _cached_crops(
 
 
 def ensure_crops(
-    session: Session, *, quiet: bool = False
+    session: Session, *, quiet: bool = False, workers: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session."""
+    """Hand crops ``(N,S,S)`` (memory-mapped), centres ``(N,3)`` mm and boxes ``(N,4)``; cached in the session.
+
+    Built with ``workers`` processes: locating the hand in runs of whole sequences (the hint
+    chain restarts at every break, so a single sequence is located in one process), cutting the
+    crops in ranges of frames, each process writing its part of the file; the cache is the same,
+    bit for bit, as one process builds."""
     from .crops import CropSpec, compute_crops, crop_boxes, locate_crops
 
     s = session.model.settings
@@ -172,7 +177,9 @@ def ensure_crops(
     t0 = time.perf_counter()
     # The hand may not fit the session's cube: locate_crops grows it (all stages use it).
     spec = CropSpec.of(s)
-    centres, grown = locate_crops(sequence, spec, report=report, progress=not quiet)
+    centres, grown = locate_crops(
+        sequence, spec, report=report, progress=not quiet, workers=workers
+    )
     if grown != spec:
         with session.lock:
             s.cube_mm = grown.cube_mm
@@ -188,6 +195,7 @@ def ensure_crops(
         size=grown.size,
         report=BadFrameReport(),
         progress=not quiet,
+        workers=workers,
     )
     atomic_save_npz(
         meta_path,
@@ -218,13 +226,15 @@ def select(
     rho: float | None = None,
     figures: bool = True,
     quiet: bool = False,
+    workers: int = 1,
 ):
     """Select reference frames and the parent forest; store them in ``session.json``
-    (``strategy`` None: :data:`handanno_core.select.DEFAULT_STRATEGY`)."""
+    (``strategy`` None: :data:`handanno_core.select.DEFAULT_STRATEGY`; ``workers``: processes
+    building the crop cache when it is not built yet)."""
     from .descriptors import compute_descriptors
     from .select import DEFAULT_STRATEGY, select_references
 
-    crops, _, _ = ensure_crops(session, quiet=quiet)
+    crops, _, _ = ensure_crops(session, quiet=quiet, workers=workers)
     usable, reasons = usable_frames(session, crops)
     if not usable.any():
         raise SessionError(
@@ -435,7 +445,7 @@ def propagate(
     from .propagate import propagate as run_propagation
 
     sequence = session.open_sequence()
-    crops, centres, boxes = ensure_crops(session, quiet=quiet)
+    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
     results = session.load_results()
     reference_joints = _reference_joints(session, results)
     if session.model.bone_lengths_mm is None:

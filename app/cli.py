@@ -221,7 +221,13 @@ def _add_stage_commands(add, session_arg) -> None:
         "--window",
         type=int,
         help="solve in pieces: each sequence between breaks, long ones in windows of this many "
-        "frames (memory bounded by the window; resumable after a kill)",
+        "frames (memory bounded by the window; resumable after a kill). Default: one whole "
+        "system up to 5,000 frames, pieces (windows of 1024) beyond",
+    )
+    p.add_argument(
+        "--whole",
+        action="store_true",
+        help="one whole system whatever the size (memory about 0.28 MB per frame)",
     )
     p.add_argument(
         "--overlap",
@@ -435,6 +441,7 @@ def _refine(args) -> None:
         workers=args.workers,
         scheduler=args.scheduler,
         resume=not args.restart,
+        whole=args.whole,
     )
     print(
         f"refined {session.num_frames} frames; max bone-length violation {result.bone_violation_max_mm:.3f} mm"

@@ -492,6 +492,13 @@ def propagate(
 REFINE_PIECES_DIR = "refine-pieces"
 
 
+#: sessions up to this many frames are refined as one system by default (its peak memory is about
+#: 0.28 MB per frame, 1.4 GB at 5,000 frames, measured; README "A whole dataset"), longer ones in
+#: pieces of ``pieces.DEFAULT_WINDOW`` frames (memory bounded by the window). Results of sessions
+#: up to this size are what they were before pieces existed.
+WHOLE_SOLVE_MAX_FRAMES = 5000
+
+
 def refine(
     session: Session,
     *,
@@ -504,17 +511,32 @@ def refine(
     workers: int = 1,
     scheduler: str | None = None,
     resume: bool = True,
+    whole: bool = False,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
 
     References start from their current lifted pose (a reference made by a review correction has a
     fresh lift but an old propagated ``init_mm``), every other frame from its propagated pose.
-    With ``window`` (frames), ``workers > 1`` or ``scheduler`` the problem is solved in pieces
-    (:mod:`handanno_core.pieces`: each sequence between breaks, long ones in overlapping windows,
-    pieces in parallel; returns a ``PiecesResult``), checkpointed per piece in the session's
+    Sessions of up to :data:`WHOLE_SOLVE_MAX_FRAMES` frames are solved as one system (``whole``:
+    whatever the size); longer ones, and any run with ``window`` (frames), ``workers > 1`` or
+    ``scheduler``, in pieces (:mod:`handanno_core.pieces`: each sequence between breaks, long
+    ones in overlapping windows of ``window`` (default ``pieces.DEFAULT_WINDOW``) frames, pieces
+    in parallel; returns a ``PiecesResult``), checkpointed per piece in the session's
     ``refine-pieces/`` folder so that a killed run resumes (``resume=False`` ignores them).
     """
-    if window is not None or workers > 1 or scheduler is not None:
+    if whole and (window is not None or workers > 1 or scheduler is not None):
+        raise ValueError(
+            "a whole solve is one system in one process: no window, workers or scheduler"
+        )
+    pieces = window is not None or workers > 1 or scheduler is not None
+    if not pieces and not whole and session.num_frames > WHOLE_SOLVE_MAX_FRAMES:
+        _log(
+            f"refine: {session.num_frames} frames (more than {WHOLE_SOLVE_MAX_FRAMES}): in pieces "
+            "(--whole for one system)",
+            quiet,
+        )
+        pieces = True
+    if pieces:
         return _refine_pieces(
             session, quiet=quiet, save=save, use_model=use_model, window=window,
             overlap=overlap, workers=workers, scheduler=scheduler, resume=resume,

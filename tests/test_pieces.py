@@ -219,3 +219,30 @@ def test_hand_model_is_personalized_once_and_given_to_every_piece(scene, monkeyp
     assert made == [1] and len(res.pieces) == 4  # one model for all pieces
     assert np.isfinite(res.joints_mm).all()
     # (frames whose model energy rose keep their initialization, bones and all, as in refine)
+
+
+@pytest.mark.slow
+def test_long_sessions_refine_in_pieces_by_default_short_ones_as_one_system(
+    propagated_session, tmp_path, monkeypatch
+):
+    """The default: one whole system up to WHOLE_SOLVE_MAX_FRAMES (the same result as before
+    pieces existed), pieces of DEFAULT_WINDOW beyond (here the limit is lowered to 40 frames)."""
+    from handanno_core import pipeline
+    from handanno_core.pieces import DEFAULT_WINDOW, PiecesResult
+    from handanno_core.session import Session
+
+    folder = tmp_path / "s"
+    shutil.copytree(propagated_session, folder)
+    with Session.open(folder) as s:
+        assert s.num_frames == 72 <= pipeline.WHOLE_SOLVE_MAX_FRAMES
+        default = pipeline.refine(s, save=False, quiet=True)
+        assert not isinstance(default, PiecesResult)
+        monkeypatch.setattr(pipeline, "WHOLE_SOLVE_MAX_FRAMES", 40)
+        long = pipeline.refine(s, save=False, quiet=True, resume=False)
+        windowed = pipeline.refine(s, save=False, quiet=True, resume=False, window=DEFAULT_WINDOW)
+        assert isinstance(long, PiecesResult)
+        np.testing.assert_array_equal(long.joints_mm, windowed.joints_mm)
+        forced = pipeline.refine(s, save=False, quiet=True, whole=True)
+        np.testing.assert_array_equal(forced.joints_mm, default.joints_mm)
+        with pytest.raises(ValueError, match="whole solve"):
+            pipeline.refine(s, save=False, quiet=True, whole=True, window=24)

@@ -103,6 +103,30 @@ def test_set_3d_projects_to_2d_and_reference_batch_undoes_as_one(session):
     assert (ann is None or not ann.annotated.any()) and session.model.corrections == []
 
 
+def test_working_out_a_batch_inverse_leaves_the_session_as_it_was(session):
+    """A batch's inverse is worked out by applying its commands to a copy of the model (only the
+    containers commands edit in place are copied): the session itself is untouched until the
+    batch is journaled, and the inverse undoes exactly the batch."""
+    session.execute(SetReview(frame=3, status="flagged"))
+    before = session.model.model_dump()
+    cmd = Batch(
+        commands=[
+            SetReference(frame=7, is_reference=True, correction=True).model_dump(),
+            SetReview(frame=3, status=None).model_dump(),
+            SetJoint3D(frame=7, joint=0, xyz_mm=(10.0, -20.0, 400.0)).model_dump(),
+        ]
+    )
+    inverse = session._inverse_of(cmd)
+    assert session.model.model_dump() == before
+    session.execute(cmd)
+    assert session.parent[7] == -1 and session.model.review == {}
+    inverse.apply(session)
+    after = session.model.model_dump()
+    assert not session.annotation(7).annotated.any()  # undone to an empty annotation
+    for key in set(before) - {"annotations", "journal_seq"}:
+        assert after[key] == before[key], key
+
+
 def test_invalid_edits_are_refused_and_not_journaled(session):
     with pytest.raises(ValueError, match="out of range"):
         session.execute(SetJoint2D(frame=99, joint=0, uv_px=(1, 2)))

@@ -92,6 +92,27 @@ def _one_line(exc: Exception) -> str:
 Listener = Callable[[JournalEntry], None]
 
 
+def _edit_copy(model: SessionModel) -> SessionModel:
+    """A copy of ``model`` that commands may edit without touching ``model``: the containers
+    commands change in place (``annotations`` and ``review`` items, ``selection.parent`` entries)
+    copied one level, the rest shared (commands replace those values, never edit them). O(N) list
+    copies instead of a deep copy of every annotation (1.3 s per correction at 76k frames)."""
+    selection = model.selection.model_copy(
+        update={
+            "parent": list(model.selection.parent),
+            "reference_frames": list(model.selection.reference_frames),
+        }
+    )
+    return model.model_copy(
+        update={
+            "annotations": dict(model.annotations),
+            "review": dict(model.review),
+            "corrections": list(model.corrections),
+            "selection": selection,
+        }
+    )
+
+
 class Session:
     """A session folder opened for reading and editing. Thread-safe: edits are serialized by a lock."""
 
@@ -373,7 +394,8 @@ class Session:
     def _inverse_of(self, command: Command) -> Command:
         if isinstance(command, Batch):
             # Each sub-command's inverse depends on the state left by the ones before it.
-            saved = self.model.model_copy(deep=True)
+            saved = self.model
+            self.model = _edit_copy(saved)
             inverses = []
             try:
                 for c in command.parsed():

@@ -452,7 +452,7 @@ def unexplained_foreground(
     radius_px: float = 6.0,
     stride: int = 4,
     frames: np.ndarray | None = None,
-    chunk_frames: int = 256,
+    chunk_frames: int = 32,
 ) -> np.ndarray:
     """``(N,)`` share of the hand's pixels in the crop (normalized depth < 1) farther than
     ``radius_px`` crop pixels from every projected bone: a finger the skeleton does not cover (a
@@ -460,8 +460,9 @@ def unexplained_foreground(
 
     ``crops`` (N, S, S), ``boxes`` (N, 4) as :mod:`handanno_core.crops`; ``bones`` (B, 2).
     ``frames``: only these frames (indices; the others stay NaN), e.g. the frames whose joints
-    changed. Vectorized over the hand pixels of ``chunk_frames`` frames at a time; a frame's value
-    depends on nothing else (not on the chunking, nor on ``frames``).
+    changed. Vectorized over the hand pixels of ``chunk_frames`` frames at a time (32: the
+    temporaries stay in cache); a frame's value depends on nothing else (not on the chunking,
+    nor on ``frames``).
     """
     from .crops import image_to_crop
 

@@ -518,7 +518,7 @@ def test_cli_every_option_has_help_and_select_defaults_to_5_percent(monkeypatch,
     s.close()
     seen = {}
 
-    def fake_select(session, strategy, ref_fraction, rho):
+    def fake_select(session, strategy, ref_fraction, rho, workers=1):
         seen.update(strategy=strategy, ref_fraction=ref_fraction, rho=rho)
         return SimpleNamespace(reference_frames=[0])
 

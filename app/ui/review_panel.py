@@ -120,6 +120,35 @@ def make_review_widgets(gui: Any, n: int, refs: list[int], edges: np.ndarray) ->
     )  # fmt: skip
 
 
+class PriorityChart:
+    """The review priority chart: the worst priority of each bin of frames ``edges`` (K+1,)
+    (normalized, 1 = look first) and the shown frame's bin as a marker point."""
+
+    def __init__(self, plot: Any, edges: np.ndarray, live: Any):
+        self.plot, self.edges, self.live = plot, edges, live
+        self.shown: tuple[int, int] = (-2, -1)  # (ranking version, marker bin) on the chart
+        self.y: tuple[int, np.ndarray] = (-2, np.zeros(len(edges) - 1))  # per-bin maxima
+
+    def show(self, frame: int) -> None:
+        """Redraw if the ranking or ``frame``'s bin changed: O(K) for K bins, plus O(N) numpy
+        once per new ranking (never a ranking: the newest one the live results have)."""
+        edges = self.edges
+        shown = (self.live.ranked_version(), int(np.searchsorted(edges, frame, "right") - 1))
+        if shown == self.shown:
+            return
+        if self.y[0] != shown[0]:
+            p = self.live.ranking(wait_s=0.0)
+            y = np.zeros(len(edges) - 1)
+            if p is not None and np.isfinite(p).any():
+                top = np.nanmax(p)
+                y = np.nan_to_num(summarize_bins(p / top if top > 0 else p, edges).max, nan=0.0)
+            self.y = (shown[0], y)
+        marker = np.full(len(edges) - 1, np.nan)
+        marker[shown[1]] = 1.05
+        self.plot.data = (edges[:-1].astype(np.float64), self.y[1], marker)
+        self.shown = shown
+
+
 class ReviewPanel:
     """The Review tab of one browser; see the module docstring."""
 
@@ -134,15 +163,12 @@ class ReviewPanel:
         self.state = ui.ctx.review_state(ui.name)
         refs = [int(f) for f in self.session.reference_frames]
         n = self.session.num_frames
-        #: the priority chart's bins of frames (one per frame in sessions up to PLOT_POINTS)
-        self._edges = bin_edges(n, PLOT_POINTS, self.session.model.sequence_breaks)
-        self.w = make_review_widgets(self.client.gui, n, refs, self._edges)
+        edges = bin_edges(n, PLOT_POINTS, self.session.model.sequence_breaks)
+        self.w = make_review_widgets(self.client.gui, n, refs, edges)
+        self.chart = PriorityChart(self.w.plot, edges, self.live)
         self.frame_data: FrameData | None = None
         self._joints_mm = np.full((self.session.skeleton.num_joints, 3), np.nan)
         self._playing = False
-        #: (ranking version, marker bin) the chart shows; the ranking's per-bin maxima
-        self._plot_shown: tuple[int, int] = (-2, -1)
-        self._plot_y: tuple[int, np.ndarray] = (-2, np.zeros(len(self._edges) - 1))
         #: (entry seq, perf_counter at ack) of this client's review edits (benchmarks, tests)
         self.acks: list[tuple[int, float]] = []
         self._bind()
@@ -219,7 +245,7 @@ class ReviewPanel:
         if int(self.w.slider.value) != frame:
             self.w.slider.value = frame
         self.render_skeleton()
-        self.refresh(force=True)
+        self.refresh()
 
     def render_skeleton(self) -> None:
         if self.frame_data is None or not self.scene_active:
@@ -325,7 +351,7 @@ class ReviewPanel:
         self.acks.append((entry.seq, time.perf_counter()))
         stamp = time.strftime("%H:%M:%S", time.localtime(entry.time))
         self.w.saved_md.content = f"✓ review saved {stamp} (#{entry.seq})"
-        self.ui.post(self.refresh, True)
+        self.ui.post(self.refresh)
         return entry
 
     def export(self, label: str) -> None:
@@ -364,7 +390,7 @@ class ReviewPanel:
         if not start():
             self.client.add_notification("Already running", busy, auto_close_seconds=3.0)
             return False
-        self.ui.post(self.refresh, True)
+        self.ui.post(self.refresh)
         return True
 
     # ================================================================== updates
@@ -373,9 +399,9 @@ class ReviewPanel:
         if UpdateTopic.RESULTS in update.topics or UpdateTopic.LIFT in update.topics:
             if update.frame in (-1, self.frame):
                 self.render_skeleton()
-        if update.job == "finished" or update.topics & {UpdateTopic.REVIEW, UpdateTopic.REFERENCES}:
-            self.refresh(force=True)
-        elif update.topics & {UpdateTopic.JOB, UpdateTopic.RANKING}:
+        if update.topics & {
+            UpdateTopic.REVIEW, UpdateTopic.REFERENCES, UpdateTopic.JOB, UpdateTopic.RANKING,
+        }:  # fmt: skip
             self.refresh()
         if (
             UpdateTopic.ANNOTATION in update.topics
@@ -388,9 +414,9 @@ class ReviewPanel:
                 color="blue", auto_close_seconds=4.0,
             )  # fmt: skip
 
-    def refresh(self, force: bool = False) -> None:
+    def refresh(self) -> None:
         """Update the panel (run progress, frame text, priority chart: redrawn when the ranking
-        is new or the shown frame's bin changed; ``force`` is kept for callers)."""
+        is new or the shown frame's bin changed)."""
         st, w = self.runner.status, self.w
         n = self.session.num_frames
         w.run_bar.value = float(st.percent) if st.phase != "idle" else 0.0
@@ -407,26 +433,7 @@ class ReviewPanel:
         review = self.session.model.review.get(str(self.frame))
         bits = ["reference" if is_ref else STAGE_TEXT[Stage(stage)]] + ([review] if review else [])
         w.frame_md.content = f"**Review frame {self.frame}** ({', '.join(bits)})"
-        self._refresh_plot()
-
-    def _refresh_plot(self) -> None:
-        """Redraw the priority chart if the ranking or the shown frame's bin changed (O(K) for
-        K bins, plus O(N) numpy once per new ranking)."""
-        edges = self._edges
-        shown = (self.live.ranked_version(), int(np.searchsorted(edges, self.frame, "right") - 1))
-        if shown == self._plot_shown:
-            return
-        if self._plot_y[0] != shown[0]:
-            p = self.live.ranking(wait_s=0.0)  # the newest; never ranks on this thread
-            y = np.zeros(len(edges) - 1)
-            if p is not None and np.isfinite(p).any():
-                top = np.nanmax(p)
-                y = np.nan_to_num(summarize_bins(p / top if top > 0 else p, edges).max, nan=0.0)
-            self._plot_y = (shown[0], y)
-        marker = np.full(len(edges) - 1, np.nan)
-        marker[shown[1]] = 1.05
-        self.w.plot.data = (edges[:-1].astype(np.float64), self._plot_y[1], marker)
-        self._plot_shown = shown
+        self.chart.show(self.frame)
 
     def close(self) -> None:
         self._playing = False

@@ -13,7 +13,7 @@ A batched fit of all frames at once (as refinement evaluates the term) is timed 
 
 Writes benchmarks/results/handmodel.json.
 
-``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (forest selection,
+``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (``--strategy`` selection,
 simulated exact 2D annotator, bones estimated by the lift) once per dataset and reference
 fraction, then propagation + refinement twice on the same lift: without and with the hand model
 (``--no-model`` / default), and prints both rows side by side (``--json`` to save them).
@@ -37,7 +37,13 @@ from handanno_core.datasets import open_sequence
 from handanno_core.synth import generate_sequence
 
 
-def compare(datasets: list[str], fractions: list[float], json_out: str | None) -> None:
+def compare(
+    datasets: list[str],
+    fractions: list[float],
+    json_out: str | None,
+    strategy: str = "uniform",
+    workers: int = 1,
+) -> None:
     """With / without the hand model on the same selection and lift (see the module docstring)."""
     import shutil
 
@@ -53,16 +59,16 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
         for fraction in fractions:
             session = run_session(base, tmp / f"run-{fraction:g}")
             pipeline.select(
-                session, strategy="forest", ref_fraction=fraction, figures=False, quiet=True
+                session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True
             )
             pipeline.annotate_from_gt(session, quiet=True)
             t = time.perf_counter()
-            pipeline.lift(session, workers=2, quiet=True)
+            pipeline.lift(session, workers=workers, quiet=True)
             t_lift = time.perf_counter() - t
             refs = session.reference_frames
             for use_model in (False, True):
                 t = time.perf_counter()
-                pipeline.propagate(session, workers=2, quiet=True, use_model=use_model)
+                pipeline.propagate(session, workers=workers, quiet=True, use_model=use_model)
                 t_prop = time.perf_counter() - t
                 t = time.perf_counter()
                 res = pipeline.refine(session, quiet=True, use_model=use_model)
@@ -71,6 +77,8 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
                     "dataset": str(dataset),
                     "frames": int(session.num_frames),
                     "ref_fraction": fraction,
+                    "strategy": strategy,
+                    "workers": workers,
                     "references": int(len(refs)),
                     "model": use_model,
                     **stage_errors(session.load_results(), gt, refs),
@@ -109,9 +117,12 @@ def main() -> None:
     ap.add_argument("--compare", nargs="+", metavar="DATASET")
     ap.add_argument("--fractions", default="0.05,0.10")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--strategy", default="uniform", help="selection strategy of --compare")
+    ap.add_argument("--workers", type=int, default=1, help="processes of --compare")
     args = ap.parse_args()
     if args.compare:
-        compare(args.compare, [float(f) for f in args.fractions.split(",")], args.json_out)
+        fractions = [float(f) for f in args.fractions.split(",")]
+        compare(args.compare, fractions, args.json_out, args.strategy, args.workers)
         return
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-"))

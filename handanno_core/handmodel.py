@@ -497,7 +497,7 @@ class FitWeights:
     """
 
     data: float = 100.0
-    data_scale_mm: float = 12.0  #: scale of the robust point-to-surface loss
+    data_scale_mm: float = 8.0  #: scale of the robust point-to-surface loss (12 before; tune part)
     data_robust: str = "welsch"  #: "welsch" (redescending) or "huber"
     free_space: float = 50.0
     free_huber_mm: float = 5.0
@@ -511,6 +511,9 @@ class FitWeights:
     #: forearm_margin_mm past the wrist towards the fingers are taken as forearm and ignored
     forearm_t: float = 0.35
     forearm_margin_mm: float = 25.0
+    #: points more than this far behind the wrist (along the wrist -> knuckles axis) are forearm
+    #: whatever their nearest capsule (an egocentric forearm fills half the crop)
+    forearm_behind_mm: float = 0.0
     collision: float = 1.0  #: per mm² of interpenetration of capsules of different fingers
     collision_slack_mm: float = 1.0
     pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)
@@ -556,6 +559,18 @@ def _welsch(r_abs, scale):
 # ------------------------------------------------------------------------------------------------
 _SAMPLE_T = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
 _SAMPLE_PHI = np.radians([-45.0, 0.0, 45.0])
+
+
+def _forearm(model: HandModel, x, points, cidx, t, w: FitWeights) -> np.ndarray:
+    """(n,M) bool: points taken as forearm (ignored) for joints ``x`` (n,J,3): more than
+    ``forearm_behind_mm`` behind the wrist along the wrist -> knuckles axis, or nearest to the
+    root end (foot ``t`` <= ``forearm_t``) of a capsule at the root and less than
+    ``forearm_margin_mm`` past the wrist."""
+    root = model.skeleton.root
+    axis = _unit(x[:, model.palm_chain].mean(axis=1) - x[:, root])
+    along = np.einsum("nmx,nx->nm", points - x[:, None, root], axis)
+    near = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    return near | (along < -w.forearm_behind_mm)
 
 
 def _nearest_capsule(points, a, b, radii):
@@ -705,10 +720,7 @@ def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnos
     # ---------------- data: observed point -> nearest capsule surface
     pts = obs.points
     cidx, t, dist, sd = _nearest_capsule(pts, a, b, model.radii)
-    wrist_axis = x[:, model.palm_chain].mean(axis=1) - x[:, kin.root]
-    wrist_axis /= np.maximum(np.linalg.norm(wrist_axis, axis=-1, keepdims=True), 1e-9)
-    along = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis)
-    forearm = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    forearm = _forearm(model, x, pts, cidx, t, w)
     use = obs.valid & ~forearm
     cnt = np.maximum(use.sum(axis=1), 1)
     if w.data_robust == "huber":
@@ -983,15 +995,18 @@ def estimate_radii(
     scale_mm: float = 4.0,
     min_points: int = 30,
     bounds_mm: tuple[float, float] = (3.0, 25.0),
+    weights: FitWeights | None = None,
 ) -> np.ndarray:
     """Capsule radii (C,) mm from posed frames ``joints_mm`` (K,J,3) and their observations.
 
     Each observed point is assigned to the nearest capsule surface under the current radii; a
     capsule's radius is then the Welsch-weighted mean (scale ``scale_mm``) of its points' distance
     to its axis segment, using only points whose foot lies strictly inside the segment
-    (``0.1 < t < 0.9``, away from the joints where capsules overlap). Repeated ``iterations``
-    times; capsules with fewer than ``min_points`` points keep their radius.
+    (``0.1 < t < 0.9``, away from the joints where capsules overlap) and not on the forearm (as
+    the fit's data term, ``weights``). Repeated ``iterations`` times; capsules with fewer than
+    ``min_points`` points keep their radius.
     """
+    w = weights or FitWeights()
     radii = model.radii.copy()
     x = np.asarray(joints_mm, dtype=np.float64)
     keep = np.all(np.isfinite(x), axis=(1, 2))
@@ -1004,7 +1019,7 @@ def estimate_radii(
         cur = replace(model, radii=radii)
         a, b = cur.capsules(x)
         cidx, t, dist, sd = _nearest_capsule(obs.points, a, b, radii)
-        ok = obs.valid & (t > 0.1) & (t < 0.9)
+        ok = obs.valid & (t > 0.1) & (t < 0.9) & ~_forearm(cur, x, obs.points, cidx, t, w)
         new = radii.copy()
         for c in range(c_count):
             sel = ok & (cidx == c)

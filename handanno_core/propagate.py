@@ -111,7 +111,7 @@ class PropagationSettings:
     bone_scale: float = 0.2  #: relative bone-length violation scale
     ncc_patch: int = 21
     ncc_search: int = 12
-    model_fits: int = 2  #: hand-model fits per frame: the candidate starts of lowest energy
+    model_fits: int = 1  #: hand-model fits per frame: the candidate starts of lowest energy
     model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
 
@@ -521,7 +521,9 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     )
     kin = hm.Kinematics(ctx.skeleton, model.bone_lengths_mm)
     w = ctx.fit_weights or hm.FitWeights()
-    e0 = hm.frame_energy(model, kin, *kin.fit(starts), obs, ctx.camera, w, priors)[0]
+    e0 = hm.frame_energy(
+        model, kin, *kin.fit(starts), obs, ctx.camera, w, priors, diagnostics=False
+    )[0]
     best = np.argsort(e0)[: max(1, st.model_fits)]
     fit = hm.fit_frames(
         model,

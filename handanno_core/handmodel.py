@@ -29,17 +29,22 @@ inside the skeleton's limits and the palm term keeps the palm rigid.
     + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px``
 
 Observed points (:func:`observe`) come from the normalized crops (no extra depth reads), a few
-hundred per frame; points beyond the wrist (forearm) whose nearest model point is the wrist end of
-a palm capsule are ignored. Model samples are 4 positions × 3 angles per capsule on the surface
+hundred per frame; forearm points are ignored (:func:`_forearm`: behind the wrist along the
+wrist -> knuckles axis, or nearest to the wrist end of a capsule at the root). Model samples are 4 positions × 3 angles per capsule on the surface
 facing the camera; each is projected into the crop: on a hand pixel it must not lie more than
 ``free_margin_mm`` in front of the observed depth; off the silhouette it is pulled to the nearest
 hand pixel (distance transform, as in Tagliasacchi et al.).
 
 **Solver** (:func:`fit_frames`): Levenberg-Marquardt on all given frames at once (independent
-frames: batched 43×43 systems), correspondences and IRLS weights re-found at every evaluation.
-Jacobians are analytic (point-to-segment distances, projection) except the joint-angle prior
-(forward differences over the 2B direction parameters, as in :mod:`handanno_core.refine`). A step
-is accepted per frame only if it lowers that frame's energy.
+frames: batched 43×43 systems, :func:`handanno_core.lm.levenberg_marquardt_batched` with
+``active_rows``: only frames still running are evaluated, normal equations are built only for
+frames whose pose moved, a frame stops after ``max_rejects`` rejected steps), correspondences and
+IRLS weights re-found at every evaluation. Jacobians are analytic (point-to-segment distances,
+projection), each residual row depending on two joints: rows are summed in joint space (3J×3J,
+one ``np.bincount``) and mapped to θ once (:func:`_assemble`). The joint-angle prior is
+differentiated forward over the tangent parameters of the bones its violated angles depend on
+(:func:`angle_jacobian`, shared with :mod:`handanno_core.refine`). A step is accepted per frame
+only if it lowers that frame's energy. Cost: ``benchmarks/bench_handmodel.py`` (README).
 """
 
 from __future__ import annotations

@@ -22,11 +22,12 @@ reference), parents always before children:
    25 mm predicted). When a joint-angle limit of the skeleton is exceeded by more than 3 deg, the
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
-5. with the hand model on (``hand_model=True``, off by default: about 5x slower; :mod:`handanno_core.handmodel`), the
-   personalized capsule model is fitted to the frame's own depth from several starts (the flowed
-   pose, the parent's pose, the nearest references before and after the frame in time) and the fit
-   of lowest energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py``
-   (README, hand model section).
+5. with the hand model on (``hand_model=True``, off by default: about 3x the CPU per frame;
+   :mod:`handanno_core.handmodel`), the personalized capsule model is fitted to the frame's own
+   depth from the candidate start of lowest energy (the flowed pose, the parent's pose, the nearest
+   references before and after the frame in time; ``model_fits`` starts) and the fit of lowest
+   energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py`` (README, hand
+   model section).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual

@@ -1025,17 +1025,14 @@ def estimate_radii(
         a, b = cur.capsules(x)
         cidx, t, dist, sd = _nearest_capsule(obs.points, a, b, radii)
         ok = obs.valid & (t > 0.1) & (t < 0.9) & ~_forearm(cur, x, obs.points, cidx, t, w)
-        new = radii.copy()
-        for c in range(c_count):
-            sel = ok & (cidx == c)
-            if sel.sum() < min_points:
-                continue
-            dd = dist[sel]
-            r = radii[c]
-            for _ in range(5):
-                wts = np.exp(-(((dd - r) / scale_mm) ** 2))
-                r = float(np.sum(wts * dd) / max(np.sum(wts), 1e-9))
-            new[c] = np.clip(r, *bounds_mm)
+        ci, dd = cidx[ok], dist[ok]
+        enough = np.bincount(ci, minlength=c_count) >= min_points
+        r = radii.copy()
+        for _ in range(5):  # IRLS of every capsule's radius at once
+            wts = np.exp(-(((dd - r[ci]) / scale_mm) ** 2))
+            num = np.bincount(ci, wts * dd, minlength=c_count)
+            r = num / np.maximum(np.bincount(ci, wts, minlength=c_count), 1e-9)
+        new = np.where(enough, np.clip(r, *bounds_mm), radii)
         if np.max(np.abs(new - radii)) < 0.01:
             radii = new
             break

@@ -6,17 +6,18 @@ The model is personalized from every ``--ref-step``-th frame with the ground-tru
 in for lifted references (this benchmark measures speed and basin, not the lift). Every frame is
 then fitted alone (as propagation does) from its ground truth perturbed by ``--perturb-mm``
 (smooth per-joint offsets, larger at the tips), with a weak pose prior to that start; reported:
-wall ms per frame on one core (single-threaded BLAS), LM iterations, error before/after.
-A batched fit of all frames at once (as refinement evaluates the term) is timed too.
+wall and CPU (process) ms per frame on one core (single-threaded BLAS), LM iterations, error
+before/after. A batched fit of all frames at once (as refinement evaluates the term) is timed too.
+``--dataset PATH`` fits a dataset's own frames (e.g. a suite sequence) instead of a synth sequence.
 
-    nice .venv/bin/python benchmarks/bench_handmodel.py [--frames 200] [--seed 3]
+    nice .venv/bin/python benchmarks/bench_handmodel.py [--frames 200] [--seed 3] [--dataset P]
 
 Writes benchmarks/results/handmodel.json.
 
-``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (forest selection,
+``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (``--strategy`` selection,
 simulated exact 2D annotator, bones estimated by the lift) once per dataset and reference
 fraction, then propagation + refinement twice on the same lift: without and with the hand model
-(``--no-model`` / default), and prints both rows side by side (``--json`` to save them).
+(``use_model`` off / on), and prints both rows side by side (``--json`` to save them).
 """
 
 from __future__ import annotations
@@ -32,12 +33,18 @@ import numpy as np
 
 from handanno_core import handmodel as hm
 from handanno_core.blas import single_blas_thread
-from handanno_core.crops import compute_crops, crop_boxes, locate_hands
+from handanno_core.crops import DEFAULT_CROP, compute_crops, crop_boxes, locate_hands
 from handanno_core.datasets import open_sequence
 from handanno_core.synth import generate_sequence
 
 
-def compare(datasets: list[str], fractions: list[float], json_out: str | None) -> None:
+def compare(
+    datasets: list[str],
+    fractions: list[float],
+    json_out: str | None,
+    strategy: str = "uniform",
+    workers: int = 1,
+) -> None:
     """With / without the hand model on the same selection and lift (see the module docstring)."""
     import shutil
 
@@ -53,16 +60,16 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
         for fraction in fractions:
             session = run_session(base, tmp / f"run-{fraction:g}")
             pipeline.select(
-                session, strategy="forest", ref_fraction=fraction, figures=False, quiet=True
+                session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True
             )
             pipeline.annotate_from_gt(session, quiet=True)
             t = time.perf_counter()
-            pipeline.lift(session, workers=2, quiet=True)
+            pipeline.lift(session, workers=workers, quiet=True)
             t_lift = time.perf_counter() - t
             refs = session.reference_frames
             for use_model in (False, True):
                 t = time.perf_counter()
-                pipeline.propagate(session, workers=2, quiet=True, use_model=use_model)
+                pipeline.propagate(session, workers=workers, quiet=True, use_model=use_model)
                 t_prop = time.perf_counter() - t
                 t = time.perf_counter()
                 res = pipeline.refine(session, quiet=True, use_model=use_model)
@@ -71,6 +78,8 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
                     "dataset": str(dataset),
                     "frames": int(session.num_frames),
                     "ref_fraction": fraction,
+                    "strategy": strategy,
+                    "workers": workers,
                     "references": int(len(refs)),
                     "model": use_model,
                     **stage_errors(session.load_results(), gt, refs),
@@ -99,9 +108,31 @@ def compare(datasets: list[str], fractions: list[float], json_out: str | None) -
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def _frames(args):
+    """The benchmark's sequence and its crops, boxes, centres and cube (``--dataset`` or synth)."""
+    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-"))
+    cube_mm = DEFAULT_CROP.cube_mm
+    if args.dataset:
+        from handanno_core import pipeline
+
+        base = pipeline.new_session(tmp / "base", args.dataset, overwrite=True)
+        seq = base.open_sequence()
+        crops, centres, boxes = pipeline.ensure_crops(base, quiet=True)
+        crops = np.asarray(crops, dtype=np.float32)
+        cube_mm = base.model.settings.cube_mm
+    else:
+        generate_sequence(tmp / "seq", frames=args.frames, seed=args.seed, progress=False)
+        seq = open_sequence(tmp / "seq")
+        centres = locate_hands(seq)
+        boxes = crop_boxes(centres, seq.camera)
+        crops = compute_crops(seq, centres)
+    return seq, crops, centres, boxes, cube_mm
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--dataset", help="fit on this dataset's frames instead of a synth sequence")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--ref-step", type=int, default=20)
     ap.add_argument("--perturb-mm", type=float, default=6.0)
@@ -109,23 +140,21 @@ def main() -> None:
     ap.add_argument("--compare", nargs="+", metavar="DATASET")
     ap.add_argument("--fractions", default="0.05,0.10")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--strategy", default="uniform", help="selection strategy of --compare")
+    ap.add_argument("--workers", type=int, default=1, help="processes of --compare")
     args = ap.parse_args()
     if args.compare:
-        compare(args.compare, [float(f) for f in args.fractions.split(",")], args.json_out)
+        fractions = [float(f) for f in args.fractions.split(",")]
+        compare(args.compare, fractions, args.json_out, args.strategy, args.workers)
         return
 
-    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-"))
-    generate_sequence(tmp / "seq", frames=args.frames, seed=args.seed, progress=False)
-    seq = open_sequence(tmp / "seq")
+    seq, crops, centres, boxes, cube_mm = _frames(args)
     gt = seq.ground_truth.joints_mm
-    centres = locate_hands(seq)
-    boxes = crop_boxes(centres, seq.camera)
-    crops = compute_crops(seq, centres)
     cam, sk = seq.camera, seq.skeleton
     bones = sk.estimate_bone_lengths(gt)
 
     t = time.perf_counter()
-    obs = hm.observe(crops, boxes, centres, cam)
+    obs = hm.observe(crops, boxes, centres, cam, cube_mm=cube_mm)
     observe_ms = (time.perf_counter() - t) * 1000 / len(gt)
     refs = np.arange(0, len(gt), args.ref_step)
     t = time.perf_counter()
@@ -141,23 +170,26 @@ def main() -> None:
     fitted = np.empty_like(gt)
     iters = []
     with single_blas_thread():
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         for f in range(len(gt)):
             pri = hm.Priors(pose=start[f][None], pose_w=np.ones((1, sk.num_joints)))
             r = hm.fit_frames(model, start[f][None], obs.take([f]), cam, priors=pri, kin=kin)
             fitted[f] = r.joints_mm[0]
             iters.append(r.iterations)
         single_ms = (time.perf_counter() - t) * 1000 / len(gt)
-        t = time.perf_counter()
+        single_cpu = (time.process_time() - c) * 1000 / len(gt)
+        t, c = time.perf_counter(), time.process_time()
         pri = hm.Priors(pose=start, pose_w=np.ones(gt.shape[:2]))
         batched = hm.fit_frames(model, start, obs, cam, priors=pri, kin=kin)
         batched_ms = (time.perf_counter() - t) * 1000 / len(gt)
+        batched_cpu = (time.process_time() - c) * 1000 / len(gt)
 
     def err(x):
         e = np.linalg.norm(x - gt, axis=-1)
         return {"mean_mm": round(float(e.mean()), 2), "max_mm": round(float(e.max()), 1)}
 
     doc = {
+        "dataset": str(args.dataset) if args.dataset else f"synth --frames {args.frames}",
         "frames": len(gt),
         "seed": args.seed,
         "perturb_mm": args.perturb_mm,
@@ -166,6 +198,8 @@ def main() -> None:
         "observe_ms_per_frame": round(observe_ms, 2),
         "fit_ms_per_frame_single": round(single_ms, 1),
         "fit_ms_per_frame_batched": round(batched_ms, 1),
+        "fit_cpu_ms_per_frame_single": round(single_cpu, 1),
+        "fit_cpu_ms_per_frame_batched": round(batched_cpu, 1),
         "iterations_mean": round(float(np.mean(iters)), 1),
         "start": err(start),
         "fitted_single": err(fitted),

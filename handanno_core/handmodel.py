@@ -29,17 +29,22 @@ inside the skeleton's limits and the palm term keeps the palm rigid.
     + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px``
 
 Observed points (:func:`observe`) come from the normalized crops (no extra depth reads), a few
-hundred per frame; points beyond the wrist (forearm) whose nearest model point is the wrist end of
-a palm capsule are ignored. Model samples are 4 positions × 3 angles per capsule on the surface
+hundred per frame; forearm points are ignored (:func:`_forearm`: behind the wrist along the
+wrist -> knuckles axis, or nearest to the wrist end of a capsule at the root). Model samples are 4 positions × 3 angles per capsule on the surface
 facing the camera; each is projected into the crop: on a hand pixel it must not lie more than
 ``free_margin_mm`` in front of the observed depth; off the silhouette it is pulled to the nearest
 hand pixel (distance transform, as in Tagliasacchi et al.).
 
 **Solver** (:func:`fit_frames`): Levenberg-Marquardt on all given frames at once (independent
-frames: batched 43×43 systems), correspondences and IRLS weights re-found at every evaluation.
-Jacobians are analytic (point-to-segment distances, projection) except the joint-angle prior
-(forward differences over the 2B direction parameters, as in :mod:`handanno_core.refine`). A step
-is accepted per frame only if it lowers that frame's energy.
+frames: batched 43×43 systems, :func:`handanno_core.lm.levenberg_marquardt_batched` with
+``active_rows``: only frames still running are evaluated, normal equations are built only for
+frames whose pose moved, a frame stops after ``max_rejects`` rejected steps), correspondences and
+IRLS weights re-found at every evaluation. Jacobians are analytic (point-to-segment distances,
+projection), each residual row depending on two joints: rows are summed in joint space (3J×3J,
+one ``np.bincount``) and mapped to θ once (:func:`_assemble`). The joint-angle prior is
+differentiated forward over the tangent parameters of the bones its violated angles depend on
+(:func:`angle_jacobian`, shared with :mod:`handanno_core.refine`). A step is accepted per frame
+only if it lowers that frame's energy. Cost: ``benchmarks/bench_handmodel.py`` (README).
 """
 
 from __future__ import annotations
@@ -113,10 +118,8 @@ class Kinematics:
         use_x = np.abs(u[..., 0]) < 0.9
         a[use_x, 0] = 1.0
         a[~use_x, 1] = 1.0
-        t1 = np.cross(u, a)
-        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
-        t2 = np.cross(u, t1)
-        return np.stack([t1, t2], axis=-1)
+        t1 = _unit(_cross(u, a))
+        return np.stack([t1, _cross(u, t1)], axis=-1)
 
     def jacobian(self, u: np.ndarray) -> np.ndarray:
         """dX/dθ (N, J·3, P) with θ = (root, tangent steps of each bone)."""
@@ -240,24 +243,60 @@ def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
     return np.nan_to_num(v)
 
 
-def angle_jacobian(skeleton: Skeleton, kin: Kinematics, root, u, h: float = 1e-4):
+def angle_jacobian(skeleton: Skeleton, kin: Kinematics, root, u, h: float = 1e-4, v0=None):
     """Violations (m,2A) and d(violation)/dθ (m,2A,P) at the frames' parameters (root, u).
 
-    Forward differences over the 2B bone-direction tangent parameters (angles do not depend on
-    the root), evaluated for all of them at once: 2B extra pose evaluations per frame.
+    Forward differences over the tangent parameters of the bones the violated angles depend on
+    (angles do not depend on the root; an angle depends on the bones from the root to its child
+    joint and to the palm joints): at most 2B extra pose evaluations per frame, typically a
+    finger's. ``v0``: the violations (m,2A) when the caller has them.
     """
     m, b = u.shape[:2]
-    v0 = angle_violation(skeleton, kin.joints(root, u))
-    t = kin.tangents(u)  # (m,B,3,2)
-    pert = np.repeat(u[:, None], 2 * b, axis=1)  # (m, 2B, B, 3)
-    idx = np.arange(2 * b)
-    pert[:, idx, idx // 2] += h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
-    pert /= np.linalg.norm(pert, axis=-1, keepdims=True)
-    xs = kin.joints(np.repeat(root, 2 * b, axis=0), pert.reshape(m * 2 * b, b, 3))
-    v1 = angle_violation(skeleton, xs).reshape(m, 2 * b, -1)
+    if v0 is None:
+        v0 = angle_violation(skeleton, kin.joints(root, u))
     jac = np.zeros((m, v0.shape[1], kin.num_params))
-    jac[:, :, 3:] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
+    bones = np.flatnonzero(np.any(_angle_bones(skeleton)[np.any(v0 > 0, axis=0)], axis=0))
+    if len(bones) == 0:
+        return v0, jac
+    cols = np.stack([2 * bones, 2 * bones + 1], axis=1).ravel()  # tangent parameters
+    t = kin.tangents(u[:, bones])  # (m,nb,3,2)
+    pert = np.repeat(u[:, None], len(cols), axis=1)  # (m, 2nb, B, 3)
+    idx = np.arange(len(cols))
+    moved = pert[:, idx, cols // 2] + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
+    pert[:, idx, cols // 2] = _unit(moved)
+    xs = kin.joints(np.repeat(root, len(cols), axis=0), pert.reshape(m * len(cols), b, 3))
+    v1 = angle_violation(skeleton, xs).reshape(m, len(cols), -1)
+    jac[:, :, 3 + cols] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
     return v0, jac
+
+
+_ANGLE_BONES: dict[int, tuple[Skeleton, np.ndarray]] = {}
+
+
+def _angle_bones(skeleton: Skeleton) -> np.ndarray:
+    """(2A, B) bool: violation row ``a`` (flexion rows, then abduction rows) depends on bone ``b``
+    (bones on the paths from the root to the angle's child joint and to the palm joints)."""
+    hit = _ANGLE_BONES.get(id(skeleton))
+    if hit is not None and hit[0] is skeleton:
+        return hit[1]
+    par = skeleton.parent_array
+    bone_of_child = np.full(skeleton.num_joints, -1)
+    bone_of_child[skeleton.bones[:, 1]] = np.arange(len(skeleton.bones))
+
+    def path(k: int) -> np.ndarray:
+        on = np.zeros(len(skeleton.bones), dtype=bool)
+        while par[k] >= 0:
+            on[bone_of_child[k]] = True
+            k = int(par[k])
+        return on
+
+    palm = np.zeros(len(skeleton.bones), dtype=bool)
+    for k in skeleton.palm_joints or ():
+        palm |= path(int(k))
+    rows = np.array([path(int(c)) | palm for c in skeleton.angle_children]).reshape(-1, len(palm))
+    out = np.concatenate([rows, rows])
+    _ANGLE_BONES[id(skeleton)] = (skeleton, out)
+    return out
 
 
 # ------------------------------------------------------------------------------------------------
@@ -463,7 +502,7 @@ class FitWeights:
     """
 
     data: float = 100.0
-    data_scale_mm: float = 12.0  #: scale of the robust point-to-surface loss
+    data_scale_mm: float = 8.0  #: scale of the robust point-to-surface loss (12 before; tune part)
     data_robust: str = "welsch"  #: "welsch" (redescending) or "huber"
     free_space: float = 50.0
     free_huber_mm: float = 5.0
@@ -477,12 +516,16 @@ class FitWeights:
     #: forearm_margin_mm past the wrist towards the fingers are taken as forearm and ignored
     forearm_t: float = 0.35
     forearm_margin_mm: float = 25.0
+    #: points more than this far behind the wrist (along the wrist -> knuckles axis) are forearm
+    #: whatever their nearest capsule (an egocentric forearm fills half the crop)
+    forearm_behind_mm: float = 0.0
     collision: float = 1.0  #: per mm² of interpenetration of capsules of different fingers
     collision_slack_mm: float = 1.0
     pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)
     pose_huber_mm: float = 20.0
     uv: float = 0.002  #: per px² per joint to the prior 2D positions
     iterations: int = 12
+    max_rejects: int = 3  #: a frame stops after this many rejected LM steps in a row
 
 
 @dataclass
@@ -523,6 +566,18 @@ _SAMPLE_T = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
 _SAMPLE_PHI = np.radians([-45.0, 0.0, 45.0])
 
 
+def _forearm(model: HandModel, x, points, cidx, t, w: FitWeights) -> np.ndarray:
+    """(n,M) bool: points taken as forearm (ignored) for joints ``x`` (n,J,3): more than
+    ``forearm_behind_mm`` behind the wrist along the wrist -> knuckles axis, or nearest to the
+    root end (foot ``t`` <= ``forearm_t``) of a capsule at the root and less than
+    ``forearm_margin_mm`` past the wrist."""
+    root = model.skeleton.root
+    axis = _unit(x[:, model.palm_chain].mean(axis=1) - x[:, root])
+    along = np.einsum("nmx,nx->nm", points - x[:, None, root], axis)
+    near = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    return near | (along < -w.forearm_behind_mm)
+
+
 def _nearest_capsule(points, a, b, radii):
     """For points (n,M,3) and capsules A, B (n,C,3): index (n,M), t (n,M), distance to the axis
     segment (n,M) mm, signed surface distance (n,M) of the nearest capsule surface."""
@@ -548,16 +603,18 @@ def _nearest_capsule(points, a, b, radii):
     )
 
 
-class _Accumulator:
-    """Gauss-Newton normal equations in θ: H (n,P,P), g (n,P), from residual rows whose Jacobian
-    is taken through dX/dθ ``m4`` (n,J,3,P) at the joints each residual depends on."""
+_XYZ = np.arange(3)
 
-    def __init__(self, m4: np.ndarray):
-        n, _, _, p = m4.shape
-        self.m4 = m4
-        self.rows = np.arange(n)[:, None]
-        self.h = np.zeros((n, p, p))
-        self.g = np.zeros((n, p))
+
+class _Accumulator:
+    """Residual rows of the Gauss-Newton normal equations, each depending on (at most) two joints,
+    collected per frame; :func:`_assemble` sums them in joint space and maps them to θ."""
+
+    def __init__(self, n: int, j: int):
+        self.n = n
+        self.rows: list[tuple] = []
+        self.joint_h = np.zeros((n, j, 3, 3))
+        self.joint_g = np.zeros((n, j, 3))
 
     def add_points(self, ja, jb, ca, cb, grad, w, r):
         """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
@@ -565,21 +622,63 @@ class _Accumulator:
         shape = w.shape
         ja, jb = np.broadcast_to(ja, shape), np.broadcast_to(jb, shape)
         ca, cb = np.broadcast_to(ca, shape), np.broadcast_to(cb, shape)
-        jrow = np.einsum("nrx,nrxp->nrp", grad * ca[..., None], self.m4[self.rows, ja])
-        jrow += np.einsum("nrx,nrxp->nrp", grad * cb[..., None], self.m4[self.rows, jb])
-        jw = jrow * w[..., None]
-        self.h += np.matmul(jw.transpose(0, 2, 1), jrow)
-        self.g += np.einsum("nrp,nr->np", jw, r)
+        j6 = np.concatenate([grad * ca[..., None], grad * cb[..., None]], axis=-1)  # (n,R,6)
+        idx = np.concatenate([3 * ja[..., None] + _XYZ, 3 * jb[..., None] + _XYZ], axis=-1)
+        self.rows.append((idx, j6, np.broadcast_to(w, shape), np.broadcast_to(r, shape)))
 
     def add_joint(self, w3, g3):
         """Per-joint x-space blocks ``w3`` (n,J,3,3) and gradients ``g3`` (n,J,3)."""
-        n, j, _, p = self.m4.shape
-        m = self.m4.reshape(n, 3 * j, p)
-        blocks = np.zeros((n, j, 3, j, 3))
-        idx = np.arange(j)
-        blocks[:, idx, :, idx, :] = w3.transpose(1, 0, 2, 3)
-        self.h += m.transpose(0, 2, 1) @ blocks.reshape(n, 3 * j, 3 * j) @ m
-        self.g += np.einsum("nrp,nr->np", m, g3.reshape(n, -1))
+        self.joint_h += w3
+        self.joint_g += g3
+
+    def state(self) -> tuple:
+        """The rows as arrays with a leading frame axis: joint-coordinate indices (n,R,6),
+        ∂r/∂x at them (n,R,6), weights (n,R), residuals (n,R), joint blocks (n,J,3,3), (n,J,3)."""
+        n = self.n
+        if not self.rows:
+            return (np.zeros((n, 0, 6), np.int64), np.zeros((n, 0, 6)), np.zeros((n, 0)),
+                    np.zeros((n, 0)), self.joint_h, self.joint_g)  # fmt: skip
+        return (
+            *(np.concatenate([r[i] for r in self.rows], axis=1) for i in range(4)),
+            self.joint_h,
+            self.joint_g,
+        )
+
+
+def _assemble(state: tuple, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H (n,P,P), g (n,P)) in θ of an :meth:`_Accumulator.state`: summed in joint space
+    (3J×3J, one ``np.bincount``) and mapped through dX/dθ ``m`` (n,3J,P): ``H = mᵀ H_x m``."""
+    idx, j6, w, res, joint_h, joint_g = state
+    n, j = joint_h.shape[:2]
+    d = 3 * j
+    f, k = np.nonzero(w)  # rows with weight only
+    hx = np.zeros(n * d * d)
+    gx = np.zeros(n * d)
+    if len(f):
+        idx, j6, res = idx[f, k], j6[f, k], res[f, k]
+        jw = j6 * w[f, k][:, None]
+        hflat = (f * d * d)[:, None, None] + idx[:, :, None] * d + idx[:, None, :]
+        hx = np.bincount(hflat.ravel(), (jw[:, :, None] * j6[:, None, :]).ravel(), n * d * d)
+        gx = np.bincount(((f * d)[:, None] + idx).ravel(), (jw * res[:, None]).ravel(), n * d)
+    hx = hx.reshape(n, j, 3, j, 3)
+    ar = np.arange(j)
+    hx[:, ar, :, ar, :] += joint_h.transpose(1, 0, 2, 3)
+    gx = gx.reshape(n, d) + joint_g.reshape(n, d)
+    mt = m.transpose(0, 2, 1)
+    return mt @ hx.reshape(n, d, d) @ m, np.matmul(mt, gx[..., None])[..., 0]
+
+
+def _normal_equations(model, kin, root, u, weights, state, v0):
+    """θ-space (H, g) of the energy whose rows ``state`` and angle violations ``v0`` (n,2A) (or
+    None) were collected at (root (n,3), u (n,B,3))."""
+    h, g = _assemble(state, kin.jacobian(u))
+    if v0 is not None and v0.size:
+        hit = np.flatnonzero(np.any(v0 > 0, axis=1))
+        if len(hit):
+            _, jac_a = angle_jacobian(model.skeleton, kin, root[hit], u[hit], v0=v0[hit])
+            h[hit] += weights.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
+            g[hit] += weights.angle * np.einsum("nap,na->np", jac_a, v0[hit])
+    return h, g
 
 
 def frame_energy(
@@ -592,14 +691,27 @@ def frame_energy(
     weights: FitWeights,
     priors: Priors | None = None,
     want_jac: bool = False,
+    diagnostics: bool = True,
 ):
     """Energy of ``n`` frames at (root (n,3), u (n,B,3)).
 
     Returns ``(energy (n,), terms {name: (n,)}, x (n,J,3), extra)``; with ``want_jac`` ``extra`` =
     (H (n,P,P), g (n,P)) Gauss-Newton normal equations in θ, else per-capsule diagnostics
     ``{"capsule_data_mm": (n,C) mean |point residual| (NaN: no points), "capsule_free": (n,C)
-    fraction of samples violating free space}``.
+    fraction of samples violating free space}`` (an empty dict without ``diagnostics``).
     """
+    e, terms, x, extra = _energy(
+        model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics
+    )
+    if want_jac:
+        extra = _normal_equations(model, kin, root, u, weights, *extra)
+    return e, terms, x, extra
+
+
+def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics):
+    """:func:`frame_energy` with, under ``want_jac``, the residual rows (an
+    :meth:`_Accumulator.state`) and the angle violations (n,2A) (None: no angle term) in place
+    of the normal equations, which :func:`_normal_equations` builds from them."""
     w = weights
     x = kin.joints(root, u)
     n, j = x.shape[:2]
@@ -608,15 +720,12 @@ def frame_energy(
     pa, pb = model.pairs[:, 0], model.pairs[:, 1]
     c_count = len(model.pairs)
     terms = {}
-    acc = _Accumulator(kin.jacobian(u).reshape(n, j, 3, -1)) if want_jac else None
+    acc = _Accumulator(n, j) if want_jac else None
 
     # ---------------- data: observed point -> nearest capsule surface
     pts = obs.points
     cidx, t, dist, sd = _nearest_capsule(pts, a, b, model.radii)
-    wrist_axis = x[:, model.palm_chain].mean(axis=1) - x[:, kin.root]
-    wrist_axis /= np.maximum(np.linalg.norm(wrist_axis, axis=-1, keepdims=True), 1e-9)
-    along = np.einsum("nmx,nx->nm", pts - x[:, None, kin.root], wrist_axis)
-    forearm = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
+    forearm = _forearm(model, x, pts, cidx, t, w)
     use = obs.valid & ~forearm
     cnt = np.maximum(use.sum(axis=1), 1)
     if w.data_robust == "huber":
@@ -633,7 +742,7 @@ def frame_energy(
     if want_jac:
         wgt = np.where(use, lam[:, None] * wr, 0.0)
         acc.add_points(pa[cidx], pb[cidx], 1.0 - tau, tau, -nvec, wgt, sd)
-    else:
+    elif diagnostics:
         absr = np.where(use, np.abs(sd), 0.0)
         onehot = (cidx[..., None] == np.arange(c_count)) & use[..., None]
         num = onehot.sum(axis=1)
@@ -648,7 +757,7 @@ def frame_energy(
     v = -mid / np.linalg.norm(mid, axis=-1, keepdims=True)
     vp = v - np.sum(v * e, axis=-1, keepdims=True) * e
     vp /= np.maximum(np.linalg.norm(vp, axis=-1, keepdims=True), 1e-9)
-    side = np.cross(e, vp)
+    side = _cross(e, vp)
     dirs = (
         np.cos(_SAMPLE_PHI)[:, None, None, None] * vp
         + np.sin(_SAMPLE_PHI)[:, None, None, None] * side
@@ -712,7 +821,7 @@ def frame_energy(
         for axis_i in (0, 1):
             r_ax = duv[..., axis_i] * mm_per_px
             acc.add_points(ja, jb, ca, cb, pj[..., axis_i, :], np.where(off, wf, 0.0), r_ax)
-    else:
+    elif diagnostics:
         cap_free = (viol > 1.0).reshape(n, c_count, k_count).mean(axis=-1)
 
     # ---------------- collisions: capsules of different fingers must not interpenetrate
@@ -785,23 +894,17 @@ def frame_energy(
 
     # ---------------- joint-angle limits
     terms["angle"] = np.zeros(n)
-    ang = None
+    v0 = None
     if w.angle > 0 and model.skeleton.flexion_limits_deg is not None:
         v0 = angle_violation(model.skeleton, x)
-        hit = np.flatnonzero(np.any(v0 > 0, axis=1))
-        if want_jac and len(hit):
-            ang = (hit, *angle_jacobian(model.skeleton, kin, root[hit], u[hit]))
         terms["angle"] = w.angle * 0.5 * np.sum(v0**2, axis=1)
 
     energy = sum(terms.values())
-    if not want_jac:
+    if want_jac:
+        return energy, terms, x, (acc.state(), v0)
+    if diagnostics:
         return energy, terms, x, {"capsule_data_mm": cap_data, "capsule_free": cap_free}
-    h, g = acc.h, acc.g
-    if ang is not None:
-        hit, va, jac_a = ang
-        h[hit] += w.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
-        g[hit] += w.angle * np.einsum("nap,na->np", jac_a, va)
-    return energy, terms, x, (h, g)
+    return energy, terms, x, {}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -841,14 +944,18 @@ def fit_frames(
     kin = kin or Kinematics(model.skeleton, model.bone_lengths_mm)
     root, u = kin.fit(np.asarray(start_mm, dtype=np.float64))
 
-    def evaluate(pose) -> _FrameFit:
-        e, t, xj, (h, g) = frame_energy(model, kin, *pose, obs, camera, w, priors, True)
-        return _FrameFit(e, t, xj, h, g)
+    def evaluate(pose, rows) -> _FrameFit:
+        pri = None if priors is None else priors.take(rows)
+        e, t, xj, (state, v0) = _energy(
+            model, kin, *pose, obs.take(rows), camera, w, pri, True, False
+        )
+        return _FrameFit(e, t, xj, state, np.zeros((len(e), 0)) if v0 is None else v0)
 
-    def normal_equations(_pose, ev: _FrameFit) -> lm.BatchedNormalEquations:
-        return lm.BatchedNormalEquations(ev.h, ev.g, np.einsum("npp->np", ev.h) + 1e-6)
+    def normal_equations(pose, ev: _FrameFit) -> lm.BatchedNormalEquations:
+        h, g = _normal_equations(model, kin, *pose, w, ev.state, ev.v0)
+        return lm.BatchedNormalEquations(h, g, np.einsum("npp->np", h) + 1e-6)
 
-    first = evaluate((root, u))
+    first = evaluate((root, u), np.arange(len(root)))
     fit = lm.levenberg_marquardt_batched(
         evaluate,
         (root, u),
@@ -861,7 +968,9 @@ def fit_frames(
         floor=1e-7,
         rtol=1e-4,
         max_lam=1e4,
+        max_rejects=w.max_rejects,
         first=first,
+        active_rows=True,
     )
     ev = fit.evaluation
     return FitResult(ev.x, ev.cost, first.cost.copy(), ev.terms, *fit.x, fit.iterations)
@@ -869,13 +978,14 @@ def fit_frames(
 
 @dataclass
 class _FrameFit:
-    """Per-frame energy ``cost`` (n,), ``terms``, joints ``x`` (n,J,3) and θ-space ``h``/``g``."""
+    """Per-frame energy ``cost`` (n,), ``terms``, joints ``x`` (n,J,3), the residual rows
+    ``state`` (:meth:`_Accumulator.state`) and angle violations ``v0`` (n,2A) (n,0: no term)."""
 
     cost: np.ndarray
     terms: dict
     x: np.ndarray
-    h: np.ndarray
-    g: np.ndarray
+    state: tuple
+    v0: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------
@@ -890,15 +1000,18 @@ def estimate_radii(
     scale_mm: float = 4.0,
     min_points: int = 30,
     bounds_mm: tuple[float, float] = (3.0, 25.0),
+    weights: FitWeights | None = None,
 ) -> np.ndarray:
     """Capsule radii (C,) mm from posed frames ``joints_mm`` (K,J,3) and their observations.
 
     Each observed point is assigned to the nearest capsule surface under the current radii; a
     capsule's radius is then the Welsch-weighted mean (scale ``scale_mm``) of its points' distance
     to its axis segment, using only points whose foot lies strictly inside the segment
-    (``0.1 < t < 0.9``, away from the joints where capsules overlap). Repeated ``iterations``
-    times; capsules with fewer than ``min_points`` points keep their radius.
+    (``0.1 < t < 0.9``, away from the joints where capsules overlap) and not on the forearm (as
+    the fit's data term, ``weights``). Repeated ``iterations`` times; capsules with fewer than
+    ``min_points`` points keep their radius.
     """
+    w = weights or FitWeights()
     radii = model.radii.copy()
     x = np.asarray(joints_mm, dtype=np.float64)
     keep = np.all(np.isfinite(x), axis=(1, 2))
@@ -911,18 +1024,15 @@ def estimate_radii(
         cur = replace(model, radii=radii)
         a, b = cur.capsules(x)
         cidx, t, dist, sd = _nearest_capsule(obs.points, a, b, radii)
-        ok = obs.valid & (t > 0.1) & (t < 0.9)
-        new = radii.copy()
-        for c in range(c_count):
-            sel = ok & (cidx == c)
-            if sel.sum() < min_points:
-                continue
-            dd = dist[sel]
-            r = radii[c]
-            for _ in range(5):
-                wts = np.exp(-(((dd - r) / scale_mm) ** 2))
-                r = float(np.sum(wts * dd) / max(np.sum(wts), 1e-9))
-            new[c] = np.clip(r, *bounds_mm)
+        ok = obs.valid & (t > 0.1) & (t < 0.9) & ~_forearm(cur, x, obs.points, cidx, t, w)
+        ci, dd = cidx[ok], dist[ok]
+        enough = np.bincount(ci, minlength=c_count) >= min_points
+        r = radii.copy()
+        for _ in range(5):  # IRLS of every capsule's radius at once
+            wts = np.exp(-(((dd - r[ci]) / scale_mm) ** 2))
+            num = np.bincount(ci, wts * dd, minlength=c_count)
+            r = num / np.maximum(np.bincount(ci, wts, minlength=c_count), 1e-9)
+        new = np.where(enough, np.clip(r, *bounds_mm), radii)
         if np.max(np.abs(new - radii)) < 0.01:
             radii = new
             break

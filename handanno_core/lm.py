@@ -235,6 +235,26 @@ def _where_rows(mask: np.ndarray, new, old):
     return np.where(m, new, old)
 
 
+def _take_rows(state, idx):
+    """Rows ``idx`` of a row-wise state (as :func:`_where_rows`)."""
+    if isinstance(state, tuple):
+        return tuple(_take_rows(a, idx) for a in state)
+    if isinstance(state, dict):
+        return {k: _take_rows(v, idx) for k, v in state.items()}
+    return state[idx]
+
+
+def _put_rows(state, idx, rows):
+    """A copy of ``state`` with its rows ``idx`` replaced by ``rows``."""
+    if isinstance(state, tuple):
+        return tuple(_put_rows(a, idx, b) for a, b in zip(state, rows, strict=True))
+    if isinstance(state, dict):
+        return {k: _put_rows(state[k], idx, rows[k]) for k in state}
+    out = np.array(state, copy=True)
+    out[idx] = rows
+    return out
+
+
 @dataclass
 class BatchedLMResult:
     """``x``/``evaluation``: each row's last accepted point and evaluation; ``iterations`` run."""
@@ -257,7 +277,9 @@ def levenberg_marquardt_batched(
     floor: float = 0.0,
     rtol: float | None = None,
     max_lam: float | None = None,
+    max_rejects: int | None = None,
     first: Any = None,
+    active_rows: bool = False,
 ) -> BatchedLMResult:
     """Levenberg-Marquardt on ``M`` independent problems at once, one trial step per iteration.
 
@@ -265,28 +287,79 @@ def levenberg_marquardt_batched(
     arrays with a leading ``M`` axis, or tuples/dicts of them); ``x`` likewise. A row's step is
     kept only where it lowers that row's cost; then its ``lam`` is multiplied by ``down`` (not
     below ``floor``), else by ``up``. With ``rtol``/``max_lam`` a row stops once an accepted step
-    lowers its cost by less than ``rtol`` (relative) or its ``lam`` reaches ``max_lam``; the loop
-    ends when every row has stopped or after ``max_iter`` iterations."""
+    lowers its cost by less than ``rtol`` (relative) or its ``lam`` reaches ``max_lam`` or its
+    step was rejected ``max_rejects`` times in a row; the loop ends when every row has stopped or
+    after ``max_iter`` iterations. With ``active_rows`` only the rows still running are solved and
+    evaluated: ``evaluate(x, rows)`` gets their state and indices ``rows`` (M',) and returns their
+    evaluation, and ``normal_equations`` is called only for rows whose point moved since their
+    last normal equations (a rejected trial costs one evaluation, no Jacobian)."""
     x = x0
-    ev = first if first is not None else evaluate(x0)
-    lam = np.full(len(ev.cost), lam0)
-    active = np.ones(len(ev.cost), dtype=bool)
+    if first is not None:
+        ev = first
+    else:
+        ev = evaluate(x0, np.arange(_num_rows(x0))) if active_rows else evaluate(x0)
+    m_rows = len(ev.cost)
+    lam = np.full(m_rows, lam0)
+    active = np.ones(m_rows, dtype=bool)
+    rejects = np.zeros(m_rows, dtype=np.int64)
+    stale = np.ones(m_rows, dtype=bool)  # rows whose cached normal equations are out of date
+    system = None
     it = 0
     for _ in range(max_iter):
         it += 1
-        step = normal_equations(x, ev).solve(lam)
-        step[~active] = 0.0
-        x_n = retract(x, step)
-        ev_n = evaluate(x_n)
-        better = active & np.isfinite(ev_n.cost) & (ev_n.cost < ev.cost)
-        rel = np.where(better, (ev.cost - ev_n.cost) / np.maximum(ev.cost, 1e-12), 0.0)
-        x = _where_rows(better, x_n, x)
-        ev = type(ev)(**_where_rows(better, vars(ev_n), vars(ev)))
+        if active_rows:
+            rows = np.flatnonzero(active)
+            need = rows[stale[rows]]
+            if len(need):
+                ne = normal_equations(_take_rows(x, need), type(ev)(**_take_rows(vars(ev), need)))
+                if system is None:
+                    system = BatchedNormalEquations(
+                        *(
+                            np.zeros((m_rows,) + a.shape[1:])
+                            for a in (ne.matrix, ne.gradient, ne.scale)
+                        ),
+                        ne.shift,
+                    )
+                system.matrix[need], system.gradient[need] = ne.matrix, ne.gradient
+                system.scale[need] = ne.scale
+                stale[need] = False
+            sub = BatchedNormalEquations(
+                system.matrix[rows], system.gradient[rows], system.scale[rows], system.shift
+            )
+            x_r = retract(_take_rows(x, rows), sub.solve(lam[rows]))
+            ev_r = evaluate(x_r, rows)
+            dec = ev.cost[rows] - ev_r.cost
+            ok = np.isfinite(ev_r.cost) & (dec > 0)
+            better = np.zeros(m_rows, dtype=bool)
+            better[rows[ok]] = True
+            rel = np.zeros(m_rows)
+            rel[rows[ok]] = dec[ok] / np.maximum(ev.cost[rows[ok]], 1e-12)
+            x = _put_rows(x, rows[ok], _take_rows(x_r, ok))
+            ev = type(ev)(**_put_rows(vars(ev), rows[ok], _take_rows(vars(ev_r), ok)))
+        else:
+            step = normal_equations(x, ev).solve(lam)
+            step[~active] = 0.0
+            x_n = retract(x, step)
+            ev_n = evaluate(x_n)
+            better = active & np.isfinite(ev_n.cost) & (ev_n.cost < ev.cost)
+            rel = np.where(better, (ev.cost - ev_n.cost) / np.maximum(ev.cost, 1e-12), 0.0)
+            x = _where_rows(better, x_n, x)
+            ev = type(ev)(**_where_rows(better, vars(ev_n), vars(ev)))
         lam = np.where(better, np.maximum(lam * down, floor), lam * up)
+        rejects = np.where(better, 0, rejects + active)
+        stale |= better
         if rtol is not None:
             active &= ~(better & (rel < rtol))
         if max_lam is not None:
             active &= lam < max_lam
+        if max_rejects is not None:
+            active &= rejects < max_rejects
         if not np.any(active):
             break
     return BatchedLMResult(x, ev, it)
+
+
+def _num_rows(state) -> int:
+    while isinstance(state, (tuple, dict)):
+        state = next(iter(state.values())) if isinstance(state, dict) else state[0]
+    return len(state)

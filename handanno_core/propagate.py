@@ -22,11 +22,12 @@ reference), parents always before children:
    25 mm predicted). When a joint-angle limit of the skeleton is exceeded by more than 3 deg, the
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
-5. with the hand model on (``hand_model=True``, off by default: about 5x slower; :mod:`handanno_core.handmodel`), the
-   personalized capsule model is fitted to the frame's own depth from several starts (the flowed
-   pose, the parent's pose, the nearest references before and after the frame in time) and the fit
-   of lowest energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py``
-   (README, hand model section).
+5. with the hand model on (``hand_model=True``, off by default: about 3x the CPU per frame;
+   :mod:`handanno_core.handmodel`), the personalized capsule model is fitted to the frame's own
+   depth from the candidate start of lowest energy (the flowed pose, the parent's pose, the nearest
+   references before and after the frame in time; ``model_fits`` starts) and the fit of lowest
+   energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py`` (README, hand
+   model section).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
@@ -111,7 +112,7 @@ class PropagationSettings:
     bone_scale: float = 0.2  #: relative bone-length violation scale
     ncc_patch: int = 21
     ncc_search: int = 12
-    model_fits: int = 2  #: hand-model fits per frame: the candidate starts of lowest energy
+    model_fits: int = 1  #: hand-model fits per frame: the candidate starts of lowest energy
     model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
 
@@ -521,7 +522,9 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     )
     kin = hm.Kinematics(ctx.skeleton, model.bone_lengths_mm)
     w = ctx.fit_weights or hm.FitWeights()
-    e0 = hm.frame_energy(model, kin, *kin.fit(starts), obs, ctx.camera, w, priors)[0]
+    e0 = hm.frame_energy(
+        model, kin, *kin.fit(starts), obs, ctx.camera, w, priors, diagnostics=False
+    )[0]
     best = np.argsort(e0)[: max(1, st.model_fits)]
     fit = hm.fit_frames(
         model,

@@ -139,6 +139,9 @@ class RefineWeights:
     #: pair's median joint displacement in the initialization (mm/frame): fast motion is not
     #: smoothed away
     temporal_motion_mm: float = 8.0
+    #: with the model on, a frame keeps its initialization when refinement raised its model
+    #: energy by more than this fraction (and by more than 1): never worse than the start
+    model_keep_ratio: float = 0.1
 
 
 @dataclass
@@ -620,7 +623,7 @@ def _model_energy(problem: _Problem, root, u) -> np.ndarray:
         fr = np.arange(a, min(problem.n, a + 4 * problem.model_chunk))
         out[fr] = hmod.frame_energy(
             problem.model, problem.kin, root[fr], u[fr], problem.obs.take(fr), problem.cam,
-            problem.fit_w,
+            problem.fit_w, diagnostics=False,
         )[0]  # fmt: skip
     return out
 
@@ -759,7 +762,8 @@ def refine(
         # never worse than the start: a frame whose own model energy rose keeps its initialization
         e0 = _model_energy(problem, *kin.fit(init))
         e1 = _model_energy(problem, root, u)
-        kept = np.flatnonzero((e1 > e0 + np.maximum(0.1 * e0, 1.0)) & ~fixed)
+        rise = np.maximum(problem.w.model_keep_ratio * e0, 1.0)
+        kept = np.flatnonzero((e1 > e0 + rise) & ~fixed)
         joints[kept] = init[kept]
     return RefineResult(
         joints_mm=joints,

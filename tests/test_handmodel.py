@@ -179,3 +179,43 @@ def test_angle_meter_matches_skeleton_joint_angles():
          np.clip(a_ref - al[:, 1], 0, None) + np.clip(al[:, 0] - a_ref, 0, None)], axis=-1
     )  # fmt: skip
     assert np.allclose(hm.angle_violation(MSRA21, poses), expected)
+
+
+def test_forearm_behind_the_wrist_is_ignored(scene):
+    """A forearm (not part of the model) behind the wrist, bent 40 degrees to the thumb side, as an
+    egocentric arm fills the crop: its points are ignored (they lie behind the wrist; nearest to
+    the thumb's first capsule, the old rule kept them: data term 50 at the true pose), and the
+    fit still recovers a 15-degree perturbation of every joint."""
+    x, model, _ = scene
+    sk = MSRA21
+    axis = x[model.palm_chain].mean(axis=0) - x[sk.root]
+    axis /= np.linalg.norm(axis)
+    thumb = x[17] - x[sk.root]  # the thumb's first bone
+    side = thumb - (thumb @ axis) * axis
+    side /= np.linalg.norm(side)
+    back = -np.cos(np.radians(40.0)) * axis + np.sin(np.radians(40.0)) * side  # bent to the thumb
+    a, b = model.capsules(x[None])
+    arm_a = x[sk.root] + 12.0 * back
+    prims = Primitives(
+        np.concatenate([a[0], arm_a[None]]),
+        np.concatenate([b[0], (arm_a + 150.0 * back)[None]]),
+        np.concatenate([model.radii, [14.0]]),
+        np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+    )  # fmt: skip
+    c, cube = x.mean(axis=0), 360.0  # a cube that holds the hand and 80 mm of forearm
+    obs = hm.observe(
+        crop_depth(render_depth(prims, CAM), CAM, c, cube_mm=cube)[None],
+        crop_boxes(c, CAM, cube_mm=cube)[None], c[None], CAM, cube_mm=cube,
+    )  # fmt: skip
+    kin = hm.Kinematics(sk, model.bone_lengths_mm)
+    root, u = kin.fit(x[None])
+    # many observed points lie on the forearm, yet the data term at the true pose is ~0
+    _, _, _, sd = hm._nearest_capsule(obs.points, *model.capsules(x[None]), model.radii)
+    on_arm = obs.valid & (np.abs(sd) > 5.0)
+    assert on_arm.sum() > 50
+    e, terms, _, _ = hm.frame_energy(model, kin, root, u, obs, CAM, hm.FitWeights())
+    assert terms["data"][0] < 1e-3 * hm.FitWeights().data, terms
+    signs = np.where(np.arange(len(sk.angle_joints)) % 2 == 0, 1.0, -1.0)
+    res = hm.fit_frames(model, _perturb_joints(x, 15.0, signs)[None], obs, CAM, iterations=60)
+    err = np.linalg.norm(res.joints_mm[0] - x, axis=1)
+    assert err.max() <= 1.0, np.round(err, 2)

@@ -95,3 +95,49 @@ def test_batched_rows_are_independent_and_stop_on_their_own():
     )  # fmt: skip
     np.testing.assert_allclose(out.x[0], [2.5, 1.3, 0.5], atol=1e-5)
     np.testing.assert_array_equal(out.x[1], x0[1])  # never moved: no step lowered its cost
+
+
+def test_batched_active_rows_matches_all_rows_and_skips_stopped_rows():
+    """``active_rows``: the same rows' results as evaluating every row, but a stopped row is
+    never evaluated again and normal equations are built only for rows that moved."""
+    from handanno_core.lm import BatchedNormalEquations, levenberg_marquardt_batched
+
+    @dataclass
+    class _Rows:
+        cost: np.ndarray
+        r: np.ndarray
+
+    def residuals(x):
+        r = x[:, :1] * np.exp(-x[:, 1:2] * T) + x[:, 2:] - Y
+        return _Rows(np.sum(r * r, axis=1), r)
+
+    built = []
+
+    def normal(x, ev):
+        built.append(len(x))
+        e = np.exp(-x[:, 1:2] * T)
+        jac = np.stack([e, -x[:, :1] * T * e, np.ones_like(e)], axis=-1)
+        jtj = np.einsum("mrp,mrq->mpq", jac, jac)
+        return BatchedNormalEquations(jtj, np.einsum("mrp,mr->mp", jac, ev.r), np.ones((len(x), 3)))
+
+    seen = []
+
+    def evaluate_rows(x, rows):
+        seen.append(rows.copy())
+        return residuals(x)
+
+    x0 = np.array([[1.0, 0.3, 0.0], [2.5, 1.3, 0.5], [3.0, 2.0, 0.0]])  # row 1: at the minimum
+    kw = dict(retract=lambda x, s: x + s, max_iter=200, rtol=1e-12, max_lam=1e8, max_rejects=3)
+    ref = levenberg_marquardt_batched(residuals, x0, normal_equations=normal, **kw)
+    built.clear()
+    out = levenberg_marquardt_batched(
+        evaluate_rows, x0, normal_equations=normal, active_rows=True, **kw
+    )
+    np.testing.assert_allclose(out.x, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out.evaluation.cost, ref.evaluation.cost, rtol=0, atol=1e-20)
+    np.testing.assert_allclose(out.x[0], [2.5, 1.3, 0.5], atol=1e-5)
+    np.testing.assert_array_equal(out.x[1], x0[1])
+    # row 1 never improves: it is dropped after max_rejects rejected trials
+    assert sum(1 in r for r in seen) == 1 + 3
+    # one build per accepted point (plus the start), not one per iteration
+    assert sum(built) < sum(len(r) for r in seen)

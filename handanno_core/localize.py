@@ -119,12 +119,18 @@ ARM_EXTRA_MM = 100.0
 #: ... and its ends (this long, mm) differ in solidity by at least SOLIDITY_GAP.
 END_PART_MM = 80.0
 SOLIDITY_GAP = 0.08
+#: ... or in their share of edge nodes by at least this factor (the hand's end has more).
+EDGE_RATIO = 1.2
 #: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
 WRIST_SHIFT = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
 HAND_LENGTH_MM = 200.0
+#: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
+#: (3D) of the hand is hand too (fingers pointing at or away from the camera).
+ATTACH_MM = 30.0
+ATTACH_STEPS = 4
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -426,13 +432,27 @@ def _hand_behind_end(
     return hand | end
 
 
+def _far_apart(pts: np.ndarray, a: np.ndarray, b: np.ndarray, dist_mm: float) -> bool:
+    """Whether every node of ``a`` ``(M,)`` bool is more than ``dist_mm`` (3D) from every node of
+    ``b``."""
+    pa, pb = pts[a], pts[b]
+    if len(pa) == 0 or len(pb) == 0:
+        return True
+    d2 = np.sum(pa * pa, 1)[:, None] + np.sum(pb * pb, 1)[None, :] - 2.0 * pa @ pb.T
+    return bool(d2.min() > dist_mm**2)
+
+
 def _stump_of_free_arm(
-    pts: np.ndarray, rr: np.ndarray, cc: np.ndarray, region: np.ndarray
+    pts: np.ndarray, rr: np.ndarray, cc: np.ndarray, region: np.ndarray, degree: np.ndarray
 ) -> np.ndarray | None:
-    """For a region with no contact: if it is elongated (longer than ``HAND_LENGTH_MM +
-    ARM_EXTRA_MM`` along its principal axis), the end whose last ``END_PART_MM`` fills its image
-    convex hull more (solidity: a cut forearm) is the stump, the other (fingers, gaps between
-    them) the hand; returns the stump's nodes, or None if not elongated or not clear."""
+    """For a region with no wide contact: if it is elongated (longer than ``HAND_LENGTH_MM +
+    ARM_EXTRA_MM`` along its principal axis), which end is the forearm's cut (the stump) and
+    which the hand. The last ``END_PART_MM`` of each end: the stump fills its image convex hull
+    more (solidity, a gap of ``SOLIDITY_GAP``), or, when solidity does not tell, it has fewer
+    edge nodes (``degree`` ``(M,)``, the node's links within the region, below 8: silhouette or
+    depth edge; fingers, the gaps between them and their depth steps make edges, a forearm or
+    sleeve is one smooth cylinder) by a factor ``EDGE_RATIO``. Returns the stump's nodes, or None
+    if not elongated or not clear."""
     idx = np.flatnonzero(region)
     p = pts[idx]
     centred = p - p.mean(axis=0)
@@ -440,18 +460,21 @@ def _stump_of_free_arm(
     t = centred @ axis
     if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM:
         return None
-    solidity = []
+    solidity, edge = [], []
     ends = (t <= t.min() + END_PART_MM, t >= t.max() - END_PART_MM)
     for end in ends:
         xy = np.stack([cc[idx[end]], rr[idx[end]]], axis=1).astype(np.float32)
         hull = cv2.convexHull(xy)
         # grid points inside the hull (Pick): area + half the boundary + 1
         solidity.append(len(xy) / (cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1))
-    if abs(solidity[0] - solidity[1]) < SOLIDITY_GAP:
+        edge.append(float(np.mean(degree[idx[end]] < 8)))
+    if abs(solidity[0] - solidity[1]) >= SOLIDITY_GAP:
+        k = int(np.argmax(solidity))
+    elif max(edge) >= EDGE_RATIO * max(min(edge), 1e-6):
+        k = int(np.argmin(edge))
+    else:
         return None
-    stump = ends[int(np.argmax(solidity))] & (
-        np.abs(t - t[ends[int(np.argmax(solidity))]].mean()) <= END_PART_MM
-    )
+    stump = ends[k] & (np.abs(t - t[ends[k]].mean()) <= END_PART_MM)
     out = np.zeros(len(pts), bool)
     out[idx[stump]] = True
     return out
@@ -543,8 +566,16 @@ def locate_hand_region(
     contact = region & (border | out | frontier)
     attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
     narrow = contact & ~attach
-    if not attach.any():
-        attach, narrow = contact, narrow & False  # only narrow contacts: still the arm's way out
+    inner = region[edges[:, 0]] & region[edges[:, 1]]
+    degree = np.bincount(edges[inner].ravel(), minlength=len(pts))
+    if not attach.any() and contact.any():
+        # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
+        # shape says the arm ends elsewhere (fingertips touching the image border)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree)
+        if stump is not None and _far_apart(pts, contact, stump, END_PART_MM):
+            attach, narrow = stump, narrow & False
+        else:
+            attach, narrow = contact, narrow & False
     if not attach.any():
         # no contact: an arm pointing at the camera and cut by the sensor's near range ends in
         # a wide iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of
@@ -554,7 +585,7 @@ def locate_hand_region(
         rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
         attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
         if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
-            attach = _stump_of_free_arm(pts, rr, cc, region)
+            attach = _stump_of_free_arm(pts, rr, cc, region, degree)
         if attach is None or not attach.any():
             return _free_blob(z, mask, camera, cube_mm, front_mm)
 
@@ -583,7 +614,30 @@ def locate_hand_region(
     wrist = None
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+    hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
     return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist)
+
+
+def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """``hand`` ``(M,)`` bool plus the nodes of ``others`` ``(M,)`` bool reached from it in
+    ``ATTACH_STEPS`` steps of at most ``ATTACH_MM`` (3D): fingers whose depth steps away from the
+    palm too fast for the surface graph (pointing at or away from the camera) are still hand."""
+    from scipy.spatial import cKDTree
+
+    hand = hand.copy()
+    cand = np.flatnonzero(others & ~hand)
+    front = pts[hand]
+    for _ in range(ATTACH_STEPS):
+        if len(cand) == 0 or len(front) == 0:
+            break
+        d, _ = cKDTree(front).query(pts[cand], distance_upper_bound=ATTACH_MM)
+        near = np.isfinite(d)
+        if not near.any():
+            break
+        hand[cand[near]] = True
+        front = pts[cand[near]]
+        cand = cand[~near]
+    return hand
 
 
 def _box_of(

@@ -121,6 +121,10 @@ END_PART_MM = 80.0
 SOLIDITY_GAP = 0.08
 #: ... or in their share of edge nodes by at least this factor (the hand's end has more).
 EDGE_RATIO = 1.2
+#: ... the end TRACK_RATIO times nearer the previous frame's hand counts TRACK_VOTE (one shape
+#: cue counts 1).
+TRACK_RATIO = 1.5
+TRACK_VOTE = 1.5
 #: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
 WRIST_SHIFT = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
@@ -443,16 +447,24 @@ def _far_apart(pts: np.ndarray, a: np.ndarray, b: np.ndarray, dist_mm: float) ->
 
 
 def _stump_of_free_arm(
-    pts: np.ndarray, rr: np.ndarray, cc: np.ndarray, region: np.ndarray, degree: np.ndarray
+    pts: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    region: np.ndarray,
+    degree: np.ndarray,
+    prev_centre_mm: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """For a region with no wide contact: if it is elongated (longer than ``HAND_LENGTH_MM +
     ARM_EXTRA_MM`` along its principal axis), which end is the forearm's cut (the stump) and
-    which the hand. The last ``END_PART_MM`` of each end: the stump fills its image convex hull
-    more (solidity, a gap of ``SOLIDITY_GAP``), or, when solidity does not tell, it has fewer
-    edge nodes (``degree`` ``(M,)``, the node's links within the region, below 8: silhouette or
-    depth edge; fingers, the gaps between them and their depth steps make edges, a forearm or
-    sleeve is one smooth cylinder) by a factor ``EDGE_RATIO``. Returns the stump's nodes, or None
-    if not elongated or not clear."""
+    which the hand, by votes on the last ``END_PART_MM`` of each end: the stump fills its image
+    convex hull more (solidity, by ``SOLIDITY_GAP``: one vote); it has fewer edge nodes
+    (``degree`` ``(M,)``, the node's links within the region, below 8: silhouette or depth edge;
+    fingers, the gaps between them and their depth steps make edges, a forearm or sleeve is one
+    smooth cylinder; by a factor ``EDGE_RATIO``: one vote); it is the end farther from
+    ``prev_centre_mm`` (3,) (the previous frame's hand, if given and one end is ``TRACK_RATIO``
+    times nearer: ``TRACK_VOTE``, so it outvotes one shape cue, not two; a sleeve's open end is
+    not solid, a fist has few edges).
+    Returns the stump's nodes, or None if not elongated or not clear."""
     idx = np.flatnonzero(region)
     p = pts[idx]
     centred = p - p.mean(axis=0)
@@ -468,12 +480,21 @@ def _stump_of_free_arm(
         # grid points inside the hull (Pick): area + half the boundary + 1
         solidity.append(len(xy) / (cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1))
         edge.append(float(np.mean(degree[idx[end]] < 8)))
+    # votes for end 1 being the stump (+1) or end 0 (-1)
+    vote = 0.0
     if abs(solidity[0] - solidity[1]) >= SOLIDITY_GAP:
-        k = int(np.argmax(solidity))
-    elif max(edge) >= EDGE_RATIO * max(min(edge), 1e-6):
-        k = int(np.argmin(edge))
-    else:
+        vote += 1.0 if solidity[1] > solidity[0] else -1.0
+    if max(edge) >= EDGE_RATIO * max(min(edge), 1e-6):
+        vote += 1.0 if edge[1] < edge[0] else -1.0
+    if prev_centre_mm is not None:
+        # the hand does not jump from one end to the other between frames: the end much nearer
+        # the previous frame's hand is the hand (outvotes one shape cue, not two)
+        d = [np.linalg.norm(p[end].mean(axis=0) - prev_centre_mm) for end in ends]
+        if max(d) >= TRACK_RATIO * min(d):
+            vote += TRACK_VOTE if d[0] < d[1] else -TRACK_VOTE
+    if vote == 0.0:
         return None
+    k = 1 if vote > 0 else 0
     stump = ends[k] & (np.abs(t - t[ends[k]].mean()) <= END_PART_MM)
     out = np.zeros(len(pts), bool)
     out[idx[stump]] = True
@@ -533,6 +554,10 @@ def locate_hand_region(
     if mask is None:
         return HandLocation.none()
 
+    prev = None
+    if prev_centre_mm is not None and np.all(np.isfinite(prev_centre_mm)):
+        prev = np.asarray(prev_centre_mm, dtype=np.float64)
+
     # step 2: the surface graph on a coarse grid, grown from the seed
     stride = max(1, int(np.ceil(max(z.shape) / GRID_MAX_PX)))
     zs = z[::stride, ::stride].astype(np.float64)
@@ -571,7 +596,7 @@ def locate_hand_region(
     if not attach.any() and contact.any():
         # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
         # shape says the arm ends elsewhere (fingertips touching the image border)
-        stump = _stump_of_free_arm(pts, rr, cc, region, degree)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
         if stump is not None and _far_apart(pts, contact, stump, END_PART_MM):
             attach, narrow = stump, narrow & False
         else:
@@ -585,7 +610,7 @@ def locate_hand_region(
         rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
         attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
         if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
-            attach = _stump_of_free_arm(pts, rr, cc, region, degree)
+            attach = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
         if attach is None or not attach.any():
             return _free_blob(z, mask, camera, cube_mm, front_mm)
 

@@ -130,11 +130,14 @@ WRIST_SHIFT = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
-HAND_LENGTH_MM = 200.0
+HAND_LENGTH_MM = 170.0
 #: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
 #: (3D) of the hand is hand too (fingers pointing at or away from the camera).
 ATTACH_MM = 30.0
 ATTACH_STEPS = 4
+#: the wrist's surface, up to this far (geodesic, mm) beyond the hand region, sets the cube's
+#: back too (a finger curled behind the palm lies behind the wrist's depth).
+WRIST_ZONE_MM = 30.0
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -640,7 +643,12 @@ def locate_hand_region(
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
-    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist)
+    z_far = None
+    if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
+        z_far = float(
+            np.percentile(pts[ok & (g >= g_end - hand_length_mm - WRIST_ZONE_MM), 2], 99.8)
+        )
+    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist, z_far_mm=z_far)
 
 
 def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -671,6 +679,7 @@ def _box_of(
     cube_mm: float,
     centre_mm: np.ndarray | None = None,
     wrist_mm: np.ndarray | None = None,
+    z_far_mm: float | None = None,
 ) -> HandLocation:
     """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
 
@@ -687,6 +696,8 @@ def _box_of(
     ang = points[:, :2] / z[:, None]
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
     z_lo, z_hi = np.percentile(z, [0.2, 99.8])
+    if z_far_mm is not None:
+        z_hi = max(z_hi, z_far_mm)
     if centre_mm is None:
         zc = max(0.5 * (z_lo + z_hi), z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])

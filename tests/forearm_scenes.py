@@ -207,3 +207,25 @@ REPORT_CASES = tuple(
     for th in (0.0, 30.0, 60.0, 90.0, 120.0, 150.0, 180.0)
     for sleeve in (False, True)
 )
+
+
+def border_fingertips_frame(
+    seed: int,
+    theta_deg: float,
+    phi_deg: float,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    tip_margin_px: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``(H, W)`` mm and joints ``(21, 3)`` mm of one synth frame (synth's own short
+    forearm) turned so the arm points along (theta, phi) and slid up (same depth) until its
+    highest joint projects ``tip_margin_px`` below the image's top row: the fingers run onto the
+    top border; with theta < 90 deg the forearm is nearer the camera than the fingers."""
+    motion = synthesize_motion(1, seed)
+    j0, r0 = motion.joints_mm[0], motion.rotation[0]
+    wrist = j0[0]
+    q = _align(-r0[:, 1], arm_direction(theta_deg, phi_deg))
+    jj = (j0 - wrist) @ q.T + wrist
+    dv = camera.project(jj)[:, 1].min() - tip_margin_px
+    jj = jj - np.array([0.0, dv * jj[:, 2].mean() / camera.fy, 0.0])
+    depth = render_depth(hand_primitives(motion.model, jj, q @ r0), camera)
+    return add_sensor_noise(depth, np.random.default_rng([seed, 808])), jj

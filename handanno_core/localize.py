@@ -130,7 +130,7 @@ WRIST_SHIFT = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
-HAND_LENGTH_MM = 170.0
+HAND_LENGTH_MM = 200.0
 #: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
 #: (3D) of the hand is hand too (fingers pointing at or away from the camera).
 ATTACH_MM = 30.0
@@ -642,6 +642,9 @@ def locate_hand_region(
     wrist = None
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+    # the seed's surfaces that the arm's does not reach (a depth step: fingers pointing at or
+    # away from the camera, a hand bent at the wrist) are hand too
+    hand |= region & ~np.isfinite(g)
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too

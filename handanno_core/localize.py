@@ -21,15 +21,23 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    arm continuing towards the body). Contacts whose 8-connected group spans ``ARM_CONTACT_MM``
    (an arm's width) are the attachment; narrow ones (a fingertip touching the border, an arm
    grazing a corner) only if there is no wide one, else their ends are kept out of the hand.
+   Only narrow contacts: the arm's way out, unless rule (b) below finds the arm's stump at the
+   other end of the region (more than ``END_PART_MM`` from every contact): then the contacts
+   are fingertips on the image border and the stump is the attachment.
    Without contacts: (a) an arm pointing at the camera and cut by the sensor's near range ends
    in a wide rim on the silhouette at the region's nearest depth (within ``STUMP_NEAR_MM`` of
    ``min_depth_mm``): that rim; (b) an elongated region (longer than a hand by
-   ``ARM_EXTRA_MM``) whose two ends differ in solidity (``END_PART_MM`` of each end, points /
-   convex hull): the more solid end is the cut forearm, the other has fingers; (c) otherwise no
-   attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
+   ``ARM_EXTRA_MM``): its two ends (``END_PART_MM`` each) vote which is the cut forearm: the
+   more solid one (points / convex hull), the one with fewer edge nodes (fingers, the gaps
+   between them and their depth steps make edges; a forearm or sleeve is one smooth cylinder),
+   the one farther from the previous frame's hand (it counts more than one shape cue, less than
+   two: a sleeve's open end is not solid, a fist has few edges); (c) otherwise no attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
    smooth surface) has no attachment either.
 4. **The hand is the far end.** Geodesic distance ``g`` from the attachment over the region; the
-   hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile). If
+   hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile),
+   plus the region's surfaces the attachment does not reach (the seed's blob, split from the
+   arm by depth steps: fingers pointing at or away from the camera), plus surface within
+   ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
    the end are the hand. Without an attachment (a hand alone, or with a short forearm floating
@@ -40,7 +48,8 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
 
 The centre is the middle of the hand's extent in ray angle (so the crop, a projection, holds its
 outermost pixels) and in depth, moved back if needed so that the cube's back is
-``HIDDEN_DEPTH_MM`` behind the farthest visible hand surface: what the sensor does not see of the
+``HIDDEN_DEPTH_MM`` behind the farthest visible surface of the hand and its wrist (the arm's
+``WRIST_ZONE_MM`` beyond the hand region): what the sensor does not see of the
 hand (fingers pointing away behind the palm or the back of the hand, joint centres under the skin)
 lies behind what it sees; surface in front of the cube stays foreground in a crop, surface behind
 it does not. The half extent (mm at the centre's depth) sizes the crop: see
@@ -48,7 +57,10 @@ it does not. The half extent (mm at the centre's depth) sizes the crop: see
 
 Constants were chosen on ``tests/forearm_scenes.TUNE_CASES`` (synthetic hand + long arm, seeds
 1-2, arm angles 15-165 deg in 30 deg steps), ``HIDDEN_DEPTH_MM`` on the benchmark suite's tune
-part as well (``benchmarks/bench_crops.py --suite DIR --part tune``; 25, 70 and 100 mm tried), and
+part as well (``benchmarks/bench_crops.py --suite DIR --part tune``; 25, 70 and 100 mm tried);
+``EDGE_RATIO``, ``TRACK_*``, ``ATTACH_*``, ``WRIST_ZONE_MM`` (third round) on the suite's tune part
+(frames-scale 0.5) and the forearm tune cases, ``HAND_LENGTH_MM`` = 200 kept because 170-190 cut
+real SR305 hands (``tests/test_real_frames.py``); and
 by looking at the real frames in ``../shared/data`` (the solidity rule was written for the HANDS
 2017 frame, whose arm ends inside the image); benchmarks/bench_crops.py reports on
 ``REPORT_CASES`` (seeds 11-13, arm angles 0-180 deg in 30 deg steps, other azimuths) and the
@@ -528,6 +540,53 @@ def _free_blob(
     return _box_of(near, "free-blob", cube_mm, centre)
 
 
+def _attachment(
+    pts: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    zs: np.ndarray,
+    vs: np.ndarray,
+    win: np.ndarray,
+    region: np.ndarray,
+    edges: np.ndarray,
+    prev: np.ndarray | None,
+    min_depth_mm: float,
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """Step 3 of the module docstring: (attachment nodes ``(M,)`` bool or None when there is
+    none, narrow-contact nodes ``(M,)`` bool kept out of the hand's far end)."""
+    h, w = zs.shape
+    border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
+    out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
+    frontier = np.zeros(len(pts), bool)
+    cut = region[edges[:, 0]] != region[edges[:, 1]]
+    frontier[edges[cut].ravel()] = True
+    contact = region & (border | out | frontier)
+    attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
+    narrow = contact & ~attach
+    inner = region[edges[:, 0]] & region[edges[:, 1]]
+    degree = np.bincount(edges[inner].ravel(), minlength=len(pts))
+    if not attach.any() and contact.any():
+        # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
+        # shape says the arm ends elsewhere (fingertips touching the image border)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+        far = stump is not None and _far_apart(pts, contact, stump, END_PART_MM)
+        return (stump if far else contact), narrow & False
+    if attach.any():
+        return attach, narrow
+    # no contact: an arm pointing at the camera and cut by the sensor's near range ends in a wide
+    # iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of min_depth_mm), on its
+    # silhouette (no depth next to it); fingertips there are narrow, a palm facing the camera is
+    # not on the silhouette
+    z_lo = np.percentile(pts[region, 2], 1)
+    rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
+    attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
+    if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
+        attach = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+    if attach is None or not attach.any():
+        return None, narrow
+    return attach, narrow
+
+
 def locate_hand_region(
     depth: np.ndarray,
     camera: CameraIntrinsics,
@@ -585,37 +644,9 @@ def locate_hand_region(
         return _free_blob(z, mask, camera, cube_mm, front_mm)
 
     # step 3: attachment (where the arm comes from)
-    h, w = zs.shape
-    border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
-    out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
-    frontier = np.zeros(len(pts), bool)
-    cut = region[edges[:, 0]] != region[edges[:, 1]]
-    frontier[edges[cut].ravel()] = True
-    contact = region & (border | out | frontier)
-    attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
-    narrow = contact & ~attach
-    inner = region[edges[:, 0]] & region[edges[:, 1]]
-    degree = np.bincount(edges[inner].ravel(), minlength=len(pts))
-    if not attach.any() and contact.any():
-        # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
-        # shape says the arm ends elsewhere (fingertips touching the image border)
-        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
-        if stump is not None and _far_apart(pts, contact, stump, END_PART_MM):
-            attach, narrow = stump, narrow & False
-        else:
-            attach, narrow = contact, narrow & False
-    if not attach.any():
-        # no contact: an arm pointing at the camera and cut by the sensor's near range ends in
-        # a wide iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of
-        # min_depth_mm), on its silhouette (no depth next to it); fingertips there are narrow, a
-        # palm facing the camera is not on the silhouette
-        z_lo = np.percentile(pts[region, 2], 1)
-        rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
-        attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
-        if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
-            attach = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
-        if attach is None or not attach.any():
-            return _free_blob(z, mask, camera, cube_mm, front_mm)
+    attach, narrow = _attachment(pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm)
+    if attach is None:
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
 
     # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
     # image border) are not taken for the hand's far end

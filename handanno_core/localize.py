@@ -551,9 +551,10 @@ def _attachment(
     edges: np.ndarray,
     prev: np.ndarray | None,
     min_depth_mm: float,
-) -> tuple[np.ndarray | None, np.ndarray]:
+) -> tuple[np.ndarray | None, np.ndarray, bool]:
     """Step 3 of the module docstring: (attachment nodes ``(M,)`` bool or None when there is
-    none, narrow-contact nodes ``(M,)`` bool kept out of the hand's far end)."""
+    none, narrow-contact nodes ``(M,)`` bool kept out of the hand's far end, tentative: the
+    attachment holds only if a hand shows past the arm's far end)."""
     h, w = zs.shape
     border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
     out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
@@ -570,9 +571,9 @@ def _attachment(
         # shape says the arm ends elsewhere (fingertips touching the image border)
         stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
         far = stump is not None and _far_apart(pts, contact, stump, END_PART_MM)
-        return (stump if far else contact), narrow & False
+        return (stump if far else contact), narrow & False, False
     if attach.any():
-        return attach, narrow
+        return attach, narrow, False
     # no contact: an arm pointing at the camera and cut by the sensor's near range ends in a wide
     # iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of min_depth_mm), on its
     # silhouette (no depth next to it); fingertips there are narrow, a palm facing the camera is
@@ -580,11 +581,14 @@ def _attachment(
     z_lo = np.percentile(pts[region, 2], 1)
     rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
     attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
-    if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
-        attach = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
-    if attach is None or not attach.any():
-        return None, narrow
-    return attach, narrow
+    if attach.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
+        return attach, narrow, False
+    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+    if stump is not None:
+        return stump, narrow, False
+    # a wide rim far from the near range: a sleeve or forearm pointing at the camera and ending
+    # in view, if the hand shows past its far end (tentative: step 4 checks)
+    return (attach if attach.any() else None), narrow, True
 
 
 def locate_hand_region(
@@ -644,7 +648,9 @@ def locate_hand_region(
         return _free_blob(z, mask, camera, cube_mm, front_mm)
 
     # step 3: attachment (where the arm comes from)
-    attach, narrow = _attachment(pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm)
+    attach, narrow, tentative = _attachment(
+        pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm
+    )
     if attach is None:
         return _free_blob(z, mask, camera, cube_mm, front_mm)
 
@@ -670,6 +676,8 @@ def locate_hand_region(
     )
     if behind is not None:
         hand = behind
+    elif tentative:
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
     wrist = None
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)

@@ -229,3 +229,37 @@ def border_fingertips_frame(
     jj = jj - np.array([0.0, dv * jj[:, 2].mean() / camera.fy, 0.0])
     depth = render_depth(hand_primitives(motion.model, jj, q @ r0), camera)
     return add_sensor_noise(depth, np.random.default_rng([seed, 808])), jj
+
+
+def sleeve_end_in_view_frame(
+    seed: int,
+    theta_deg: float,
+    phi_deg: float,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    depth_mm: float = 650.0,
+    arm_mm: float = 260.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``(H, W)`` mm and joints ``(21, 3)`` mm of one synth frame whose hand (centroid at
+    ``depth_mm``, a little above the optical axis) has a forearm in a sleeve (as
+    :func:`arm_primitives`) along (theta, phi) that ends ``arm_mm`` from the wrist, in view and
+    far from the sensor's near range: with theta < 90 deg the sleeve points at the camera and
+    ends in an open rim nearer than the hand."""
+    motion = synthesize_motion(1, seed)
+    j0, r0 = motion.joints_mm[0], motion.rotation[0]
+    d = arm_direction(theta_deg, phi_deg)
+    q = _align(-r0[:, 1], d)
+    jj = (j0 - j0[0]) @ q.T
+    jj = jj - jj.mean(axis=0) + np.array([0.0, -40.0, depth_mm])
+    hand = hand_primitives(motion.model, jj, q @ r0)
+    keep = len(hand.cap_r) - _SYNTH_FOREARM_CAPSULES
+    w = jj[0]
+    prims = Primitives(
+        cap_a=np.concatenate([hand.cap_a[:keep], [w + 12.0 * d, w + SLEEVE_START_MM * d]]),
+        cap_b=np.concatenate([hand.cap_b[:keep], [w + arm_mm * d, w + arm_mm * d]]),
+        cap_r=np.concatenate([hand.cap_r[:keep], [FOREARM_RADIUS_MM, SLEEVE_RADIUS_MM]]),
+        ell_c=hand.ell_c,
+        ell_axes=hand.ell_axes,
+        ell_s=hand.ell_s,
+    )
+    depth = render_depth(prims, camera)
+    return add_sensor_noise(depth, np.random.default_rng([seed, 707])), jj

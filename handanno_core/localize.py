@@ -21,15 +21,23 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    arm continuing towards the body). Contacts whose 8-connected group spans ``ARM_CONTACT_MM``
    (an arm's width) are the attachment; narrow ones (a fingertip touching the border, an arm
    grazing a corner) only if there is no wide one, else their ends are kept out of the hand.
+   Only narrow contacts: the arm's way out, unless rule (b) below finds the arm's stump at the
+   other end of the region (more than ``END_PART_MM`` from every contact): then the contacts
+   are fingertips on the image border and the stump is the attachment.
    Without contacts: (a) an arm pointing at the camera and cut by the sensor's near range ends
    in a wide rim on the silhouette at the region's nearest depth (within ``STUMP_NEAR_MM`` of
    ``min_depth_mm``): that rim; (b) an elongated region (longer than a hand by
-   ``ARM_EXTRA_MM``) whose two ends differ in solidity (``END_PART_MM`` of each end, points /
-   convex hull): the more solid end is the cut forearm, the other has fingers; (c) otherwise no
-   attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
+   ``ARM_EXTRA_MM``): its two ends (``END_PART_MM`` each) vote which is the cut forearm: the
+   more solid one (points / convex hull), the one with fewer edge nodes (fingers, the gaps
+   between them and their depth steps make edges; a forearm or sleeve is one smooth cylinder),
+   the one farther from the previous frame's hand (it counts more than one shape cue, less than
+   two: a sleeve's open end is not solid, a fist has few edges); (c) otherwise no attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
    smooth surface) has no attachment either.
 4. **The hand is the far end.** Geodesic distance ``g`` from the attachment over the region; the
-   hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile). If
+   hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile),
+   plus the region's surfaces the attachment does not reach (the seed's blob, split from the
+   arm by depth steps: fingers pointing at or away from the camera), plus surface within
+   ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
    the end are the hand. Without an attachment (a hand alone, or with a short forearm floating
@@ -40,7 +48,8 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
 
 The centre is the middle of the hand's extent in ray angle (so the crop, a projection, holds its
 outermost pixels) and in depth, moved back if needed so that the cube's back is
-``HIDDEN_DEPTH_MM`` behind the farthest visible hand surface: what the sensor does not see of the
+``HIDDEN_DEPTH_MM`` behind the farthest visible surface of the hand and its wrist (the arm's
+``WRIST_ZONE_MM`` beyond the hand region): what the sensor does not see of the
 hand (fingers pointing away behind the palm or the back of the hand, joint centres under the skin)
 lies behind what it sees; surface in front of the cube stays foreground in a crop, surface behind
 it does not. The half extent (mm at the centre's depth) sizes the crop: see
@@ -48,7 +57,10 @@ it does not. The half extent (mm at the centre's depth) sizes the crop: see
 
 Constants were chosen on ``tests/forearm_scenes.TUNE_CASES`` (synthetic hand + long arm, seeds
 1-2, arm angles 15-165 deg in 30 deg steps), ``HIDDEN_DEPTH_MM`` on the benchmark suite's tune
-part as well (``benchmarks/bench_crops.py --suite DIR --part tune``; 25, 70 and 100 mm tried), and
+part as well (``benchmarks/bench_crops.py --suite DIR --part tune``; 25, 70 and 100 mm tried);
+``EDGE_RATIO``, ``TRACK_*``, ``ATTACH_*``, ``WRIST_ZONE_MM`` (third round) on the suite's tune part
+(frames-scale 0.5) and the forearm tune cases, ``HAND_LENGTH_MM`` = 200 kept because 170-190 cut
+real SR305 hands (``tests/test_real_frames.py``); and
 by looking at the real frames in ``../shared/data`` (the solidity rule was written for the HANDS
 2017 frame, whose arm ends inside the image); benchmarks/bench_crops.py reports on
 ``REPORT_CASES`` (seeds 11-13, arm angles 0-180 deg in 30 deg steps, other azimuths) and the
@@ -119,12 +131,25 @@ ARM_EXTRA_MM = 100.0
 #: ... and its ends (this long, mm) differ in solidity by at least SOLIDITY_GAP.
 END_PART_MM = 80.0
 SOLIDITY_GAP = 0.08
+#: ... or in their share of edge nodes by at least this factor (the hand's end has more).
+EDGE_RATIO = 1.2
+#: ... the end TRACK_RATIO times nearer the previous frame's hand counts TRACK_VOTE (one shape
+#: cue counts 1).
+TRACK_RATIO = 1.5
+TRACK_VOTE = 1.5
 #: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
 WRIST_SHIFT = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
 HAND_LENGTH_MM = 200.0
+#: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
+#: (3D) of the hand is hand too (fingers pointing at or away from the camera).
+ATTACH_MM = 30.0
+ATTACH_STEPS = 4
+#: the wrist's surface, up to this far (geodesic, mm) beyond the hand region, sets the cube's
+#: back too (a finger curled behind the palm lies behind the wrist's depth).
+WRIST_ZONE_MM = 30.0
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -426,13 +451,35 @@ def _hand_behind_end(
     return hand | end
 
 
+def _far_apart(pts: np.ndarray, a: np.ndarray, b: np.ndarray, dist_mm: float) -> bool:
+    """Whether every node of ``a`` ``(M,)`` bool is more than ``dist_mm`` (3D) from every node of
+    ``b``."""
+    pa, pb = pts[a], pts[b]
+    if len(pa) == 0 or len(pb) == 0:
+        return True
+    d2 = np.sum(pa * pa, 1)[:, None] + np.sum(pb * pb, 1)[None, :] - 2.0 * pa @ pb.T
+    return bool(d2.min() > dist_mm**2)
+
+
 def _stump_of_free_arm(
-    pts: np.ndarray, rr: np.ndarray, cc: np.ndarray, region: np.ndarray
+    pts: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    region: np.ndarray,
+    degree: np.ndarray,
+    prev_centre_mm: np.ndarray | None = None,
 ) -> np.ndarray | None:
-    """For a region with no contact: if it is elongated (longer than ``HAND_LENGTH_MM +
-    ARM_EXTRA_MM`` along its principal axis), the end whose last ``END_PART_MM`` fills its image
-    convex hull more (solidity: a cut forearm) is the stump, the other (fingers, gaps between
-    them) the hand; returns the stump's nodes, or None if not elongated or not clear."""
+    """For a region with no wide contact: if it is elongated (longer than ``HAND_LENGTH_MM +
+    ARM_EXTRA_MM`` along its principal axis), which end is the forearm's cut (the stump) and
+    which the hand, by votes on the last ``END_PART_MM`` of each end: the stump fills its image
+    convex hull more (solidity, by ``SOLIDITY_GAP``: one vote); it has fewer edge nodes
+    (``degree`` ``(M,)``, the node's links within the region, below 8: silhouette or depth edge;
+    fingers, the gaps between them and their depth steps make edges, a forearm or sleeve is one
+    smooth cylinder; by a factor ``EDGE_RATIO``: one vote); it is the end farther from
+    ``prev_centre_mm`` (3,) (the previous frame's hand, if given and one end is ``TRACK_RATIO``
+    times nearer: ``TRACK_VOTE``, so it outvotes one shape cue, not two; a sleeve's open end is
+    not solid, a fist has few edges).
+    Returns the stump's nodes, or None if not elongated or not clear."""
     idx = np.flatnonzero(region)
     p = pts[idx]
     centred = p - p.mean(axis=0)
@@ -440,18 +487,30 @@ def _stump_of_free_arm(
     t = centred @ axis
     if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM:
         return None
-    solidity = []
+    solidity, edge = [], []
     ends = (t <= t.min() + END_PART_MM, t >= t.max() - END_PART_MM)
     for end in ends:
         xy = np.stack([cc[idx[end]], rr[idx[end]]], axis=1).astype(np.float32)
         hull = cv2.convexHull(xy)
         # grid points inside the hull (Pick): area + half the boundary + 1
         solidity.append(len(xy) / (cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1))
-    if abs(solidity[0] - solidity[1]) < SOLIDITY_GAP:
+        edge.append(float(np.mean(degree[idx[end]] < 8)))
+    # votes for end 1 being the stump (+1) or end 0 (-1)
+    vote = 0.0
+    if abs(solidity[0] - solidity[1]) >= SOLIDITY_GAP:
+        vote += 1.0 if solidity[1] > solidity[0] else -1.0
+    if max(edge) >= EDGE_RATIO * max(min(edge), 1e-6):
+        vote += 1.0 if edge[1] < edge[0] else -1.0
+    if prev_centre_mm is not None:
+        # the hand does not jump from one end to the other between frames: the end much nearer
+        # the previous frame's hand is the hand (outvotes one shape cue, not two)
+        d = [np.linalg.norm(p[end].mean(axis=0) - prev_centre_mm) for end in ends]
+        if max(d) >= TRACK_RATIO * min(d):
+            vote += TRACK_VOTE if d[0] < d[1] else -TRACK_VOTE
+    if vote == 0.0:
         return None
-    stump = ends[int(np.argmax(solidity))] & (
-        np.abs(t - t[ends[int(np.argmax(solidity))]].mean()) <= END_PART_MM
-    )
+    k = 1 if vote > 0 else 0
+    stump = ends[k] & (np.abs(t - t[ends[k]].mean()) <= END_PART_MM)
     out = np.zeros(len(pts), bool)
     out[idx[stump]] = True
     return out
@@ -479,6 +538,57 @@ def _free_blob(
             break
     near = pts[np.sum((pts - centre) ** 2, axis=1) <= FREE_EXTENT_RADIUS_MM**2]
     return _box_of(near, "free-blob", cube_mm, centre)
+
+
+def _attachment(
+    pts: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    zs: np.ndarray,
+    vs: np.ndarray,
+    win: np.ndarray,
+    region: np.ndarray,
+    edges: np.ndarray,
+    prev: np.ndarray | None,
+    min_depth_mm: float,
+) -> tuple[np.ndarray | None, np.ndarray, bool]:
+    """Step 3 of the module docstring: (attachment nodes ``(M,)`` bool or None when there is
+    none, narrow-contact nodes ``(M,)`` bool kept out of the hand's far end, tentative: the
+    attachment holds only if a hand shows past the arm's far end)."""
+    h, w = zs.shape
+    border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
+    out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
+    frontier = np.zeros(len(pts), bool)
+    cut = region[edges[:, 0]] != region[edges[:, 1]]
+    frontier[edges[cut].ravel()] = True
+    contact = region & (border | out | frontier)
+    attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
+    narrow = contact & ~attach
+    inner = region[edges[:, 0]] & region[edges[:, 1]]
+    degree = np.bincount(edges[inner].ravel(), minlength=len(pts))
+    if not attach.any() and contact.any():
+        # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
+        # shape says the arm ends elsewhere (fingertips touching the image border)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+        far = stump is not None and _far_apart(pts, contact, stump, END_PART_MM)
+        return (stump if far else contact), narrow & False, False
+    if attach.any():
+        return attach, narrow, False
+    # no contact: an arm pointing at the camera and cut by the sensor's near range ends in a wide
+    # iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of min_depth_mm), on its
+    # silhouette (no depth next to it); fingertips there are narrow, a palm facing the camera is
+    # not on the silhouette
+    z_lo = np.percentile(pts[region, 2], 1)
+    rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
+    attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
+    if attach.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
+        return attach, narrow, False
+    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+    if stump is not None:
+        return stump, narrow, False
+    # a wide rim far from the near range: a sleeve or forearm pointing at the camera and ending
+    # in view, if the hand shows past its far end (tentative: step 4 checks)
+    return (attach if attach.any() else None), narrow, True
 
 
 def locate_hand_region(
@@ -510,6 +620,10 @@ def locate_hand_region(
     if mask is None:
         return HandLocation.none()
 
+    prev = None
+    if prev_centre_mm is not None and np.all(np.isfinite(prev_centre_mm)):
+        prev = np.asarray(prev_centre_mm, dtype=np.float64)
+
     # step 2: the surface graph on a coarse grid, grown from the seed
     stride = max(1, int(np.ceil(max(z.shape) / GRID_MAX_PX)))
     zs = z[::stride, ::stride].astype(np.float64)
@@ -534,29 +648,11 @@ def locate_hand_region(
         return _free_blob(z, mask, camera, cube_mm, front_mm)
 
     # step 3: attachment (where the arm comes from)
-    h, w = zs.shape
-    border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
-    out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
-    frontier = np.zeros(len(pts), bool)
-    cut = region[edges[:, 0]] != region[edges[:, 1]]
-    frontier[edges[cut].ravel()] = True
-    contact = region & (border | out | frontier)
-    attach = _wide_contacts(contact, rr, cc, zs.shape, pts)
-    narrow = contact & ~attach
-    if not attach.any():
-        attach, narrow = contact, narrow & False  # only narrow contacts: still the arm's way out
-    if not attach.any():
-        # no contact: an arm pointing at the camera and cut by the sensor's near range ends in
-        # a wide iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of
-        # min_depth_mm), on its silhouette (no depth next to it); fingertips there are narrow, a
-        # palm facing the camera is not on the silhouette
-        z_lo = np.percentile(pts[region, 2], 1)
-        rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
-        attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
-        if not attach.any() or z_lo > min_depth_mm + STUMP_NEAR_MM:
-            attach = _stump_of_free_arm(pts, rr, cc, region)
-        if attach is None or not attach.any():
-            return _free_blob(z, mask, camera, cube_mm, front_mm)
+    attach, narrow, tentative = _attachment(
+        pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm
+    )
+    if attach is None:
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
 
     # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
     # image border) are not taken for the hand's far end
@@ -580,10 +676,43 @@ def locate_hand_region(
     )
     if behind is not None:
         hand = behind
+    elif tentative:
+        return _free_blob(z, mask, camera, cube_mm, front_mm)
     wrist = None
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
-    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist)
+    # the seed's surfaces that the arm's does not reach (a depth step: fingers pointing at or
+    # away from the camera, a hand bent at the wrist) are hand too
+    hand |= region & ~np.isfinite(g)
+    hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
+    z_far = None
+    if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
+        z_far = float(
+            np.percentile(pts[ok & (g >= g_end - hand_length_mm - WRIST_ZONE_MM), 2], 99.8)
+        )
+    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist, z_far_mm=z_far)
+
+
+def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """``hand`` ``(M,)`` bool plus the nodes of ``others`` ``(M,)`` bool reached from it in
+    ``ATTACH_STEPS`` steps of at most ``ATTACH_MM`` (3D): fingers whose depth steps away from the
+    palm too fast for the surface graph (pointing at or away from the camera) are still hand."""
+    from scipy.spatial import cKDTree
+
+    hand = hand.copy()
+    cand = np.flatnonzero(others & ~hand)
+    front = pts[hand]
+    for _ in range(ATTACH_STEPS):
+        if len(cand) == 0 or len(front) == 0:
+            break
+        d, _ = cKDTree(front).query(pts[cand], distance_upper_bound=ATTACH_MM)
+        near = np.isfinite(d)
+        if not near.any():
+            break
+        hand[cand[near]] = True
+        front = pts[cand[near]]
+        cand = cand[~near]
+    return hand
 
 
 def _box_of(
@@ -592,6 +721,7 @@ def _box_of(
     cube_mm: float,
     centre_mm: np.ndarray | None = None,
     wrist_mm: np.ndarray | None = None,
+    z_far_mm: float | None = None,
 ) -> HandLocation:
     """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
 
@@ -608,6 +738,8 @@ def _box_of(
     ang = points[:, :2] / z[:, None]
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
     z_lo, z_hi = np.percentile(z, [0.2, 99.8])
+    if z_far_mm is not None:
+        z_hi = max(z_hi, z_far_mm)
     if centre_mm is None:
         zc = max(0.5 * (z_lo + z_hi), z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
         centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])

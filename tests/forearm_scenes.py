@@ -207,3 +207,59 @@ REPORT_CASES = tuple(
     for th in (0.0, 30.0, 60.0, 90.0, 120.0, 150.0, 180.0)
     for sleeve in (False, True)
 )
+
+
+def border_fingertips_frame(
+    seed: int,
+    theta_deg: float,
+    phi_deg: float,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    tip_margin_px: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``(H, W)`` mm and joints ``(21, 3)`` mm of one synth frame (synth's own short
+    forearm) turned so the arm points along (theta, phi) and slid up (same depth) until its
+    highest joint projects ``tip_margin_px`` below the image's top row: the fingers run onto the
+    top border; with theta < 90 deg the forearm is nearer the camera than the fingers."""
+    motion = synthesize_motion(1, seed)
+    j0, r0 = motion.joints_mm[0], motion.rotation[0]
+    wrist = j0[0]
+    q = _align(-r0[:, 1], arm_direction(theta_deg, phi_deg))
+    jj = (j0 - wrist) @ q.T + wrist
+    dv = camera.project(jj)[:, 1].min() - tip_margin_px
+    jj = jj - np.array([0.0, dv * jj[:, 2].mean() / camera.fy, 0.0])
+    depth = render_depth(hand_primitives(motion.model, jj, q @ r0), camera)
+    return add_sensor_noise(depth, np.random.default_rng([seed, 808])), jj
+
+
+def sleeve_end_in_view_frame(
+    seed: int,
+    theta_deg: float,
+    phi_deg: float,
+    camera: CameraIntrinsics = MSRA_CAMERA,
+    depth_mm: float = 650.0,
+    arm_mm: float = 260.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``(H, W)`` mm and joints ``(21, 3)`` mm of one synth frame whose hand (centroid at
+    ``depth_mm``, a little above the optical axis) has a forearm in a sleeve (as
+    :func:`arm_primitives`) along (theta, phi) that ends ``arm_mm`` from the wrist, in view and
+    far from the sensor's near range: with theta < 90 deg the sleeve points at the camera and
+    ends in an open rim nearer than the hand."""
+    motion = synthesize_motion(1, seed)
+    j0, r0 = motion.joints_mm[0], motion.rotation[0]
+    d = arm_direction(theta_deg, phi_deg)
+    q = _align(-r0[:, 1], d)
+    jj = (j0 - j0[0]) @ q.T
+    jj = jj - jj.mean(axis=0) + np.array([0.0, -40.0, depth_mm])
+    hand = hand_primitives(motion.model, jj, q @ r0)
+    keep = len(hand.cap_r) - _SYNTH_FOREARM_CAPSULES
+    w = jj[0]
+    prims = Primitives(
+        cap_a=np.concatenate([hand.cap_a[:keep], [w + 12.0 * d, w + SLEEVE_START_MM * d]]),
+        cap_b=np.concatenate([hand.cap_b[:keep], [w + arm_mm * d, w + arm_mm * d]]),
+        cap_r=np.concatenate([hand.cap_r[:keep], [FOREARM_RADIUS_MM, SLEEVE_RADIUS_MM]]),
+        ell_c=hand.ell_c,
+        ell_axes=hand.ell_axes,
+        ell_s=hand.ell_s,
+    )
+    depth = render_depth(prims, camera)
+    return add_sensor_noise(depth, np.random.default_rng([seed, 707])), jj

@@ -422,6 +422,51 @@ def test_crop_holds_every_joint_whatever_the_forearm_does(theta, sleeve):
         assert np.all(dz <= cube / 2)
 
 
+@pytest.mark.parametrize("seed, theta, phi", [(0, 50.0, 120.0), (1, 50.0, 60.0), (2, 50.0, 60.0)])
+def test_fingertips_on_the_image_border_with_the_arm_nearer_stay_in_the_crop(seed, theta, phi):
+    """Fingers running onto the image's top border, forearm (synth's short one) nearer the camera
+    and ending inside the image: the fingertips touching the border are not the arm's way out,
+    so every joint (fingertips included) is inside the crop, x/y within the half cube less 8 mm
+    (before this round the crop sat on the forearm: joints 13-23 mm outside in these frames)."""
+    from handanno_core.localize import locate_hand_region, session_cube_mm
+    from tests.forearm_scenes import border_fingertips_frame
+
+    cam = MSRA_CAMERA
+    depth, joints = border_fingertips_frame(seed, theta, phi, cam)
+    assert (depth[0] > 0).any() and not (depth[-1] > 0).any()  # hand on the top border only
+    tips = list(MSRA21.fingertips)
+    assert joints[0, 2] < joints[tips, 2].mean()  # the arm's end (wrist) nearer than the tips
+    loc = locate_hand_region(depth, cam)
+    assert loc.method == "arm-end"
+    cube = session_cube_mm(loc.half_extent_mm[None])
+    xy = image_to_crop(cam.project(joints), crop_boxes(loc.centre_mm, cam, cube))
+    mm = (xy - 63.5) * cube / 128
+    assert np.all(np.abs(mm) <= cube / 2 - 8.0), np.abs(mm).max(axis=1)
+
+
+@pytest.mark.parametrize("seed, theta, phi", [(1, 30.0, 60.0), (1, 30.0, 120.0), (2, 30.0, 120.0)])
+def test_sleeve_ending_in_view_nearer_than_the_hand_puts_the_crop_on_the_hand(seed, theta, phi):
+    """A sleeve pointing at the camera that ends in view, far from the sensor's near range (no
+    image-border contact, too short for the free-arm rule): its wide rim is the arm's end because
+    the hand shows past the far end, so every joint is inside the crop in x/y and depth (before
+    this round the crop sat on the sleeve: joints 52-79 mm outside, 200-215 mm behind the cube)."""
+    from handanno_core.localize import locate_hand_region, session_cube_mm
+    from tests.forearm_scenes import sleeve_end_in_view_frame
+
+    cam = MSRA_CAMERA
+    depth, joints = sleeve_end_in_view_frame(seed, theta, phi, cam)
+    valid = depth > 0
+    assert not (valid[0].any() or valid[-1].any() or valid[:, 0].any() or valid[:, -1].any())
+    assert depth[valid].min() < joints[:, 2].min() - 100.0  # the sleeve's rim is nearer
+    loc = locate_hand_region(depth, cam)
+    assert loc.method == "arm-end"
+    cube = session_cube_mm(loc.half_extent_mm[None])
+    xy = image_to_crop(cam.project(joints), crop_boxes(loc.centre_mm, cam, cube))
+    mm = (xy - 63.5) * cube / 128
+    assert np.all(np.abs(mm) <= cube / 2 - 8.0), np.abs(mm).max(axis=1)
+    assert np.all(joints[:, 2] - loc.centre_mm[2] <= cube / 2)
+
+
 def test_smoothing_never_moves_a_centre_past_its_own_slack():
     n = 21
     c = np.zeros((n, 3))

@@ -138,9 +138,7 @@ def test_live_priority_is_the_engines_evidence_ranking(review):
     np.testing.assert_allclose(review.live.priority(), expected, equal_nan=True)
 
 
-def test_background_ranking_follows_the_results_and_updates_only_changed_frames(
-    data_dir, tmp_path
-):
+def test_background_ranking_follows_the_results_and_updates_only_changed_frames(data_dir, tmp_path):
     """The ranking thread ranks the current results, again after a change, and its incremental
     unexplained-foreground term equals the engine's full computation."""
     from large_session import build_large_session
@@ -164,7 +162,9 @@ def test_background_ranking_follows_the_results_and_updates_only_changed_frames(
         live.put(5, moved, None, Stage.REFINED)
         second = live.ranking(wait_s=None)
         results = {k: v.copy() for k, v in live.results.items()}
-        np.testing.assert_array_equal(second, rank_priority("evidence", session, results, crop_data))
+        np.testing.assert_array_equal(
+            second, rank_priority("evidence", session, results, crop_data)
+        )
         assert second[5] != first[5] and ranked[-1] == live.version
         crops, _, boxes = crop_data
         full = unexplained_foreground(

@@ -126,7 +126,8 @@ def _check_constraints(r, ann, bones, tol=0.5):
     lo = D + OFF
     assert np.all(X[has, 2] >= lo[has] - tol)
     vis = has & ann.visible
-    assert np.all(X[vis, 2] <= lo[vis] + 15.0 + tol)
+    # (the upper bound moves deeper with an inclined bone: LiftResult.surface_extra_mm)
+    assert np.all(X[vis, 2] <= lo[vis] + r.surface_extra_mm[vis] + 15.0 + tol)
     par = SK.parent_array
     k = np.flatnonzero((ann.depth_order != 0) & (par >= 0))
     assert np.all(ann.depth_order[k] * (X[k, 2] - X[par[k], 2]) >= 5.0 - tol)

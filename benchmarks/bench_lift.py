@@ -5,6 +5,15 @@ Usage::
     .venv/bin/python benchmarks/bench_lift.py [--seq /tmp/synth3040[,fpha:Subject_2:/tmp/fpha2]]
         [--step 20] [--noise 0,2] [--gt-bones] [--workers 1] [--lift-kw w_angle=1.0]
         [--json benchmarks/results/lift.json]
+    .venv/bin/python benchmarks/bench_lift.py --suite /tmp/suite --part tune [--ref-fraction 0.05]
+        [--noise 0,2] [--lift-kw incline_surface=false] --json OUT
+
+``--suite``: every sequence of that part of a benchmark suite folder (``handanno suite``), with
+the references of ``uniform`` selection at ``--ref-fraction`` over all frames (the pipeline's
+``select`` also skips frames without a usable crop, so its reference set can differ by a few
+frames); only select + simulated annotation + lift run, in seconds per sequence. Each run adds
+diagnostics: error of visible / occluded joints, depth and image-plane parts of the error, the
+signed depth error, per-joint means and the estimated bones' error.
 
 A plain ``--seq`` folder is generated (``synth.generate_sequence(seq, frames=3040, seed=0)``) if
 missing. ``fpha:<subject>:<folder>`` renders real recorded hand motion instead (FPHA, the
@@ -38,6 +47,8 @@ import numpy as np
 from handanno_core.datasets import open_sequence
 from handanno_core.evaluate import error_summary
 from handanno_core.lift import lift_frame, lift_references
+from handanno_core.select import select_references
+from handanno_core.suite import read_suite
 from handanno_core.synth import (
     HandModel,
     generate_sequence,
@@ -110,6 +121,24 @@ def render_fpha_sequence(
     return out
 
 
+def _diagnostics(pred, gt, anns, frames, skeleton) -> dict:
+    """Where the error is: visible vs occluded joints, depth vs image plane, per joint (mm)."""
+    err = np.linalg.norm(pred - gt, axis=-1)  # (F, J)
+    vis = np.stack([anns[f].visible & anns[f].has_2d for f in frames])
+    dz = pred[..., 2] - gt[..., 2]
+    return {
+        "visible_fraction": float(vis.mean()),
+        "visible_mean_mm": float(err[vis].mean()) if vis.any() else None,
+        "occluded_mean_mm": float(err[~vis].mean()) if (~vis).any() else None,
+        "depth_abs_mean_mm": float(np.abs(dz).mean()),
+        "depth_signed_mean_mm": float(dz.mean()),
+        "image_plane_mean_mm": float(np.linalg.norm(pred[..., :2] - gt[..., :2], axis=-1).mean()),
+        "per_joint_mean_mm": {
+            n: float(e) for n, e in zip(skeleton.joint_names, err.mean(axis=0), strict=True)
+        },
+    }
+
+
 def _run(seq, frames, noise, bones, workers, label, lift_kw):
     gt = seq.ground_truth.joints_mm
     anns = simulate_annotations(seq, frames, noise_px=noise, seed=0)
@@ -144,12 +173,15 @@ def _run(seq, frames, noise, bones, workers, label, lift_kw):
         "max_bone_violation_mm": float(max(r.bone_error_mm for r in res)),
         "wall_s": elapsed,
         "workers": workers,
+        **_diagnostics(pred, gt[frames], anns, frames, seq.skeleton),
     }
     print(
         f"{label:9s} noise {noise:.1f} px: mean {summ['mean_mm']:.2f} median {summ['median_mm']:.2f} "
         f"max {summ['max_mm']:.2f} mm | bones |err| mean {bone_err.mean():.2f} max "
         f"{bone_err.max():.2f} mm, rounds {out['bone_rounds']} | converged "
-        f"{out['converged_fraction']:.3f} | {elapsed:.1f} s"
+        f"{out['converged_fraction']:.3f} | visible {out['visible_mean_mm']:.2f} occluded "
+        f"{out['occluded_mean_mm'] or float('nan'):.2f} depth {out['depth_abs_mean_mm']:.2f} "
+        f"(signed {out['depth_signed_mean_mm']:+.2f}) mm | {elapsed:.1f} s"
     )
     return out, lifted, anns
 
@@ -196,7 +228,7 @@ def _parse_kw(items: list[str]) -> dict:
     out = {}
     for item in items:
         key, value = item.split("=", 1)
-        out[key] = {"true": True, "false": False}.get(value.lower(), None)
+        out[key] = {"true": True, "false": False}.get(value.lower())
         if out[key] is None:
             out[key] = float(value)
     return out
@@ -205,6 +237,9 @@ def _parse_kw(items: list[str]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seq", default="/tmp/synth3040", help="comma-separated sequences")
+    ap.add_argument("--suite", help="a benchmark suite folder (replaces --seq)")
+    ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
+    ap.add_argument("--ref-fraction", type=float, default=0.05, help="with --suite: uniform")
     ap.add_argument("--frames", type=int, default=3040)
     ap.add_argument("--step", type=int, default=20)
     ap.add_argument("--noise", default="0,2")
@@ -219,9 +254,20 @@ def main() -> None:
     lift_kw = _parse_kw(args.lift_kw)
 
     datasets = []
-    for spec in args.seq.split(","):
+    specs = (
+        [str(p) for _, _, p in read_suite(args.suite, args.part)]
+        if args.suite
+        else args.seq.split(",")
+    )
+    for spec in specs:
         label, seq = _open(spec, args.frames, args)
-        frames = np.arange(0, len(seq), args.step)
+        if args.suite:
+            n = len(seq)
+            frames = select_references(
+                np.zeros((n, 1)), "uniform", ref_fraction=args.ref_fraction
+            ).reference_frames
+        else:
+            frames = np.arange(0, len(seq), args.step)
         gt = seq.ground_truth.joints_mm
         gt_bones = seq.skeleton.estimate_bone_lengths(gt)
         print(f"== {label}: {len(seq)} frames, {len(frames)} references")
@@ -237,6 +283,8 @@ def main() -> None:
                     _run(seq, frames, noise, gt_bones, args.workers, "gt_bones", lift_kw)[0]
                 )
         entry = {"dataset": spec, "label": label, "frames": len(seq), "step": args.step}
+        if args.suite:
+            entry.update(step=None, ref_fraction=args.ref_fraction, references=len(frames))
         entry["runs"] = runs
         if args.speed_frames > 0:
             speed_frames = frames[:: max(1, len(frames) // args.speed_frames)][: args.speed_frames]
@@ -252,6 +300,12 @@ def main() -> None:
         datasets.append(entry)
     result = datasets[0] if len(datasets) == 1 else {"datasets": datasets}
     result["lift_kw"] = lift_kw
+    result["load_average_1min"] = os.getloadavg()[0]
+    if len(datasets) > 1:
+        for noise in sorted({r["noise_px"] for d in datasets for r in d["runs"]}):
+            means = [r["mean_mm"] for d in datasets for r in d["runs"]
+                     if r["noise_px"] == noise and r["bones"] == "estimated"]  # fmt: skip
+            print(f"mean of means, noise {noise:.1f} px: {np.mean(means):.2f} mm")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.json}")

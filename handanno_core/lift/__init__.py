@@ -26,6 +26,14 @@ bound; where the two mirror poses of a hidden finger both fit the 2D (bones near
 image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth (figures:
 ``benchmarks/results/design_measurements.md``).
 
+Inclined fingers (:mod:`handanno_core.lift.surface`): where a visible finger joint's bone is
+inclined to the viewing ray (a finger pointing away from or towards the camera), the ray through
+the joint centre enters the segment's cylinder ``r / sin(phi)`` before the centre, not ``r``. After
+a solve, the visible PIP/DIP-level joints' surface targets and upper bounds are moved by
+``o (k / sin(phi) - 1)`` for the pose found (``k`` = ``incline_radius_factor``, the finger radius
+over the offset; ``phi`` the angle to the covering bone, ``sin`` capped at ``incline_min_sin``) and
+the frame is solved again from that pose (at most twice; ``LiftResult.surface_extra_mm``).
+
 Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
 length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the
 surface behind it, or the finger in front of it (see :func:`initial_pose`).

@@ -105,6 +105,7 @@ class _Problem(_AngleRows):
         self.z_lo, self.z_hi = lo, hi
         self.surf_mask = valid_d & ann.visible
         self.surf_target = np.where(self.surf_mask, lo + surface_depth_mm, 0.0)
+        self.surf_extra = np.zeros(self.j)
         self.w_surface = w_surface
         # hidden joints without a depth order: weak pull towards the parent's depth
         par_all = skeleton.parent_array
@@ -142,6 +143,35 @@ class _Problem(_AngleRows):
         self.iv_hi = np.flatnonzero(np.isfinite(hi))
         self.w_elastic = 1.0
         self._set_elastic(False)
+
+    def with_surface_extra(self, extra_mm: np.ndarray) -> _Problem:
+        """The problem (this one is left unchanged) with visible joints' surface target and upper
+        depth bound moved ``extra_mm`` (J,) mm deeper than the offsets say (an inclined finger's
+        surface, :func:`handanno_core.lift.surface.inclined_surface_extra_mm`)."""
+        p = copy.copy(self)
+        p._cache = {}
+        delta = np.where(self.surf_mask, np.asarray(extra_mm, dtype=np.float64), 0.0)
+        delta = delta - self.surf_extra
+        p.surf_extra = self.surf_extra + delta
+        p.surf_target = self.surf_target + delta
+        p.z_hi = np.where(np.isfinite(self.z_hi), self.z_hi + delta, self.z_hi)
+        return p
+
+    def without_depth(self, joints: np.ndarray) -> _Problem:
+        """The problem (this one is left unchanged) without the observed depth of ``joints``
+        (S,): no depth interval and no surface target for them (a reading that no pose meets:
+        the click lies on another surface, e.g. a finger in front)."""
+        p = copy.copy(self)
+        p._cache = {}
+        drop = np.zeros(self.j, dtype=bool)
+        drop[np.asarray(joints, dtype=np.int64)] = True
+        p.z_lo = np.where(drop, -np.inf, self.z_lo)
+        p.z_hi = np.where(drop, np.inf, self.z_hi)
+        p.surf_mask = self.surf_mask & ~drop
+        p.iv_lo = np.flatnonzero(np.isfinite(p.z_lo))
+        p.iv_hi = np.flatnonzero(np.isfinite(p.z_hi))
+        p._set_elastic(False)
+        return p
 
     def with_start(
         self,

@@ -42,7 +42,8 @@ def surface_correction(
     """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
 
     For every annotated visible joint with an observed depth (and no elastic slack) the residual
-    ``z_lifted - (D + o + surface_depth_mm)`` is how much deeper below the observed surface the
+    ``z_lifted - (D + o + surface_depth_mm + e)`` (``e`` the inclined bones' extra depth,
+    ``LiftResult.surface_extra_mm``) is how much deeper below the observed surface the
     lift put the joint centre than the offset assumed; the correction of a joint group
     (:meth:`Skeleton.surface_groups`: same level along the chains) is the median over its samples
     (0 with fewer than ``min_samples``). Fingertips are the anchor (their offset is defined: the
@@ -58,6 +59,8 @@ def surface_correction(
         ok = ann.has_2d & ann.visible & np.isfinite(d)
         ok[r.slack_joints] = False
         resid = r.joints_mm[:, 2] - d - offsets - surface_depth_mm
+        if r.surface_extra_mm is not None:  # the inclined bones' part is not the offset's
+            resid = resid - r.surface_extra_mm
         for g in np.unique(groups[ok]):
             res_by_group.setdefault(int(g), []).append(resid[ok & (groups == g)])
     corr = np.zeros(skeleton.num_joints)

@@ -16,6 +16,7 @@ from ..camera import CameraIntrinsics
 from ..skeleton import Skeleton
 from .initial import initial_pose
 from .problem import _Problem
+from .surface import inclined_joints, inclined_surface_extra_mm
 
 
 # ---------------------------------------------------------------------------------------- results
@@ -47,6 +48,9 @@ class LiftResult:
     time_s: float = 0.0
     objective: float = float("nan")
     stretched: bool = False
+    #: ``(J,)`` mm: how much deeper than ``D + o`` the visible joints' surface target and upper
+    #: depth bound were put for their bones' inclination (:mod:`handanno_core.lift.surface`)
+    surface_extra_mm: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------- lift
@@ -113,6 +117,10 @@ def lift_frame(
     max_iter: int = 200,
     tol: float = 1e-6,
     warm: WarmStart | None = None,
+    incline_surface: bool = True,
+    incline_min_sin: float = 0.3,
+    incline_radius_factor: float = 0.85,
+    drop_slack_depths: bool = True,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
 
@@ -126,6 +134,9 @@ def lift_frame(
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
     ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
+    incline_surface: move visible finger joints' surface targets deeper where their bone is
+    inclined to the viewing ray and solve again (module docstring; ``incline_min_sin`` caps
+    ``1 / sin``, ``incline_radius_factor`` is the finger radius over the surface offset).
     Returns a :class:`LiftResult`.
     """
     t0 = time.perf_counter()
@@ -166,6 +177,69 @@ def lift_frame(
         right_hand=right_hand,
     )
     hard_bones = soft_bones is None
+    res, prob, slack_joints = _lift_attempts(
+        base, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
+    )
+    if incline_surface and np.any(inclined_joints(skeleton) & base.surf_mask):
+        # the surface of a visible finger joint lies deeper where its bone is inclined to the
+        # ray: move the targets for the pose found and solve again from it (twice at most)
+        for _ in range(2):
+            X = prob.pose(res.x)
+            extra = inclined_surface_extra_mm(
+                X, skeleton, min_sin=incline_min_sin, radius_factor=incline_radius_factor
+            )
+            if float(np.max(np.abs(np.where(base.surf_mask, extra - prob.surf_extra, 0.0)))) < 0.5:
+                break
+            moved = base.with_surface_extra(extra)
+            again = WarmStart(X, len(slack_joints) > 0, slack_joints if len(slack_joints) else None)
+            r2, p2, s2 = _lift_attempts(moved, X, again, hard_bones, max_iter, tol, elastic_weight)
+            if not _acceptable(r2, p2, hard_bones) and _acceptable(res, prob, hard_bones):
+                break
+            res, prob, slack_joints = r2, p2, s2
+    if drop_slack_depths and len(slack_joints):
+        # readings that no pose meets: the click lies on another surface (a finger in front, the
+        # background); their pull (surface term, slackened interval) drags the joint there.
+        # Solve again without them; keep that solution where it meets every other constraint
+        X = prob.pose(res.x)
+        free = base.without_depth(slack_joints).with_surface_extra(prob.surf_extra)
+        r3, p3, _ = _lift_attempts(free, X, WarmStart(), hard_bones, max_iter, tol, elastic_weight)
+        if _acceptable(r3, p3, hard_bones) and not p3.elastic:
+            res, prob = r3, p3
+    ok = _acceptable(res, prob, soft_bones is None)  # constraints really hold (SLSQP can claim
+    # success in elastic mode with violated angle rows; report that as not converged)
+    X = prob.pose(res.x)
+    proj = camera.project(X)
+    reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
+    bone_err = float(np.max(np.abs(skeleton.bone_lengths(X) - d)))
+    conf = _confidence(annotation, d_obs, reproj, ok)
+    return LiftResult(
+        joints_mm=X,
+        confidence=conf,
+        converged=ok,
+        iterations=int(res.nit),
+        reprojection_px=reproj,
+        observed_depth_mm=np.where(prob.has2d, d_obs, np.nan),
+        bone_error_mm=bone_err,
+        elastic=len(slack_joints) > 0,
+        slack_joints=slack_joints,
+        message=str(res.message),
+        time_s=time.perf_counter() - t0,
+        objective=float(res.fun),
+        surface_extra_mm=prob.surf_extra.copy(),
+    )
+
+
+def _lift_attempts(
+    base: _Problem,
+    x0_pose: np.ndarray,
+    warm: WarmStart,
+    hard_bones: bool,
+    max_iter: int,
+    tol: float,
+    elastic_weight: float,
+):
+    """Solve ``base`` hard from ``x0_pose`` and, if that is infeasible or fails, elastically
+    (see the module docstring). Returns ``(scipy result, problem solved, slack joints (S,))``."""
     # start inside the depth bounds
     z0 = np.clip(x0_pose[:, 2], base.z_lo, base.z_hi)
     solve = partial(_solve_from, base, x0_pose, z0, hard_bones, max_iter, tol)
@@ -191,27 +265,7 @@ def lift_frame(
             slack_joints = prob.el_joints[prob.slacks_mm(res.x) > _FEASIBLE_MM]
         elif res is None:
             res, prob = solve()
-    ok = _acceptable(res, prob, soft_bones is None)  # constraints really hold (SLSQP can claim
-    # success in elastic mode with violated angle rows; report that as not converged)
-    X = prob.pose(res.x)
-    proj = camera.project(X)
-    reproj = np.where(prob.has2d, np.linalg.norm(proj - prob.uv, axis=1), np.nan)
-    bone_err = float(np.max(np.abs(skeleton.bone_lengths(X) - d)))
-    conf = _confidence(annotation, d_obs, reproj, ok)
-    return LiftResult(
-        joints_mm=X,
-        confidence=conf,
-        converged=ok,
-        iterations=int(res.nit),
-        reprojection_px=reproj,
-        observed_depth_mm=np.where(prob.has2d, d_obs, np.nan),
-        bone_error_mm=bone_err,
-        elastic=len(slack_joints) > 0,
-        slack_joints=slack_joints,
-        message=str(res.message),
-        time_s=time.perf_counter() - t0,
-        objective=float(res.fun),
-    )
+    return res, prob, slack_joints
 
 
 def _solve_from(

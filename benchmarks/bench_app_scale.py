@@ -32,7 +32,6 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import sys
 import tempfile
 import time
@@ -43,10 +42,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "tests" / "e2e"))
+
+from viser_helpers import CHROMIUM_ARGS, free_port  # noqa: E402  (the e2e tests' port finder)
 
 from handanno_core.bench import machine_description  # noqa: E402
 
-CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
 LIGHT_COPY = ("session.json", "journal.jsonl", "results.npz", "crops_meta.npz")
 
 
@@ -60,12 +61,6 @@ def light_copy(src: Path, dst: Path) -> Path:
     if (src / "crops.npy").exists():
         os.symlink((src / "crops.npy").resolve(), dst / "crops.npy")
     return dst
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def stats(ms: list[float]) -> dict:

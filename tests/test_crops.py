@@ -422,6 +422,13 @@ def test_crop_holds_every_joint_whatever_the_forearm_does(theta, sleeve):
         assert np.all(dz <= cube / 2)
 
 
+def _joints_in_crop_mm(joints, loc, cam, session_cube_mm):
+    """Joints ``(J, 2)`` in mm from the centre of the crop that ``loc`` gives, and its cube (mm)."""
+    cube = session_cube_mm(loc.half_extent_mm[None])
+    xy = image_to_crop(cam.project(joints), crop_boxes(loc.centre_mm, cam, cube))
+    return (xy - 63.5) * cube / 128, cube
+
+
 @pytest.mark.parametrize("seed, theta, phi", [(0, 50.0, 120.0), (1, 50.0, 60.0), (2, 50.0, 60.0)])
 def test_fingertips_on_the_image_border_with_the_arm_nearer_stay_in_the_crop(seed, theta, phi):
     """Fingers running onto the image's top border, forearm (synth's short one) nearer the camera
@@ -438,9 +445,7 @@ def test_fingertips_on_the_image_border_with_the_arm_nearer_stay_in_the_crop(see
     assert joints[0, 2] < joints[tips, 2].mean()  # the arm's end (wrist) nearer than the tips
     loc = locate_hand_region(depth, cam)
     assert loc.method == "arm-end"
-    cube = session_cube_mm(loc.half_extent_mm[None])
-    xy = image_to_crop(cam.project(joints), crop_boxes(loc.centre_mm, cam, cube))
-    mm = (xy - 63.5) * cube / 128
+    mm, cube = _joints_in_crop_mm(joints, loc, cam, session_cube_mm)
     assert np.all(np.abs(mm) <= cube / 2 - 8.0), np.abs(mm).max(axis=1)
 
 
@@ -460,9 +465,7 @@ def test_sleeve_ending_in_view_nearer_than_the_hand_puts_the_crop_on_the_hand(se
     assert depth[valid].min() < joints[:, 2].min() - 100.0  # the sleeve's rim is nearer
     loc = locate_hand_region(depth, cam)
     assert loc.method == "arm-end"
-    cube = session_cube_mm(loc.half_extent_mm[None])
-    xy = image_to_crop(cam.project(joints), crop_boxes(loc.centre_mm, cam, cube))
-    mm = (xy - 63.5) * cube / 128
+    mm, cube = _joints_in_crop_mm(joints, loc, cam, session_cube_mm)
     assert np.all(np.abs(mm) <= cube / 2 - 8.0), np.abs(mm).max(axis=1)
     assert np.all(joints[:, 2] - loc.centre_mm[2] <= cube / 2)
 

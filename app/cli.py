@@ -149,6 +149,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="frames where a new recording starts (indices, or a file: one index or frame file "
         "name per line); replaces the reader's breaks; '' for none",
     )
+    p.add_argument(
+        "--one-hand",
+        action="store_true",
+        help="treat every sequence as the same person's hand (one set of bone lengths); by "
+        "default each subject folder of an MSRA layout (P0/1, P0/2, P1/1 ...) is its own hand "
+        "with its own bone lengths (other layouts, and --breaks, give one hand)",
+    )
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
     p = add("info", "print a session's summary")
@@ -487,6 +494,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             depth_scale_mm=args.depth_scale,
             overwrite=args.force,
             breaks=args.breaks,
+            one_hand=args.one_hand,
         )
         _OPENED.append(session)
         print(session.summary())

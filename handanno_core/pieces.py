@@ -54,6 +54,7 @@ from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP
 from .fileio import atomic_save_npz
 from .handmodel import Kinematics
+from .hands import BoneTable, bone_table
 from .parallel import Runner
 from .skeleton import Skeleton
 
@@ -261,7 +262,10 @@ def refine_pieces(
     ``dask.distributed.Client``); ``checkpoint_dir`` to resume from (``checkpoint_key``: anything
     else the result depends on, e.g. the crops' fingerprint); ``log(message)``;
     ``progress(pieces_done, pieces_total)``. ``hand_model=True`` personalizes one hand model from
-    all references (as the whole solve would) and gives it to every piece.
+    all references (as the whole solve would) and gives it to every piece. ``bone_lengths_mm``
+    ``(N, B)`` (several hands, :mod:`handanno_core.hands`): every piece is solved with its
+    frames' bones (one set per sequence) and gets a hand model personalized from that set's
+    references.
     """
     init = np.asarray(init_mm, dtype=np.float64)
     n, j = init.shape[:2]
@@ -275,18 +279,27 @@ def refine_pieces(
     refs = np.asarray(sorted({int(r) for r in reference_frames}), dtype=np.int64)
     is_ref = np.zeros(n, dtype=bool)
     is_ref[refs] = True
-    bones = np.asarray(bone_lengths_mm, dtype=np.float64)
+    table = bone_table(bone_lengths_mm, n, len(skeleton.bones))
     say = log or (lambda _m: None)
     pieces = plan_pieces(n, sequence_breaks, window, overlap)
+    hand_of_piece = _hand_of_pieces(pieces, table)
+    models = [hand_model] * len(table.lengths)
     if hand_model is True:
         cube = refine_kwargs.get("cube_mm", DEFAULT_CROP.cube_mm)
-        hand_model = _one_hand_model(
-            init, refs, crops, boxes, centres, camera, skeleton, bones, cube
+        models = [
+            _one_hand_model(
+                init, refs if table.single else np.intersect1d(refs, table.frames_of(h)),
+                crops, boxes, centres, camera, skeleton, lengths, cube,
+            )
+            for h, lengths in enumerate(table.lengths)
+        ]  # fmt: skip
+    kwargs = [
+        dict(
+            refine_kwargs, camera=camera, skeleton=skeleton, bone_lengths_mm=lengths,
+            hand_model=models[h],
         )
-    kwargs = dict(
-        refine_kwargs, camera=camera, skeleton=skeleton, bone_lengths_mm=bones,
-        hand_model=hand_model,
-    )  # fmt: skip
+        for h, lengths in enumerate(table.lengths)
+    ]  # fmt: skip
 
     remote = scheduler is not None or workers > 1
     shared, tmpdir = _shared_crops(crops, remote)
@@ -320,7 +333,7 @@ def refine_pieces(
             ),
             breaks=list(range(w, len(frames))),
             fixed=np.arange(w, len(frames)),
-            kwargs=kwargs,
+            kwargs=kwargs[hand_of_piece[p.index]],
         )
 
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
@@ -363,8 +376,12 @@ def refine_pieces(
             os.rmdir(tmpdir)
 
     joints = _blend(pieces, {i: s[0] for i, s in solved.items()}, n, j)
-    joints = _onto_bones(joints, pieces, skeleton, bones)
-    viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - bones))) if n else 0.0
+    joints = _onto_bones(joints, pieces, skeleton, table, hand_of_piece)
+    viol = (
+        float(np.max(np.abs(skeleton.bone_lengths(joints) - table.per_frame(np.arange(n)))))
+        if n
+        else 0.0
+    )
     return PiecesResult(
         joints_mm=joints,
         pieces=pieces,
@@ -471,12 +488,37 @@ def _blend(pieces: list[Piece], joints: dict[int, np.ndarray], n: int, j: int) -
     return acc / wsum[:, None, None]
 
 
-def _onto_bones(joints: np.ndarray, pieces: list[Piece], skeleton: Skeleton, bones) -> np.ndarray:
-    """Put the blended (shared) frames back onto the fixed bone lengths."""
-    shared = np.concatenate(
-        [np.arange(p.stop - p.trail, p.stop) for p in pieces if p.trail] or [np.zeros(0, int)]
-    )
-    if len(shared):
-        kin = Kinematics(skeleton, bones)
-        joints[shared] = kin.joints(*kin.fit(joints[shared]))
+def _onto_bones(
+    joints: np.ndarray, pieces: list[Piece], skeleton: Skeleton, table: BoneTable, hand_of_piece
+) -> np.ndarray:
+    """Put the blended (shared) frames back onto the fixed bone lengths (each its hand's)."""
+    for h, lengths in enumerate(table.lengths):
+        shared = np.concatenate(
+            [
+                np.arange(p.stop - p.trail, p.stop)
+                for p in pieces
+                if p.trail and hand_of_piece[p.index] == h
+            ]
+            or [np.zeros(0, int)]
+        )
+        if len(shared):
+            kin = Kinematics(skeleton, lengths)
+            joints[shared] = kin.joints(*kin.fit(joints[shared]))
     return joints
+
+
+def _hand_of_pieces(pieces: list[Piece], table: BoneTable) -> list[int]:
+    """Each piece's row of ``table.lengths``; ValueError if a piece's frames have several (bone
+    lengths may change only at a sequence break)."""
+    if table.single:
+        return [0] * len(pieces)
+    out = []
+    for p in pieces:
+        rows = np.unique(table.hand[p.start : p.stop])
+        if len(rows) != 1:
+            raise ValueError(
+                f"frames {p.start}-{p.stop - 1}: bone lengths change inside a sequence "
+                "(they may change only at a sequence break)"
+            )
+        out.append(int(rows[0]))
+    return out

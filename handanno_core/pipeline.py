@@ -49,12 +49,16 @@ def new_session(
     depth_scale_mm: float | None = None,
     overwrite: bool = False,
     breaks: str | None = None,
+    one_hand: bool = False,
 ) -> Session:
     """Create a session for a dataset (format auto-detected unless given).
 
     ``breaks`` (any format) replaces the reader's sequence breaks: comma-separated frame indices
     (``"120,300"``) or the path of a breaks file (one frame index or frame file name per line,
     see :func:`handanno_core.datasets.base.read_breaks_file`); ``""`` means none.
+    The reader's hand labels (``sequence.hand_labels``: the subject folders of an MSRA layout)
+    become the session's hands, each with its own bone lengths, unless ``one_hand`` or
+    ``breaks`` (the labels belong to the reader's breaks) is given.
     """
     from .datasets import open_sequence
 
@@ -78,6 +82,7 @@ def new_session(
         if breaks is not None
         else list(sequence.sequence_breaks),
         overwrite=overwrite,
+        hands=None if one_hand or breaks is not None else sequence.hand_labels,
     )
 
 
@@ -376,6 +381,10 @@ def lift(
 ) -> dict[int, np.ndarray]:
     """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths.
 
+    With several hands (``session.model.hands``) the references of each hand are lifted together
+    and give that hand's bone lengths; a hand without an annotated reference gets the mean of
+    the others' (logged), and ``bone_lengths_mm`` is that mean. Pinned bones pin every hand.
+
     ``workers`` local processes or ``scheduler`` (``"tcp://HOST:PORT"``, a Dask cluster) lift the
     references in parallel. ``progress(done, total)`` is called after every frame of every
     bone-estimation round."""
@@ -388,33 +397,66 @@ def lift(
     if not annotations:
         raise SessionError(f"{session.folder}: no annotated reference frames to lift")
     pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
-    result = lift_references(
-        annotations,
-        sequence.depth,
-        sequence.camera,
-        sequence.skeleton,
-        bone_lengths_mm=np.asarray(session.model.bone_lengths_mm) if pinned else None,
-        pin_bone_lengths=pinned,
-        eps_mm=session.model.settings.eps_mm,
-        angle_limits=session.model.settings.angle_limits,
-        workers=workers,
-        scheduler=scheduler,
-        progress=progress,
-    )
+    hand = session.hand_of_frame()
+    names = session.hand_names
+    groups = {h: {f: a for f, a in annotations.items() if hand[f] == h} for h in range(len(names))}
+    joints_mm: dict[int, np.ndarray] = {}
+    confidence_of: dict[int, np.ndarray] = {}
+    bones: dict[str, np.ndarray] = {}
+    done = 0
+    for h, group in groups.items():
+        if not group:
+            continue
+        report = None
+        if progress is not None:
+            left = sum(len(g) for k, g in groups.items() if k > h)
+            size = len(group)
+
+            def report(d, t, _off=done, _n=size, _left=left):
+                progress(_off + d, _off + t + round(_left * t / max(_n, 1)))
+
+        result = lift_references(
+            group,
+            sequence.depth,
+            sequence.camera,
+            sequence.skeleton,
+            bone_lengths_mm=np.asarray(session.model.bone_lengths_mm) if pinned else None,
+            pin_bone_lengths=pinned,
+            eps_mm=session.model.settings.eps_mm,
+            angle_limits=session.model.settings.angle_limits,
+            workers=workers,
+            scheduler=scheduler,
+            progress=report,
+        )
+        done += len(group)
+        joints_mm.update(result.joints_mm)
+        confidence_of.update(result.confidence)
+        bones[names[h]] = np.asarray(result.bone_lengths_mm, dtype=np.float64)
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
     confidence = results["confidence"]
-    for f, joints in result.joints_mm.items():
+    for f, joints in joints_mm.items():
         lifted[f] = joints
-        confidence[f] = result.confidence[f]
+        confidence[f] = confidence_of[f]
     session.save_results(lifted_mm=lifted, confidence=confidence)
-    session.set_bone_lengths(result.bone_lengths_mm)
-    _log(
-        f"lifted {len(result.joints_mm)} reference frames; bone lengths (mm): "
-        + " ".join(f"{b:.1f}" for b in result.bone_lengths_mm),
-        quiet,
-    )
-    return result.joints_mm
+    if len(names) == 1:
+        session.set_bone_lengths(bones[names[0]])
+        summary = bones[names[0]]
+    else:
+        summary = np.mean(np.stack(list(bones.values())), axis=0)
+        for name in names:
+            if name not in bones:  # no annotated reference of this hand yet
+                _log(f"hand {name}: no annotated reference; it uses the other hands' mean", quiet)
+                bones[name] = summary
+        session.set_bone_lengths(summary, hands={name: bones[name] for name in names})
+    for name in names:
+        _log(
+            f"lifted {sum(len(g) for h, g in groups.items() if names[h] == name)} reference "
+            f"frames{f' of hand {name}' if name else ''}; bone lengths (mm): "
+            + " ".join(f"{b:.1f}" for b in bones[name]),
+            quiet,
+        )
+    return joints_mm
 
 
 def _reference_joints(session: Session, results: dict[str, np.ndarray]) -> dict[int, np.ndarray]:
@@ -459,7 +501,7 @@ def propagate(
         sequence.depth,
         sequence.camera,
         sequence.skeleton,
-        np.asarray(session.model.bone_lengths_mm),
+        session.frame_bone_lengths(),
         aligner=aligner or session.model.settings.aligner,
         workers=workers,
         scheduler=scheduler,
@@ -554,7 +596,8 @@ def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
     """The initialization (lifted references over propagation) and the session's refinement
     problem: the keyword arguments :func:`handanno_core.refine.refine` and
     :func:`handanno_core.pieces.refine_pieces` share (crops, boxes, centres, camera, skeleton,
-    bones, references and their annotations, closest references, breaks, cube)."""
+    bones (``(B,)``, or ``(N, B)`` with several hands), references and their annotations,
+    closest references, breaks, cube)."""
     crops, centres, boxes = ensure_crops(session, quiet=quiet)
     results = session.load_results()
     init = np.array(results["init_mm"], dtype=np.float64)
@@ -571,7 +614,7 @@ def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
         "centres_mm": centres,
         "camera": session.camera,
         "skeleton": session.skeleton,
-        "bone_lengths_mm": np.asarray(session.model.bone_lengths_mm),
+        "bone_lengths_mm": session.frame_bone_lengths(),
         "reference_frames": refs,
         "reference_annotations": session.annotations(refs),
         "closest_reference": root_reference(session.parent),

@@ -130,8 +130,8 @@ def _propagate_path(
 
     crops, centres, boxes = crop_data
     skeleton = session.skeleton
-    bones = session.model.bone_lengths_mm
-    bones = skeleton.bone_lengths(joints) if bones is None else np.asarray(bones, np.float64)
+    bones = session.frame_bone_lengths()  # (B,), or (N, B): each frame its hand's
+    bones = skeleton.bone_lengths(joints) if bones is None else bones
     step = 1 if frame > source else -1
     path = np.arange(source, frame, step * stride) if stride > 0 else np.array([source])
     path = np.append(path, frame)  # source, ..., frame

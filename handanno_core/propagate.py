@@ -68,6 +68,7 @@ from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
 from .forest import descendants, propagation_order
+from .hands import BoneTable, bone_table
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .parallel import Runner
 from .sampling import bilinear, depth_at
@@ -170,12 +171,12 @@ class _Context:
     depth_of: Callable[[int], np.ndarray]
     camera: CameraIntrinsics
     skeleton: Skeleton
-    bone_lengths_mm: np.ndarray
+    bones: BoneTable  #: each frame's bone lengths
     aligner: str
     aligner_kwargs: dict
     settings: PropagationSettings
     crops_array: np.ndarray | None = None  # in-process only
-    hand_model: hm.HandModel | None = None
+    hand_models: list[hm.HandModel] | None = None  #: one per row of ``bones.lengths``
     fit_weights: hm.FitWeights | None = None
     model_refs: np.ndarray | None = None  #: (K,) reference frames, sorted
     model_ref_joints: np.ndarray | None = None  #: (K, J, 3) their lifted joints
@@ -202,14 +203,18 @@ class _Context:
         state["crops_array"] = None
         return state
 
-    def with_model(self, model: hm.HandModel | None, known: dict, reference_joints) -> _Context:
-        """This context with the hand model to fit (None: off) and the references it starts from
-        (the usable ones, sorted, with their lifted joints)."""
-        if model is None:
+    def with_model(
+        self, models: list[hm.HandModel] | None, known: dict, reference_joints
+    ) -> _Context:
+        """This context with the hand models to fit (one per bone-length set; None: off) and the
+        references they start from (the usable ones, sorted, with their lifted joints)."""
+        if models is None:
             return self
         refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
         joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
-        return dataclasses.replace(self, hand_model=model, model_refs=refs, model_ref_joints=joints)
+        return dataclasses.replace(
+            self, hand_models=models, model_refs=refs, model_ref_joints=joints
+        )
 
 
 _CROPS_CACHE: dict[tuple, np.ndarray] = {}
@@ -445,7 +450,7 @@ def _step(
     z_t = np.where(visible, z_obs, z_pred)
     x0 = cam.backproject(uv_f, z_t)
     bones = sk.bones
-    lengths = np.asarray(ctx.bone_lengths_mm, dtype=np.float64)
+    lengths = ctx.bones.of(frame)
     len0 = np.linalg.norm(x0[bones[:, 1]] - x0[bones[:, 0]], axis=1)
     sigma_z = np.where(visible, st.sigma_visible_mm, st.sigma_hidden_mm)
     sigma_uv = st.sigma_px * 0.5 * float(box_f[2] + box_f[3])
@@ -461,7 +466,7 @@ def _step(
             )  # fmt: skip
 
     model_conf = None
-    if ctx.hand_model is not None:
+    if ctx.hand_models is not None:
         x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f)
 
     # confidence
@@ -498,7 +503,7 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     capsules touching each joint (mean point-to-surface mm, fraction of free-space violations).
     """
     st = ctx.settings
-    model = ctx.hand_model
+    model = ctx.hand_models[0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])]
     c_f = ctx.centres_mm[frame]
     j = len(x_flow)
     starts = [x_flow, joints_s + (c_f - ctx.centres_mm[src])]
@@ -723,7 +728,9 @@ def propagate(
         ``[u_left, v_top, sx, sy]``, ``centres_mm`` ``(N, 3)`` (see :mod:`handanno_core.crops`).
     depth_of : ``frame -> (H, W) float32 mm``; may raise ``FrameError``. Must be picklable for
         ``workers > 1`` or ``scheduler``.
-    bone_lengths_mm : ``(J - 1,)`` bone lengths the propagated poses keep.
+    bone_lengths_mm : ``(J - 1,)`` mm, the bone lengths the propagated poses keep, or
+        ``(N, J - 1)`` mm, each frame's own (several people's hands, :mod:`handanno_core.hands`):
+        a frame keeps its own lengths whatever hand its parent shows.
     aligner : ``"dis"`` (default, measured best), ``"sift"`` (SIFT Flow) or ``"ncc"``.
     workers : local processes (1 = in this process). scheduler : ``"tcp://HOST:PORT"`` of a Dask
         distributed scheduler (or a ``dask.distributed.Client``); overrides ``workers``.
@@ -736,7 +743,8 @@ def propagate(
     progress : ``progress(done, total)`` in frames; on_result : ``on_result(frame, joints, conf)``
         for each computed frame, in the main process, parents before children.
     hand_model : ``True`` personalizes a :class:`handmodel.HandModel` from the references
-        (bone lengths, radii from their crops) and fits it to every propagated frame's own depth
+        (bone lengths, radii from their crops; one per bone-length set, from its own frames'
+        references) and fits it to every propagated frame's own depth
         (see :func:`_model_fit`); a ``HandModel`` is used as given; ``False`` turns it off.
 
     Returns a :class:`PropagationResult`; rows outside ``frames`` are NaN.
@@ -749,9 +757,8 @@ def propagate(
     if crops.shape[0] != n or boxes.shape[0] != n or len(centres_mm) != n:
         raise ValueError("parent, crops, boxes and centres must have the same number of frames")
     settings = settings or PropagationSettings()
-    known, bad_refs = _reference_seeds(
-        reference_joints, skeleton, bone_lengths_mm, reference_confidence
-    )
+    bones = bone_table(bone_lengths_mm, n, len(skeleton.bones))
+    known, bad_refs = _reference_seeds(reference_joints, skeleton, bones, reference_confidence)
     todo = np.flatnonzero(parent >= 0)
     if frames is not None:
         todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
@@ -761,9 +768,9 @@ def propagate(
     n_workers = _DASK_TASK_SLOTS if scheduler is not None else max(workers, 1)
     tasks, problems = _plan(parent, known, todo, n_workers * tasks_per_worker if remote else 1)
     _name_bad_references(problems, bad_refs, parent)
-    model_obj = _hand_model(
+    models = _hand_models(
         hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
-        bone_lengths_mm, settings,
+        bones, settings,
     )  # fmt: skip
     out = _Collector.empty(n, skeleton.num_joints, problems, tasks, progress, on_result)
     with _crops_for_workers(crops, remote) as crops_file:
@@ -776,13 +783,13 @@ def propagate(
             depth_of=depth_of,
             camera=camera,
             skeleton=skeleton,
-            bone_lengths_mm=np.asarray(bone_lengths_mm, dtype=np.float64),
+            bones=bones,
             aligner=aligner,
             aligner_kwargs=dict(aligner_kwargs or {}),
             settings=settings,
             crops_array=None if remote else crops,
             fit_weights=fit_weights,
-        ).with_model(model_obj, known, reference_joints)
+        ).with_model(models, known, reference_joints)
         if remote:
             with Runner(workers, scheduler, fresh_processes=True) as runner:
                 runner.each(_run_task, tasks, out.add_remote, runner.share(ctx, broadcast=True))
@@ -804,13 +811,12 @@ _BONE_PLAUSIBILITY = 0.5
 def _reference_seeds(
     reference_joints: dict[int, np.ndarray],
     skeleton: Skeleton,
-    bone_lengths_mm: np.ndarray,
+    bones: BoneTable,
     reference_confidence: dict[int, np.ndarray] | None,
 ) -> tuple[_Seeds, dict[int, str]]:
     """Seeds ``{frame: (joints (J,3), confidence (J,), None)}`` of the usable references, and
     ``{frame: reason}`` for the implausible ones (references with NaN joints are left out)."""
     j = skeleton.num_joints
-    lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
     known: _Seeds = {}
     bad_refs: dict[int, str] = {}
     for f, jj in reference_joints.items():
@@ -819,6 +825,7 @@ def _reference_seeds(
             raise ValueError(f"reference {f}: joints must be ({j}, 3), got {jj.shape}")
         if not np.all(np.isfinite(jj)):
             continue
+        lengths = bones.of(int(f))
         rel = np.abs(skeleton.bone_lengths(jj) - lengths) / np.maximum(lengths, 1e-6)
         if np.any(jj[:, 2] <= 0) or np.max(rel) > _BONE_PLAUSIBILITY:
             bad_refs[int(f)] = (
@@ -879,15 +886,16 @@ def _name_bad_references(problems: dict[int, str], bad_refs: dict[int, str], par
             problems[f] = f"reference {r}: {bad_refs[r]}"
 
 
-def _hand_model(
+def _hand_models(
     hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
-    bone_lengths_mm, settings: PropagationSettings,
-) -> hm.HandModel | None:  # fmt: skip
-    """The hand model to fit (``hand_model=True``: personalized from the usable references)."""
+    bones: BoneTable, settings: PropagationSettings,
+) -> list[hm.HandModel] | None:  # fmt: skip
+    """The hand models to fit, one per row of ``bones.lengths`` (``hand_model=True``: each
+    personalized from the usable references with those bones, else from all of them)."""
     if hand_model is False or hand_model is None:
         return None
     if isinstance(hand_model, hm.HandModel):
-        return hand_model
+        return [hand_model] * len(bones.lengths)
     refs = sorted(f for f in known if f in reference_joints)
     if not refs:
         return None
@@ -899,7 +907,15 @@ def _hand_model(
         camera,
         cube_mm=settings.cube_mm,
     )
-    return hm.personalize(skeleton, bone_lengths_mm, np.stack([known[f][0] for f in refs]), obs)
+    ref_joints = np.stack([known[f][0] for f in refs])
+    if bones.single:
+        return [hm.personalize(skeleton, bones.lengths[0], ref_joints, obs)]
+    models = []
+    for h, lengths in enumerate(bones.lengths):
+        own = np.flatnonzero(bones.hand[ref_frames] == h)
+        own = own if len(own) else np.arange(len(refs))
+        models.append(hm.personalize(skeleton, lengths, ref_joints[own], obs.take(own)))
+    return models
 
 
 @contextmanager

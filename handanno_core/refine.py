@@ -66,6 +66,7 @@ from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP, image_to_crop
 from .handmodel import Kinematics as _Kinematics
 from .handmodel import angle_jacobian, angle_violation
+from .hands import BoneTable, bone_table
 from .lm import Nielsen, NormalEquations, levenberg_marquardt, solve_banded
 from .sampling import bilinear_gradient
 from .skeleton import Skeleton
@@ -666,7 +667,9 @@ def refine(
     boxes : (N, 4) crop boxes ``[u_left, v_top, sx, sy]`` (``crops.crop_boxes``).
     centres_mm : (N, 3) crop centres in mm.
     camera, skeleton : intrinsics and layout.
-    bone_lengths_mm : (B,) fixed bone lengths (hard constraints).
+    bone_lengths_mm : (B,) fixed bone lengths (hard constraints), or (N, B) each frame's own
+        (several people's hands, :mod:`handanno_core.hands`): the frames of each distinct set
+        are then solved as their own system (:func:`_refine_by_hand`).
     reference_frames : (K,) reference frame indices; reference_annotations their 2D annotations.
     closest_reference : (N,) int, for each frame the reference frame whose crop is its
         appearance template (and whose visibility flags it uses); -1 for none.
@@ -711,8 +714,18 @@ def refine(
     fixed = np.zeros(n, dtype=bool)
     if fixed_frames is not None:
         fixed[np.asarray(list(fixed_frames), dtype=np.int64)] = True
+    table = bone_table(bone_lengths_mm, n, len(skeleton.bones))
+    if not table.single:
+        return _refine_by_hand(
+            table, init_mm, fixed, t0, crops=crops, boxes=boxes, centres_mm=centres_mm,
+            camera=camera, skeleton=skeleton, reference_frames=reference_frames,
+            reference_annotations=reference_annotations, closest_reference=closest,
+            sequence_breaks=sequence_breaks, weights=w, iterations=iterations, progress=progress,
+            cube_mm=cube_mm, tol=tol, chunk_frames=chunk_frames, hand_model=hand_model,
+            fit_weights=fit_weights,
+        )  # fmt: skip
 
-    kin = _Kinematics(skeleton, bone_lengths_mm)
+    kin = _Kinematics(skeleton, table.lengths[0])
     root, u = kin.fit(init)
     flat = crops if crops.flags.c_contiguous else np.ascontiguousarray(crops)
     problem = _Problem(
@@ -774,4 +787,75 @@ def refine(
         converged=fit.converged,
         time_s=time.perf_counter() - t0,
         info={"lambda": fit.lam, "log": fit.log, "kept_initialization": kept.tolist()},
+    )
+
+
+def _refine_by_hand(table: BoneTable, init_mm, fixed: np.ndarray, t0: float, **kw) -> RefineResult:
+    """:func:`refine` with several bone-length sets: the frames of each set (one person's hand,
+    whole sequences, so no temporal term joins two sets) are solved as their own system with
+    their own bones. A frame whose closest reference (its appearance template) has other bones
+    gets that reference appended as a fixed frame behind a break, as a piece does
+    (:mod:`handanno_core.pieces`). Energies and terms are summed over the sets."""
+    init = np.asarray(init_mm, dtype=np.float64)
+    n = len(init)
+    closest = kw.pop("closest_reference")
+    refs = np.asarray(sorted({int(r) for r in kw.pop("reference_frames")}), dtype=np.int64)
+    annotations = kw.pop("reference_annotations")
+    breaks = {int(b) for b in kw.pop("sequence_breaks")}
+    is_ref = np.zeros(n, dtype=bool)
+    is_ref[refs] = True
+    joints = init.copy()
+    results: list[RefineResult] = []
+    kept: list[int] = []
+    for h in range(len(table.lengths)):
+        own = table.frames_of(h)
+        c = closest[own]
+        extra = np.setdiff1d(np.unique(c[c >= 0]), own)
+        frames = np.concatenate([own, extra])
+        local = np.full(n, -1, dtype=np.int64)
+        local[frames] = np.arange(len(frames))
+        m = len(own)
+        cut = [i for i in range(1, m) if own[i] != own[i - 1] + 1 or int(own[i]) in breaks]
+        res = refine(
+            init[frames],
+            crops=kw["crops"][frames],
+            boxes=np.asarray(kw["boxes"])[frames],
+            centres_mm=np.asarray(kw["centres_mm"])[frames],
+            camera=kw["camera"],
+            skeleton=kw["skeleton"],
+            bone_lengths_mm=table.lengths[h],
+            reference_frames=np.flatnonzero(is_ref[frames]),
+            reference_annotations={
+                int(local[f]): a for f, a in annotations.items() if local[int(f)] >= 0
+            },
+            closest_reference=np.where(
+                np.concatenate([c, extra]) >= 0, local[np.maximum(np.concatenate([c, extra]), 0)], -1
+            ),
+            sequence_breaks=cut + list(range(m, len(frames))),
+            fixed_frames=np.concatenate([np.flatnonzero(fixed[own]), np.arange(m, len(frames))]),
+            **{k: v for k, v in kw.items() if k not in ("crops", "boxes", "centres_mm", "camera",
+                                                        "skeleton")},
+        )  # fmt: skip
+        joints[own] = res.joints_mm[:m]
+        kept += [int(frames[i]) for i in res.info.get("kept_initialization", []) if i < m]
+        results.append(res)
+    longest = max(len(r.energy_history) for r in results)
+    history = np.sum(
+        [np.pad(r.energy_history, (0, longest - len(r.energy_history)), mode="edge")
+         for r in results],
+        axis=0,
+    )  # fmt: skip
+    terms: dict[str, float] = {}
+    for r in results:
+        for k, v in r.terms.items():
+            terms[k] = terms.get(k, 0.0) + v
+    return RefineResult(
+        joints_mm=joints,
+        energy_history=[float(e) for e in history],
+        bone_violation_max_mm=max(r.bone_violation_max_mm for r in results),
+        terms=terms,
+        iterations=max(r.iterations for r in results),
+        converged=all(r.converged for r in results),
+        time_s=time.perf_counter() - t0,
+        info={"hands": [r.info for r in results], "kept_initialization": sorted(kept)},
     )

@@ -62,7 +62,8 @@ def bone_anomaly(
 ) -> np.ndarray:
     """``(N,)`` largest relative bone-length deviation per frame (0 = exact; NaN if no joints).
 
-    ``joints_mm`` (N, J, 3) mm, ``bones`` (B, 2) (parent, child), ``bone_lengths_mm`` (B,) mm.
+    ``joints_mm`` (N, J, 3) mm, ``bones`` (B, 2) (parent, child), ``bone_lengths_mm`` (B,) mm
+    (or (N, B): each frame its hand's, :meth:`Session.frame_bone_lengths`).
     """
     j = np.asarray(joints_mm, dtype=np.float64)
     b = np.asarray(bones, dtype=np.int64)
@@ -273,8 +274,8 @@ def session_scores(
     references; the depth term when ``crop_data`` = ``(crops, centres_mm, boxes)`` is given
     (:func:`handanno_core.prefill.cached_crops`)."""
     skeleton = session.skeleton
-    if bone_lengths_mm is None and session.model.bone_lengths_mm is not None:
-        bone_lengths_mm = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
+    if bone_lengths_mm is None:
+        bone_lengths_mm = session.frame_bone_lengths()
     is_ref = np.zeros(session.num_frames, dtype=bool)
     is_ref[session.reference_frames] = True
     residual = None if crop_data is None else session_depth_residuals(session, joints_mm, crop_data)
@@ -601,9 +602,7 @@ def review_evidence(
     ev["angle_deg"] = angle_violation(joints, skeleton)
     ev["swap_mm"] = finger_order_violation(joints, skeleton)
     if session.model.bone_lengths_mm is not None:
-        ev["bone"] = bone_anomaly(
-            init, skeleton.bones, np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
-        )
+        ev["bone"] = bone_anomaly(init, skeleton.bones, session.frame_bone_lengths())
     parent = session.parent
     ev["hops"] = hops_to_reference(parent).astype(np.float64)
     ev["gap"] = np.abs(np.arange(n) - root_reference(parent)).astype(np.float64)

@@ -201,7 +201,8 @@ def annotate_prefilled(
             prefilled.append(f)
         annotations[f] = ann
         if bones is not None:  # lifted now so that the next reference can be pre-filled from it
-            scratch["lifted_mm"][f] = _lift(session, ann, depth, bones, guess).joints_mm
+            own = session.bone_lengths_of(f) or bones  # the frame's hand's, if lifted
+            scratch["lifted_mm"][f] = _lift(session, ann, depth, own, guess).joints_mm
     session.execute(
         Batch(
             commands=[
@@ -352,7 +353,7 @@ def review_rounds(
                 ),
                 client="simulated-annotator",
             )
-            lift = _lift(session, ann, depth, bones, shown_mm[f])
+            lift = _lift(session, ann, depth, session.bone_lengths_of(f) or bones, shown_mm[f])
             lifted[f] = lift.joints_mm
             conf[f] = lift.confidence
         session.save_results(lifted_mm=lifted, confidence=conf)

@@ -94,7 +94,7 @@ def lift_for_session(
     with session.lock:
         annotation = session.annotation(frame)
         seq = session.model.journal_seq
-        bones = session.model.bone_lengths_mm
+        bones = session.bone_lengths_of(frame)  # its hand's (several hands), else the session's
         settings = session.model.settings
     skeleton = session.skeleton
     if annotation is None or not annotation.annotated.any():

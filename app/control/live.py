@@ -73,11 +73,8 @@ class LiveResults:
             self.joints_mm = joints
             self.stage = stage
             self.confidence = results["confidence"]
-            self.bone_lengths_mm = (
-                None
-                if self.session.model.bone_lengths_mm is None
-                else np.asarray(self.session.model.bone_lengths_mm, dtype=np.float64)
-            )
+            # (B,), or (N, B) with several hands: each frame its hand's
+            self.bone_lengths_mm = self.session.frame_bone_lengths()
             self.version += 1
         self._changed()
 

@@ -191,6 +191,12 @@ class DepthSequence(abc.ABC):
         """Optional per-frame file names (for export and messages)."""
         return None
 
+    @property
+    def hand_labels(self) -> list[str] | None:
+        """Whose hand each sequence shows, when the layout says so: one label per sequence
+        between :attr:`sequence_breaks` (``len(sequence_breaks) + 1``), else None (unknown)."""
+        return None
+
     def _check_index(self, index: int) -> int:
         n = len(self)
         if not -n <= index < n:

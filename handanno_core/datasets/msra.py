@@ -2,7 +2,8 @@
 
 A gesture folder holds ``%06d_depth.bin`` frames and ``joint.txt``; a dataset folder may hold many
 gesture folders (``P0/1``, ``P0/2`` ... or ``1/``, ``2/`` ...), which open as **one** sequence with a
-``sequence_breaks`` entry at the first frame of every gesture after the first.
+``sequence_breaks`` entry at the first frame of every gesture after the first. With subject folders
+(``P0/1``) the subject folder is each gesture's hand label (``hand_labels``): one person's hand.
 
 ``.bin`` frame: six little-endian int32 ``(img_width, img_height, left, top, right, bottom)`` then
 float32 depth (mm) of the box ``[left, right) x [top, bottom)``, row-major; the rest of the image is 0.
@@ -151,6 +152,15 @@ class MSRASequence(DepthSequence):
     @property
     def sequence_breaks(self) -> list[int]:
         return [int(o) for o in self._offsets[1:-1] if 0 < o < len(self)]
+
+    @property
+    def hand_labels(self) -> list[str] | None:
+        """The subject folder of every gesture folder (``P0`` of ``P0/1``) when the dataset
+        folder holds subject folders of gesture folders; None otherwise (one hand)."""
+        rel = [Path(os.path.relpath(f, self.path)).parts for f in self._folders]
+        if len(rel) < 2 or any(len(r) < 2 for r in rel):
+            return None
+        return [r[0] for r in rel]
 
     def frame_path(self, index: int) -> Path:
         """Path of frame ``index``'s ``.bin`` file."""

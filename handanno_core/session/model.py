@@ -68,8 +68,15 @@ class SessionModel(BaseModel):
     selection: SelectionModel = Field(default_factory=SelectionModel)
     #: frame index (as a string key) -> FrameAnnotation.to_json()
     annotations: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    #: the session's bone lengths: the lift's estimate for a one-hand session; with several hands
+    #: the mean over the hands' lengths (what the app shows; stages use ``hand_bone_lengths_mm``)
     bone_lengths_mm: list[float] | None = None
     bones_pinned: bool = False
+    #: one hand label per sequence (``len(sequence_breaks) + 1`` entries): sequences with the same
+    #: label are one person's hand and share bone lengths; empty = one hand for the whole session
+    hands: list[str] = Field(default_factory=list)
+    #: hand label -> its bone lengths (mm), from the lift (several hands only; else empty)
+    hand_bone_lengths_mm: dict[str, list[float]] = Field(default_factory=dict)
     #: frame -> "accepted" | "flagged"
     review: dict[str, str] = Field(default_factory=dict)
     #: frames that became references through review corrections (annotation cost beyond the selection)

@@ -81,6 +81,17 @@ def _check_sequence(
         )
 
 
+def _hand_labels(hands: list[str] | None, breaks: list[int], folder: Path) -> list[str]:
+    """Validated hand labels, one per sequence, or ``[]`` (one hand)."""
+    labels = [str(h) for h in hands or []]
+    if labels and len(labels) != len(breaks) + 1:
+        raise SessionError(
+            f"{folder}: {len(labels)} hand labels for {len(breaks) + 1} sequences "
+            "(one label per sequence between breaks)"
+        )
+    return labels if len(set(labels)) > 1 else []
+
+
 def _one_line(exc: Exception) -> str:
     if isinstance(exc, ValidationError):
         err = exc.errors()[0]
@@ -149,6 +160,7 @@ class Session:
         sequence_breaks: list[int] | None = None,
         settings: Settings | None = None,
         overwrite: bool = False,
+        hands: list[str] | None = None,
     ) -> Session:
         folder = Path(folder)
         if (folder / SESSION_FILE).exists() and not overwrite:
@@ -164,6 +176,7 @@ class Session:
             sequence_breaks=sequence_breaks or [],
             settings=settings or Settings(),
             session_id=uuid.uuid4().hex,
+            hands=_hand_labels(hands, sequence_breaks or [], folder),
         )
         session = cls(folder, model)
         session.acquire_writer()
@@ -570,15 +583,74 @@ class Session:
             self.save()
 
     def set_bone_lengths(
-        self, bone_lengths_mm: np.ndarray | None, pinned: bool | None = None
+        self,
+        bone_lengths_mm: np.ndarray | None,
+        pinned: bool | None = None,
+        hands: dict[str, np.ndarray] | None = None,
     ) -> None:
+        """Store the session's bone lengths ``(B,)`` mm and, with several hands, every hand's
+        ``{label: (B,)}`` (``hands`` None: the per-hand lengths are cleared, so every hand
+        uses ``bone_lengths_mm``)."""
         with self.lock:
             self.model.bone_lengths_mm = (
                 None if bone_lengths_mm is None else [float(x) for x in bone_lengths_mm]
             )
+            self.model.hand_bone_lengths_mm = {
+                str(k): [float(x) for x in v] for k, v in (hands or {}).items()
+            }
             if pinned is not None:
                 self.model.bones_pinned = pinned
             self.save()
+
+    # ------------------------------------------------------------------ hands
+    @property
+    def hand_names(self) -> list[str]:
+        """The distinct hand labels in first-appearance order (``[""]``: one hand)."""
+        return list(dict.fromkeys(self.model.hands)) or [""]
+
+    def hand_of_frame(self) -> np.ndarray:
+        """``(N,)`` int: each frame's hand, an index into :attr:`hand_names` (all 0: one hand)."""
+        n = self.num_frames
+        labels = self.model.hands
+        if not labels:
+            return np.zeros(n, dtype=np.int64)
+        if len(labels) != len(self.model.sequence_breaks) + 1:
+            raise SessionError(
+                f"{self.folder / SESSION_FILE}: {len(labels)} hand labels for "
+                f"{len(self.model.sequence_breaks) + 1} sequences"
+            )
+        names = {h: i for i, h in enumerate(self.hand_names)}
+        per_sequence = np.asarray([names[h] for h in labels], dtype=np.int64)
+        sequence = np.searchsorted(
+            np.asarray(self.model.sequence_breaks, dtype=np.int64), np.arange(n), side="right"
+        )
+        return per_sequence[sequence]
+
+    def frame_bone_lengths(self) -> np.ndarray | None:
+        """The bone lengths the stages use: ``(B,)`` mm when every frame has the same (one hand,
+        or pinned bones), else ``(N, B)`` mm, each frame its hand's; None before the lift."""
+        if self.model.bone_lengths_mm is None:
+            return None
+        table = self.model.hand_bone_lengths_mm
+        names = self.hand_names
+        if len(names) < 2 or not table:
+            return np.asarray(self.model.bone_lengths_mm, dtype=np.float64)
+        rows = np.asarray(
+            [table.get(h, self.model.bone_lengths_mm) for h in names], dtype=np.float64
+        )
+        if np.all(rows == rows[:1]):
+            return rows[0]
+        return rows[self.hand_of_frame()]
+
+    def bone_lengths_of(self, frame: int) -> list[float] | None:
+        """Frame ``frame``'s hand's bone lengths (mm), else the session's (None before the lift)."""
+        hands = self.model.hands
+        if hands and self.model.hand_bone_lengths_mm:
+            seq = int(np.searchsorted(self.model.sequence_breaks, int(frame), side="right"))
+            own = self.model.hand_bone_lengths_mm.get(hands[seq])
+            if own is not None:
+                return own
+        return self.model.bone_lengths_mm
 
     def save(self) -> None:
         """Write the snapshot atomically (the journal stays the source of truth for later edits)."""

@@ -19,12 +19,17 @@ Then, on copies of the annotated session:
 * ``--compare-whole``: the refinement as one whole solve (the old way) and in windows of
   ``--small-window`` frames, with time, memory and the difference to the pieces' result.
 
-Accuracy (per-joint 3D error against the synthetic ground truth): over all frames, and the
-spread of the per-folder means.
+Accuracy (per-joint 3D error against the synthetic ground truth): over all frames, the spread of
+the per-folder means, every folder's mean/max (``per_folder_final``), and per subject its mean and
+the relative error of the bone lengths the session gave its frames (``hands_report``; the session
+has one hand per subject folder unless ``--one-hand``). ``--per-sequence N``: the same pipeline on
+N folders (gesture 1 of P0, P1, ... in turn) as separate sessions, beside the same folders inside
+the big session (``per_sequence``).
 
     nice .venv/bin/python benchmarks/bench_scale.py [--folders 153] [--frames-per-folder 500]
         [--ref-fraction 0.05] [--workers 2] [--window 1024] [--dask] [--compare-whole]
-        [--hands subject|folder] [--data DIR] [--work DIR] [--json benchmarks/results/scale.json]
+        [--hands subject|folder] [--one-hand] [--per-sequence N] [--data DIR] [--work DIR]
+        [--json benchmarks/results/scale.json]
 
 The dataset is kept in ``--data`` (reused when complete). Writes the JSON given by ``--json``.
 """
@@ -152,6 +157,64 @@ def stage(name: str, args: list[str], log: Path, extra_pids: list[int] | None = 
     return row
 
 
+def _folders_of(seq) -> tuple[list[str], list[int]]:
+    """Each gesture folder's name relative to the dataset (``P0/1``; ``.`` for a single folder)
+    and the frame cuts ``[0, breaks..., N]`` (the folders are the reader's sequences)."""
+    names = seq.frame_names
+    cuts = [0, *seq.sequence_breaks, len(seq)]
+    return [os.path.dirname(names[a]) or "." for a in cuts[:-1]], cuts
+
+
+def per_folder_errors(folder: Path, key: str = "final_mm") -> dict[str, dict]:
+    """``{gesture folder: {"mean_mm", "max_mm"}}`` of a session's ``key`` joints."""
+    from handanno_core.session import Session
+
+    with Session.open(folder) as s:
+        seq = s.open_sequence()
+        gt = seq.ground_truth.joints_mm
+        pred = s.load_results()[key]
+    names, cuts = _folders_of(seq)
+    err = np.linalg.norm(pred - gt, axis=-1)
+    return {
+        n: {
+            "mean_mm": round(float(np.nanmean(err[a:b])), 3),
+            "max_mm": round(float(np.nanmax(err[a:b])), 2),
+        }
+        for n, a, b in zip(names, cuts[:-1], cuts[1:], strict=True)
+    }
+
+
+def hand_report(folder: Path) -> dict:
+    """Per subject (the MSRA reader's hand labels, whatever hands the session used): the final
+    mean error and the relative error of the bone lengths the session gave its frames against
+    the subject's true ones (mean over bones, %; ground truth: evaluation only)."""
+    from handanno_core.session import Session
+
+    with Session.open(folder) as s:
+        seq = s.open_sequence()
+        gt = seq.ground_truth.joints_mm
+        pred = s.load_results()["final_mm"]
+        bones = np.broadcast_to(s.frame_bone_lengths(), (len(gt), len(seq.skeleton.bones)))
+        labels = seq.hand_labels or ["all"]
+        cuts = [0, *seq.sequence_breaks, len(seq)]
+        hands_used = s.hand_names
+    subject = np.repeat(labels, np.diff(cuts))
+    true_bones = seq.skeleton.bone_lengths(gt)
+    err = np.linalg.norm(pred - gt, axis=-1).mean(axis=1)
+    out = {}
+    for name in dict.fromkeys(labels):
+        at = subject == name
+        truth = true_bones[at].mean(axis=0)
+        out[name] = {
+            "frames": int(at.sum()),
+            "final_mean_mm": round(float(np.nanmean(err[at])), 3),
+            "bone_rel_err_pct": round(
+                float(np.mean(np.abs(bones[at].mean(axis=0) / truth - 1)) * 100), 2
+            ),
+        }
+    return {"session_hands": hands_used, "per_subject": out}
+
+
 def accuracy(folder: Path, key: str) -> dict:
     from handanno_core.evaluate import error_summary
     from handanno_core.session import Session
@@ -181,6 +244,55 @@ def accuracy(folder: Path, key: str) -> dict:
     }
 
 
+def per_sequence(a, big: Path, sessions: Path, log: Path, inside: dict[str, dict]) -> dict:
+    """The same pipeline (fraction, strategy, simulated annotation, lift, propagate, refine) on
+    ``a.per_sequence`` gesture folders, each its own session: their final mean/max beside the
+    same folders' errors inside the big session ``big``."""
+    subjects = max(1, -(-a.folders // len(GESTURES)))
+    rows = []
+    w = str(a.workers)
+    for i in range(a.per_sequence):
+        subject, gesture = i % subjects, i // subjects
+        if subject * len(GESTURES) + gesture >= a.folders:
+            break
+        name = f"P{subject}/{GESTURES[gesture]}"
+        tag = f"seq-P{subject}-{GESTURES[gesture]}"
+        base = ["--sessions-dir", str(sessions)]
+        for step, args in (
+            ("new", [*base, "new", tag, str(a.data / name)]),
+            ("select", [*base, "select", tag, "--strategy", "forest"]
+             + ["--ref-fraction", str(a.ref_fraction)]),
+            ("annotate", [*base, "annotate-from-gt", tag]),
+            ("lift", [*base, "lift", tag, "--workers", w]),
+            ("propagate", [*base, "propagate", tag, "--workers", w]),
+            ("refine", [*base, "refine", tag, "--workers", w, "--window", str(a.window)]),
+        ):  # fmt: skip
+            stage(f"{tag}-{step}", args, log)
+        own = per_folder_errors(sessions / tag)["."]
+        rows.append({"folder": name, "alone": own, "in_big_session": inside[name]})
+    alone = [r["alone"]["mean_mm"] for r in rows]
+    big_ = [r["in_big_session"]["mean_mm"] for r in rows]
+    return {
+        "folders": rows,
+        "alone_mean_mm": round(float(np.mean(alone)), 3),
+        "in_big_session_mean_mm": round(float(np.mean(big_)), 3),
+        "alone_max_mm": max(r["alone"]["max_mm"] for r in rows),
+        "in_big_session_max_mm": max(r["in_big_session"]["max_mm"] for r in rows),
+    }
+
+
+def reports(s: Path) -> dict:
+    """The main run's accuracy: per stage, per subject (with bone errors), per folder."""
+    return {
+        "accuracy": {
+            k: accuracy(s, key)
+            for k, key in (("lift", "lifted_mm"), ("init", "init_mm"), ("final", "final_mm"))
+        },
+        "hands_report": hand_report(s),
+        "per_folder_final": per_folder_errors(s),
+    }
+
+
 def results(folder: Path) -> dict[str, np.ndarray]:
     from handanno_core.session import Session
 
@@ -197,6 +309,20 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--window", type=int, default=1024)
     ap.add_argument("--small-window", type=int, default=200)
     ap.add_argument("--hands", choices=["subject", "folder"], default="subject")
+    ap.add_argument(
+        "--one-hand",
+        action="store_true",
+        help="the session treats every subject as one hand (handanno new --one-hand)",
+    )
+    ap.add_argument(
+        "--per-sequence",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after the main run, run the same pipeline on N gesture folders (one per subject "
+        "in turn: gesture 1 of P0, P1, ...) as separate sessions and compare them with the same "
+        "folders inside the big session",
+    )
     ap.add_argument("--dask", action="store_true")
     ap.add_argument("--compare-whole", action="store_true")
     ap.add_argument("--data", type=Path, default=Path("/tmp/handanno-scale-data"))
@@ -235,12 +361,13 @@ def main() -> None:
 
     crops = (
         "import sys; from handanno_core import pipeline; from handanno_core.session import "
-        "Session; s = Session.open(sys.argv[1]); pipeline.ensure_crops(s, quiet=True); s.close()"
+        "Session; s = Session.open(sys.argv[1]); "
+        "pipeline.ensure_crops(s, quiet=True, workers=int(sys.argv[2])); s.close()"
     )
     w = str(a.workers)
     steps = [
-        ("new", [*base, "new", "local", str(a.data)]),
-        ("crops", ["-c", crops, str(s)]),
+        ("new", [*base, "new", "local", str(a.data), *(["--one-hand"] if a.one_hand else [])]),
+        ("crops", ["-c", crops, str(s), w]),
         ("select", [*base, "select", "local", "--strategy", "forest"]
          + ["--ref-fraction", str(a.ref_fraction)]),
         ("annotate", [*base, "annotate-from-gt", "local"]),
@@ -257,12 +384,12 @@ def main() -> None:
         save()
     doc["local_total_wall_s"] = round(sum(r["wall_s"] for r in doc["local"]), 1)
     doc["local_peak_rss_sum_mb"] = max(r["peak_rss_sum_mb"] for r in doc["local"])
-    doc["accuracy"] = {
-        k: accuracy(s, key)
-        for k, key in (("lift", "lifted_mm"), ("init", "init_mm"), ("final", "final_mm"))
-    }
+    doc.update(reports(s), one_hand=a.one_hand)
     save()
     local = results(s)
+    if a.per_sequence:
+        doc["per_sequence"] = per_sequence(a, s, sessions, log, doc["per_folder_final"])
+        save()
 
     if a.dask:
         import psutil

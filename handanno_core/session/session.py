@@ -747,6 +747,12 @@ class Session:
             f"  selection: {sel.strategy or 'none'}, references: {len(sel.reference_frames)} of {self.num_frames}",
             f"  annotated references: {done} of {total}; corrections: {len(self.model.corrections)}",
         ]
+        if self.model.hands:
+            names = self.hand_names
+            lines.append(
+                f"  hands: {len(names)} ({', '.join(names[:10])}{' ...' if len(names) > 10 else ''}), "
+                f"own bone lengths per hand{'' if self.model.hand_bone_lengths_mm else ' after the lift'}"
+            )
         return "\n".join(lines)
 
     def __enter__(self) -> Session:

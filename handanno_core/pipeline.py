@@ -449,9 +449,9 @@ def lift(
                 _log(f"hand {name}: no annotated reference; it uses the other hands' mean", quiet)
                 bones[name] = summary
         session.set_bone_lengths(summary, hands={name: bones[name] for name in names})
-    for name in names:
+    for h, name in enumerate(names):
         _log(
-            f"lifted {sum(len(g) for h, g in groups.items() if names[h] == name)} reference "
+            f"lifted {sum(1 for f in joints_mm if hand[f] == h)} reference "
             f"frames{f' of hand {name}' if name else ''}; bone lengths (mm): "
             + " ".join(f"{b:.1f}" for b in bones[name]),
             quiet,

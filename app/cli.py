@@ -156,6 +156,13 @@ def build_parser() -> argparse.ArgumentParser:
         "default each subject folder of an MSRA layout (P0/1, P0/2, P1/1 ...) is its own hand "
         "with its own bone lengths (other layouts, and --breaks, give one hand)",
     )
+    p.add_argument(
+        "--hands",
+        metavar="L1,L2,...|FILE",
+        help="whose hand each sequence (between breaks) shows: one label per sequence, "
+        "comma-separated or one per line in a file; sequences with the same label share bone "
+        "lengths (replaces the reader's labels)",
+    )
     p.add_argument("--force", action="store_true", help="replace an existing session")
 
     p = add("info", "print a session's summary")
@@ -495,6 +502,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             overwrite=args.force,
             breaks=args.breaks,
             one_hand=args.one_hand,
+            hands=args.hands,
         )
         _OPENED.append(session)
         print(session.summary())

@@ -50,6 +50,7 @@ def new_session(
     overwrite: bool = False,
     breaks: str | None = None,
     one_hand: bool = False,
+    hands: str | None = None,
 ) -> Session:
     """Create a session for a dataset (format auto-detected unless given).
 
@@ -58,7 +59,9 @@ def new_session(
     see :func:`handanno_core.datasets.base.read_breaks_file`); ``""`` means none.
     The reader's hand labels (``sequence.hand_labels``: the subject folders of an MSRA layout)
     become the session's hands, each with its own bone lengths, unless ``one_hand`` or
-    ``breaks`` (the labels belong to the reader's breaks) is given.
+    ``breaks`` (the labels belong to the reader's breaks) is given. ``hands`` (any format)
+    gives the labels: comma-separated, one per sequence between breaks (``"anna,anna,ben"``),
+    or the path of a file with one label per line.
     """
     from .datasets import open_sequence
 
@@ -66,6 +69,12 @@ def new_session(
     sequence = open_sequence(
         dataset_path, format=format, intrinsics=intrinsics, depth_scale_mm=depth_scale_mm
     )
+    if one_hand:
+        labels = None
+    elif hands is not None:
+        labels = _hands_arg(hands)
+    else:  # the reader's labels belong to the reader's breaks
+        labels = sequence.hand_labels if breaks is None else None
     spec = DatasetSpec(
         path=str(dataset_path),
         format=sequence.format,
@@ -82,8 +91,18 @@ def new_session(
         if breaks is not None
         else list(sequence.sequence_breaks),
         overwrite=overwrite,
-        hands=None if one_hand or breaks is not None else sequence.hand_labels,
+        hands=labels,
     )
+
+
+def _hands_arg(hands: str) -> list[str]:
+    """Hand labels from ``--hands`` (see :func:`new_session`): a file's non-empty lines, else
+    the comma-separated labels."""
+    text = hands.strip()
+    path = Path(text)
+    if "," not in text and path.is_file():
+        return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    return [t.strip() for t in text.split(",")]
 
 
 def _breaks_arg(breaks: str, sequence) -> list[int]:

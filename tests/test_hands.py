@@ -215,3 +215,19 @@ def test_bone_table_shapes():
     assert bone_table(np.array([1.0, 2.0]), 3, 2).single
     with pytest.raises(ValueError, match=r"\(2,\) or \(3, 2\)"):
         bone_table(np.ones((2, 2)), 3, 2)
+
+
+def test_hands_option_gives_labels_and_names_a_wrong_count(data, tmp_path):
+    from app.cli import main
+
+    base = ["--sessions-dir", str(tmp_path)]
+    assert main([*base, "new", "a", str(data), "--hands", "x,y,y"]) == 0
+    with Session.open(tmp_path / "a") as s:
+        assert s.model.hands == ["x", "y", "y"] and s.hand_names == ["x", "y"]
+    labels = tmp_path / "hands.txt"
+    labels.write_text("x\nx\nx\n")  # one label: one hand
+    assert main([*base, "new", "b", str(data), "--hands", str(labels)]) == 0
+    assert json.loads((tmp_path / "b/session.json").read_text())["hands"] == []
+    with pytest.raises(Exception, match="2 hand labels for 3 sequences"):
+        pipeline.new_session(tmp_path / "c", data, hands="x,y")
+    assert not (tmp_path / "c").exists()

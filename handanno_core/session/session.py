@@ -165,6 +165,7 @@ class Session:
         folder = Path(folder)
         if (folder / SESSION_FILE).exists() and not overwrite:
             raise SessionError(f"{folder / SESSION_FILE}: a session already exists here")
+        labels = _hand_labels(hands, sequence_breaks or [], folder)
         folder.mkdir(parents=True, exist_ok=True)
         get_skeleton(skeleton)
         model = SessionModel(
@@ -176,7 +177,7 @@ class Session:
             sequence_breaks=sequence_breaks or [],
             settings=settings or Settings(),
             session_id=uuid.uuid4().hex,
-            hands=_hand_labels(hands, sequence_breaks or [], folder),
+            hands=labels,
         )
         session = cls(folder, model)
         session.acquire_writer()

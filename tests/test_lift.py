@@ -617,3 +617,36 @@ def test_elastic_lift_of_a_frame_with_few_joints_has_no_hard_rows(frames):
     result = lift_frame(partial, depth, CAM, SK, bones, start_elastic=True, elastic_joints=[0, 1])
     assert np.all(np.isfinite(result.joints_mm))
     assert np.linalg.norm(result.joints_mm[1] - X[1]) < 15.0
+
+
+def test_angle_rows_without_jacobian_and_the_penalty_gradient(frames):
+    """The rows alone equal the rows computed with the Jacobian, and the objective's gradient
+    matches finite differences on a pose outside the ranges (a finger bent backwards, where the
+    Jacobian is needed) as well as inside them (where it is skipped)."""
+    X, depth, ann = frames[0]
+    bones = SK.bone_lengths(X)
+    x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
+    prob = _Problem(ann, d_obs, CAM, SK, bones, x0, eps_mm=15.0, angle_limits=True,
+                    order_margin_mm=10.0, w_3d=1.0, w_surface=0.1, w_free=1e-3,
+                    soft_bones=None, right_hand=True)  # fmt: skip
+    bent = X.copy()
+    bent[[7, 8]] = bent[6] + (bent[6] - bent[5]) * np.array([[1.0], [2.0]])  # straight line
+    bent[[7, 8]] += (
+        25.0
+        * np.cross(bent[6] - bent[5], [0.0, 0.0, 1.0])[None]
+        / np.linalg.norm(bent[6] - bent[5])
+    )
+    for pose, outside in ((X, False), (bent, True)):
+        rows, no_jac = prob._angles(pose, jacobian=False)
+        full, jac = prob._angles(pose)
+        assert no_jac is None
+        np.testing.assert_array_equal(rows, full)
+        assert np.any(rows < 0) == outside
+        x = ((pose - prob.x0) / prob.sc3).ravel()
+        g = prob.objective(x)[1]
+        h = 1e-6
+        fd = np.array([
+            (prob.objective(x + h * e)[0] - prob.objective(x - h * e)[0]) / (2 * h)
+            for e in np.eye(len(x))
+        ])  # fmt: skip
+        np.testing.assert_allclose(g, fd, atol=1e-4, rtol=1e-5)

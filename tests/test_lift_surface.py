@@ -129,3 +129,36 @@ def test_a_reading_on_a_surface_in_front_is_dropped_not_followed(frames):  # noq
             assert e_dropped < 0.5 * e_kept, (e_dropped, e_kept)
             break
     assert hits >= 2
+
+
+def test_warm_start_from_a_solution_skips_the_re_solves_and_keeps_the_answer(monkeypatch):
+    """A warm start from a lifted pose starts with that pose's inclined surfaces, so where the
+    solution leaves them unchanged no re-solve runs (one SLSQP solve instead of up to three), and
+    the answer is the cold lift's."""
+    import handanno_core.lift.solve as solve_mod
+
+    rng = np.random.default_rng(3)
+    bones = np.asarray(SK.template_bone_lengths_mm)
+    calls = []
+    real = solve_mod._lift_attempts
+    monkeypatch.setattr(
+        solve_mod, "_lift_attempts", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    checked = 0
+    for _ in range(6):
+        X = random_pose(rng, bones)
+        depth = render(X)
+        ann = annotate(X, depth)
+        calls.clear()
+        cold = lift_frame(ann, depth, CAM, SK, bones, incline_radius_factor=1.0)
+        if len(calls) < 2 or not cold.converged:
+            continue  # the inclined targets did not move: nothing to skip
+        calls.clear()
+        warm = lift_frame(ann, depth, CAM, SK, bones, incline_radius_factor=1.0,
+                          init_mm=cold.joints_mm)  # fmt: skip
+        assert len(calls) == 1
+        assert warm.converged
+        assert np.abs(warm.surface_extra_mm - cold.surface_extra_mm).max() < 0.5
+        assert np.linalg.norm(warm.joints_mm - cold.joints_mm, axis=1).max() < 0.5
+        checked += 1
+    assert checked >= 2

@@ -56,8 +56,10 @@ class _AngleRows:
         self.D_kp = sel(ak) - sel(self.ap)
         self.D_ck = sel(self.ac) - sel(ak)
 
-    def _angles(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Angle-limit rows ``(4A,)`` and their Jacobian ``(4A, J, 3)``.
+    def _angles(self, X: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Angle-limit rows ``(4A,)`` and their Jacobian ``(4A, J, 3)`` (None if not
+        ``jacobian``: the rows alone cost a fraction of it, and the soft penalty needs the
+        Jacobian only where some row is negative).
 
         The local frame follows ``Skeleton.joint_angles``: at a finger's first joint the lateral
         axis is ``normalize(a x n)`` (palm normal ``n``); further along it is the parent joint's
@@ -73,49 +75,63 @@ class _AngleRows:
         mvec = _cross(e1, e2)
         mn = max(float(np.linalg.norm(mvec)), 1e-9)
         n = self.hand_sign * mvec / mn
-        pm = self.hand_sign * (eye - np.outer(n, n)) / mn
-        dn = np.zeros((3, j, 3))  # dn/dX
-        dn[:, i1] += pm @ -_skew(e2)
-        dn[:, l1] += pm @ _skew(e1)
-        dn[:, w0] -= dn[:, i1] + dn[:, l1]
-        dn = dn.reshape(3, 3 * j)
         a_n = len(self.ak)
         A = np.zeros((a_n, 3))
         LAT = np.zeros((a_n, 3))
-        DA = np.zeros((a_n, 3, 3 * j))
-        DL = np.zeros((a_n, 3, 3 * j))
+        if jacobian:
+            pm = self.hand_sign * (eye - np.outer(n, n)) / mn
+            dn = np.zeros((3, j, 3))  # dn/dX
+            dn[:, i1] += pm @ -_skew(e2)
+            dn[:, l1] += pm @ _skew(e1)
+            dn[:, w0] -= dn[:, i1] + dn[:, l1]
+            dn = dn.reshape(3, 3 * j)
+            DA = np.zeros((a_n, 3, 3 * j))
+            DL = np.zeros((a_n, 3, 3 * j))
         for idx in self.a_levels:
             k, p = self.ak[idx], self.ap[idx]
             u = X[k] - X[p]
             un = np.maximum(np.linalg.norm(u, axis=1), 1e-9)
             a = u / un[:, None]
-            pa = (eye - a[:, :, None] * a[:, None, :]) / un[:, None, None]
-            da = pa @ self.D_kp[idx]
             pi = self.a_parent[idx]
-            if pi[0] >= 0:  # a level shares one kind (first joint or not): see _setup
-                lp, dlp = LAT[pi], DL[pi]
+            first = pi[0] < 0  # a level shares one kind (first joint or not): see _setup
+            if first:
+                w = _cross(u, n)
+            else:
+                lp = LAT[pi]
                 al = np.einsum("mi,mi->m", a, lp)
                 w = lp - al[:, None] * a
-                ma = eye - a[:, :, None] * a[:, None, :]
-                mb = al[:, None, None] * eye + a[:, :, None] * lp[:, None, :]
-                dw = ma @ dlp - mb @ da
-            else:
-                w = _cross(u, n)
+            wn = np.maximum(np.linalg.norm(w, axis=1), 1e-9)
+            lat = w / wn[:, None]
+            A[idx], LAT[idx] = a, lat
+            if not jacobian:
+                continue
+            pa = (eye - a[:, :, None] * a[:, None, :]) / un[:, None, None]
+            da = pa @ self.D_kp[idx]
+            if first:
                 sk_u = np.zeros((len(idx), 3, 3))
                 sk_u[:, 0, 1], sk_u[:, 0, 2] = -u[:, 2], u[:, 1]
                 sk_u[:, 1, 0], sk_u[:, 1, 2] = u[:, 2], -u[:, 0]
                 sk_u[:, 2, 0], sk_u[:, 2, 1] = -u[:, 1], u[:, 0]
                 dw = -_skew(n) @ self.D_kp[idx] + sk_u @ dn
-            wn = np.maximum(np.linalg.norm(w, axis=1), 1e-9)
-            lat = w / wn[:, None]
+            else:
+                ma = eye - a[:, :, None] * a[:, None, :]
+                mb = al[:, None, None] * eye + a[:, :, None] * lp[:, None, :]
+                dw = ma @ DL[pi] - mb @ da
             pl = (eye - lat[:, :, None] * lat[:, None, :]) / wn[:, None, None]
-            A[idx], LAT[idx], DA[idx], DL[idx] = a, lat, da, pl @ dw
+            DA[idx], DL[idx] = da, pl @ dw
         npp = _cross(LAT, A)
         B = X[self.ac] - X[self.ak]
         bn = np.maximum(np.linalg.norm(B, axis=1), 1e-9)
         s1 = np.einsum("mi,mi->m", B, A)
         s2 = np.einsum("mi,mi->m", B, npp)
         s3 = np.einsum("mi,mi->m", B, LAT)
+        vals = [
+            np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
+            for cf0, sf0, cf1, sf1, sa0, sa1 in self.angle_coef
+        ]
+        rows = np.concatenate([v.ravel() for v in vals])
+        if not jacobian:
+            return rows, None
         D = self.D_ck
         g1 = np.einsum("mi,mix->mx", B, DA) + np.einsum("mi,mix->mx", A, D)
         g2 = (
@@ -125,19 +141,15 @@ class _AngleRows:
         )
         g3 = np.einsum("mi,mix->mx", B, DL) + np.einsum("mi,mix->mx", LAT, D)
         gb = np.einsum("mi,mix->mx", B / bn[:, None], D)
-        vals, jacs = [], []
-        for cf0, sf0, cf1, sf1, sa0, sa1 in self.angle_coef:
-            vals.append(
-                np.stack([cf0 * s2 - sf0 * s1, sf1 * s1 - cf1 * s2, s3 - bn * sa0, bn * sa1 - s3])
-            )
-            jacs.append(
-                np.stack(
-                    [
-                        cf0[:, None] * g2 - sf0[:, None] * g1,
-                        sf1[:, None] * g1 - cf1[:, None] * g2,
-                        g3 - sa0[:, None] * gb,
-                        sa1[:, None] * gb - g3,
-                    ]
-                ).reshape(4 * a_n, j, 3)
-            )
-        return np.concatenate([v.ravel() for v in vals]), np.concatenate(jacs)
+        jacs = [
+            np.stack(
+                [
+                    cf0[:, None] * g2 - sf0[:, None] * g1,
+                    sf1[:, None] * g1 - cf1[:, None] * g2,
+                    g3 - sa0[:, None] * gb,
+                    sa1[:, None] * gb - g3,
+                ]
+            ).reshape(4 * a_n, j, 3)
+            for cf0, sf0, cf1, sf1, sa0, sa1 in self.angle_coef
+        ]
+        return rows, np.concatenate(jacs)

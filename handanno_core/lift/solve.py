@@ -177,10 +177,21 @@ def lift_frame(
         right_hand=right_hand,
     )
     hard_bones = soft_bones is None
+    inclined = incline_surface and bool(np.any(inclined_joints(skeleton) & base.surf_mask))
+    first = base
+    if inclined and warm.init_mm is not None:
+        # a warm start is a pose found before (previous round, the joint being dragged): its
+        # inclined surfaces are the targets the re-solve below would move to, so start with them
+        # and the re-solve is skipped wherever the solution leaves them (nearly) unchanged
+        first = base.with_surface_extra(
+            inclined_surface_extra_mm(
+                x0_pose, skeleton, min_sin=incline_min_sin, radius_factor=incline_radius_factor
+            )
+        )
     res, prob, slack_joints = _lift_attempts(
-        base, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
+        first, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
     )
-    if incline_surface and np.any(inclined_joints(skeleton) & base.surf_mask):
+    if inclined:
         # the surface of a visible finger joint lies deeper where its bone is inclined to the
         # ray: move the targets for the pose found and solve again from it (twice at most)
         for _ in range(2):

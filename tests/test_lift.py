@@ -619,16 +619,13 @@ def test_elastic_lift_of_a_frame_with_few_joints_has_no_hard_rows(frames):
     assert np.linalg.norm(result.joints_mm[1] - X[1]) < 15.0
 
 
-def test_angle_rows_without_jacobian_and_the_penalty_gradient(frames):
-    """The rows alone equal the rows computed with the Jacobian, and the objective's gradient
-    matches finite differences on a pose outside the ranges (a finger bent backwards, where the
-    Jacobian is needed) as well as inside them (where it is skipped)."""
+def test_angle_penalty_gradient_matches_finite_differences(frames):
+    """The reverse-mode gradient of any weighted sum of the angle rows (two tiers, both hands)
+    matches finite differences, and so does the objective's gradient on a pose outside the
+    ranges (a finger bent backwards) and inside them (where the penalty is 0)."""
     X, depth, ann = frames[0]
     bones = SK.bone_lengths(X)
     x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
-    prob = _Problem(ann, d_obs, CAM, SK, bones, x0, eps_mm=15.0, angle_limits=True,
-                    order_margin_mm=10.0, w_3d=1.0, w_surface=0.1, w_free=1e-3,
-                    soft_bones=None, right_hand=True)  # fmt: skip
     bent = X.copy()
     bent[[7, 8]] = bent[6] + (bent[6] - bent[5]) * np.array([[1.0], [2.0]])  # straight line
     bent[[7, 8]] += (
@@ -636,15 +633,29 @@ def test_angle_rows_without_jacobian_and_the_penalty_gradient(frames):
         * np.cross(bent[6] - bent[5], [0.0, 0.0, 1.0])[None]
         / np.linalg.norm(bent[6] - bent[5])
     )
+    rng = np.random.default_rng(0)
+    h = 1e-6
+    for right in (True, False):
+        prob = _Problem(ann, d_obs, CAM, SK, bones, x0, eps_mm=15.0, angle_limits=True,
+                        order_margin_mm=10.0, w_3d=1.0, w_surface=0.1, w_free=1e-3,
+                        soft_bones=None, right_hand=right, w_angle_inner=1.0)  # fmt: skip
+        P = X + rng.normal(0.0, 3.0, X.shape)
+        rows, fr = prob._angles(P)
+        w = rng.normal(size=rows.shape)
+        fd = np.zeros_like(P)
+        for k in range(P.size):
+            e = np.zeros(P.size)
+            e[k] = h
+            e = e.reshape(P.shape)
+            fd.flat[k] = (w @ prob._angles(P + e)[0] - w @ prob._angles(P - e)[0]) / (2 * h)
+        np.testing.assert_allclose(prob._angle_grad(fr, w), fd, atol=1e-5, rtol=1e-5)
+    prob = _Problem(ann, d_obs, CAM, SK, bones, x0, eps_mm=15.0, angle_limits=True,
+                    order_margin_mm=10.0, w_3d=1.0, w_surface=0.1, w_free=1e-3,
+                    soft_bones=None, right_hand=True)  # fmt: skip
     for pose, outside in ((X, False), (bent, True)):
-        rows, no_jac = prob._angles(pose, jacobian=False)
-        full, jac = prob._angles(pose)
-        assert no_jac is None
-        np.testing.assert_array_equal(rows, full)
-        assert np.any(rows < 0) == outside
+        assert np.any(prob._angles(pose)[0] < 0) == outside
         x = ((pose - prob.x0) / prob.sc3).ravel()
         g = prob.objective(x)[1]
-        h = 1e-6
         fd = np.array([
             (prob.objective(x + h * e)[0] - prob.objective(x - h * e)[0]) / (2 * h)
             for e in np.eye(len(x))

@@ -544,7 +544,9 @@ def test_bones_from_partial_annotations_of_a_larger_hand():
     for a in anns.values():
         a.uv_px[~keep] = np.nan
         a.depth_order[~keep] = 0
-    res = lift_references(anns, depths.__getitem__, CAM, SK)
+    # render() puts a tip at the centre of a sphere, not on the far end of its segment's cap
+    # (synth's capsules, real fingertips): the tips' surface rule is left out here
+    res = lift_references(anns, depths.__getitem__, CAM, SK, incline_tips=False)
     rel = np.abs(res.bone_lengths_mm - true) / true
     assert rel.max() < 0.05, np.round(rel, 3)
     both = keep[SK.bones[:, 0]] & keep[SK.bones[:, 1]]

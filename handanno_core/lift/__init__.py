@@ -33,6 +33,10 @@ a solve, the visible PIP/DIP-level joints' surface targets and upper bounds are 
 ``o (k / sin(phi) - 1)`` for the pose found (``k`` = ``incline_radius_factor``, the finger radius
 over the offset; ``phi`` the angle to the covering bone, ``sin`` capped at ``incline_min_sin``) and
 the frame is solved again from that pose (at most twice; ``LiftResult.surface_extra_mm``).
+Fingertips whose distal segment leads away from the camera lie on the far end of its cap: their
+target moves by ``2 k o_dip cos(phi)`` (``incline_tips``). A warm start (``init_mm``: the previous
+round's pose, a dragged joint) begins with the targets of its start pose, so the re-solve only
+runs where the solution moves them by 0.5 mm or more.
 
 Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
 length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the
@@ -71,8 +75,10 @@ slacks on every joint where it is not); both are :class:`WarmStart` fields.
 Speed notes: scipy's SLSQP calls LAPACK; with a multithreaded OpenBLAS on a loaded machine each call
 can be 50x slower, so every solve runs inside :func:`handanno_core.blas.single_blas_thread`.
 Variables are offsets from the initial pose, scaled per axis (1.5 mm units in x/y ~ 1 px, 10 mm
-in z) so SLSQP's identity start Hessian is about right; constraints are in mm. The angle-limit
-Jacobian is vectorized over fingers (one batch per chain level).
+in z) so SLSQP's identity start Hessian is about right; constraints are in mm. The soft angle
+penalty's gradient is back-propagated through the rows and frames (reverse mode, vectorized over
+fingers, one batch per chain level; no Jacobian matrix) and skipped where every row is inside its
+range.
 
 Bone lengths (:func:`lift_references`) are unknown in advance. They start from the skeleton's
 template scaled to the annotated frames and are re-estimated from all lifted references: each

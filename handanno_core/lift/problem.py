@@ -280,10 +280,12 @@ class _Problem(_AngleRows):
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
         if self.use_angles:
-            v, jac = self._angles(X)
+            v, frames = self._angles(X)
             short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
-            f += 0.5 * float(np.sum(self.angle_row_w * short**2))
-            g += np.einsum("r,rjk->jk", self.angle_row_w * short, jac)
+            ws = self.angle_row_w * short
+            if np.any(ws):  # inside every range the penalty and its gradient are 0
+                f += 0.5 * float(np.sum(self.angle_row_w * short**2))
+                g += self._angle_grad(frames, ws)
         grad = (self.sc3 * g).ravel()
         if self.elastic:
             sl = x[3 * self.j :]

@@ -16,7 +16,7 @@ from ..camera import CameraIntrinsics
 from ..skeleton import Skeleton
 from .initial import initial_pose
 from .problem import _Problem
-from .surface import inclined_joints, inclined_surface_extra_mm
+from .surface import inclined_joints, inclined_surface_extra_mm, inclined_tips
 
 
 # ---------------------------------------------------------------------------------------- results
@@ -120,6 +120,7 @@ def lift_frame(
     incline_surface: bool = True,
     incline_min_sin: float = 0.3,
     incline_radius_factor: float = 0.85,
+    incline_tips: bool = True,
     drop_slack_depths: bool = True,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
@@ -136,7 +137,8 @@ def lift_frame(
     ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
     incline_surface: move visible finger joints' surface targets deeper where their bone is
     inclined to the viewing ray and solve again (module docstring; ``incline_min_sin`` caps
-    ``1 / sin``, ``incline_radius_factor`` is the finger radius over the surface offset).
+    ``1 / sin``, ``incline_radius_factor`` is the finger radius over the surface offset;
+    ``incline_tips``: also fingertips whose distal segment leads away from the camera).
     Returns a :class:`LiftResult`.
     """
     t0 = time.perf_counter()
@@ -177,17 +179,30 @@ def lift_frame(
         right_hand=right_hand,
     )
     hard_bones = soft_bones is None
-    res, prob, slack_joints = _lift_attempts(
-        base, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
+    moving = inclined_joints(skeleton) | (inclined_tips(skeleton) if incline_tips else False)
+    inclined = incline_surface and bool(np.any(moving & base.surf_mask))
+    extra_of = partial(
+        inclined_surface_extra_mm,
+        skeleton=skeleton,
+        min_sin=incline_min_sin,
+        radius_factor=incline_radius_factor,
+        tips=incline_tips,
     )
-    if incline_surface and np.any(inclined_joints(skeleton) & base.surf_mask):
+    first = base
+    if inclined and warm.init_mm is not None:
+        # a warm start is a pose found before (previous round, the joint being dragged): its
+        # inclined surfaces are the targets the re-solve below would move to, so start with them
+        # and the re-solve is skipped wherever the solution leaves them (nearly) unchanged
+        first = base.with_surface_extra(extra_of(x0_pose))
+    res, prob, slack_joints = _lift_attempts(
+        first, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
+    )
+    if inclined:
         # the surface of a visible finger joint lies deeper where its bone is inclined to the
         # ray: move the targets for the pose found and solve again from it (twice at most)
         for _ in range(2):
             X = prob.pose(res.x)
-            extra = inclined_surface_extra_mm(
-                X, skeleton, min_sin=incline_min_sin, radius_factor=incline_radius_factor
-            )
+            extra = extra_of(X)
             if float(np.max(np.abs(np.where(base.surf_mask, extra - prob.surf_extra, 0.0)))) < 0.5:
                 break
             moved = base.with_surface_extra(extra)

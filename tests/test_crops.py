@@ -543,24 +543,36 @@ def test_free_blob_extent_does_not_grow_with_the_cube():
     assert small.half_extent_mm[0] <= FREE_EXTENT_RADIUS_MM + 5.0  # not the whole 210 mm
 
 
-def test_cube_back_lies_behind_the_farthest_visible_surface():
+def test_cube_back_lies_behind_the_farthest_visible_surface_and_in_front_of_a_body():
     """A plate tilted 45 deg away (depth 450..560 mm): the hand's hidden side lies behind what the
-    sensor sees, so the cube's back is HIDDEN_DEPTH_MM behind its farthest visible point."""
-    from handanno_core.localize import HIDDEN_DEPTH_MM, locate_hand_region
+    sensor sees, so the cube's back is HIDDEN_MAX_MM behind its farthest visible point when nothing
+    is behind it; with a wall behind, BEHIND_GAP_MM in front of the wall, never less than
+    HIDDEN_DEPTH_MM behind the plate."""
+    from handanno_core.localize import (
+        BEHIND_GAP_MM,
+        HIDDEN_DEPTH_MM,
+        HIDDEN_MAX_MM,
+        locate_hand_region,
+    )
 
     cam = MSRA_CAMERA
     vv, uu = np.mgrid[0 : cam.height, 0 : cam.width]
     ry = (vv - cam.cy) / cam.fy
     rx = (uu - cam.cx) / cam.fx
     z = 500.0 / (1.0 - ry)  # the plane z = 500 + y (45 deg), along each ray
-    y = ry * z
-    x = rx * z
-    depth = np.where((np.abs(x) <= 45.0) & (np.abs(y) <= 55.0), z, 0.0).astype(np.float32)
-    loc = locate_hand_region(depth, cam, cube_mm=220.0)
+    plate = (np.abs(rx * z) <= 45.0) & (np.abs(ry * z) <= 55.0)
+    depth = np.where(plate, z, 0.0).astype(np.float32)
     z_far = float(np.percentile(depth[depth > 0], 99.8))
-    assert loc.centre_mm[2] + 110.0 == pytest.approx(z_far + HIDDEN_DEPTH_MM, abs=8.0)
-    # the nearest surface is still inside the cube (or just in front: foreground, -1)
-    assert depth[depth > 0].min() >= loc.centre_mm[2] - 220.0
+    backs = {}
+    for wall in (None, z_far + 110.0, z_far + 60.0):
+        d = depth if wall is None else np.where(plate, depth, wall).astype(np.float32)
+        loc = locate_hand_region(d, cam, cube_mm=220.0)
+        backs[wall] = loc.centre_mm[2] + 110.0
+        # the nearest surface is still inside the cube (or just in front: foreground, -1)
+        assert depth[depth > 0].min() >= loc.centre_mm[2] - 220.0
+    assert backs[None] == pytest.approx(z_far + HIDDEN_MAX_MM, abs=8.0)
+    assert backs[z_far + 110.0] == pytest.approx(z_far + 110.0 - BEHIND_GAP_MM, abs=8.0)
+    assert backs[z_far + 60.0] == pytest.approx(z_far + HIDDEN_DEPTH_MM, abs=8.0)
 
 
 def test_locate_crops_grows_the_cube_to_a_fixed_point():

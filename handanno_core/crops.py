@@ -280,7 +280,7 @@ def locate_crops(
     geometry = locate_hand_geometry(sequence, report=report, progress=progress, workers=workers)
     breaks = sequence.sequence_breaks
     centres, half = centres_at(geometry, spec.cube_mm, breaks)
-    while (cube := session_cube_mm(half, spec.cube_mm)) != spec.cube_mm:
+    while (cube := session_cube_mm(half, spec.cube_mm, sequence_breaks=breaks)) != spec.cube_mm:
         spec = spec.with_cube(cube)
         centres, half = centres_at(geometry, spec.cube_mm, breaks)
     return centres, spec

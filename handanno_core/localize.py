@@ -50,7 +50,8 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
-   the end are the hand, and the end is its wrist side (the wrist hidden by the arm). Without an attachment (a hand alone, or with a short forearm floating
+   the end are the hand, the end its wrist side (hidden by the arm). The seed's surfaces the attachment does not reach join it only where they lie
+   nearer the hand than the attachment (not bits of a sleeve's inside next to its rim). Without an attachment (a hand alone, or with a short forearm floating
    free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
    surface, palm and fingers); its extent is that of the points within
@@ -187,6 +188,9 @@ ATTACH_STEPS = 4
 #: the wrist's surface, up to this far (geodesic, mm) beyond the hand region, sets the cube's
 #: back too (a finger curled behind the palm lies behind the wrist's depth).
 WRIST_ZONE_MM = 30.0
+#: the session's cube holds every frame's hand but a spike this many frames long, less than half
+#: (the running median over SPIKE_FRAMES frames of the hand's size: a localization slip).
+SPIKE_FRAMES = 3
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -752,9 +756,7 @@ def hand_geometry(
     behind = _hand_behind_end(
         graph, pts, ids, rr, cc, region, ok & (g >= g_end - END_MM), camera, stride
     )
-    if behind is not None:
-        hand = behind
-    elif tentative and g_end < hand_length_mm:
+    if behind is None and tentative and g_end < hand_length_mm:
         # no hand past the rim and the region ends within a hand's length of it: the rim is not
         # an arm's (a palm facing the camera)
         return _free_blob(z, mask, camera, front_mm, scene)
@@ -762,9 +764,17 @@ def hand_geometry(
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
     else:  # the hand emerges from the arm's far end: its wrist is there, hidden by the arm
         wrist = pts[ok & (g >= g_end - END_MM)].mean(axis=0)
+        hand = behind
     # the seed's surfaces that the arm's does not reach (a depth step: fingers pointing at or
-    # away from the camera, a hand bent at the wrist) are hand too
-    hand |= region & ~np.isfinite(g)
+    # away from the camera, a hand bent at the wrist) are hand too, those nearer the hand than
+    # the attachment (not bits of a sleeve's inside next to its rim)
+    apart = np.flatnonzero(region & ~np.isfinite(g))
+    if len(apart):
+        from scipy.spatial import cKDTree
+
+        d_hand = cKDTree(pts[hand]).query(pts[apart])[0]
+        d_attach = cKDTree(pts[attach]).query(pts[apart])[0]
+        hand[apart[d_hand < d_attach]] = True
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
@@ -1159,18 +1169,26 @@ def session_cube_mm(
     half_extent_mm: np.ndarray,
     cube_mm: float = DEFAULT_CROP.cube_mm,
     *,
-    quantile: float = 99.0,
+    sequence_breaks: _Seq[int] | None = None,
     step_mm: float = 10.0,
     max_cube_mm: float = 400.0,
 ) -> float:
     """Cube edge (mm) for a whole session: ``cube_mm``, grown (in ``step_mm`` steps, at most
-    ``max_cube_mm``) until the ``quantile`` percentile of the frames' hand size in x and y (twice
-    ``half_extent_mm`` ``(N, 3)``) fits with ``CROP_MARGIN_MM`` to spare on each side."""
+    ``max_cube_mm``) until the hand of every frame fits (its size in x and y, twice
+    ``half_extent_mm`` ``(N, 3)``, with ``CROP_MARGIN_MM`` to spare on each side), but a spike:
+    the size is the running median over ``SPIKE_FRAMES`` frames within each segment between
+    ``sequence_breaks`` (a hand's size persists from frame to frame; one frame much larger than
+    both its neighbours is a localization slip, not a larger hand). Frames without a hand count
+    as size 0."""
     h = np.asarray(half_extent_mm, dtype=np.float64)[:, :2]
-    h = h[np.all(np.isfinite(h), axis=1)]
-    if len(h) == 0:
+    if not np.isfinite(h).any():
         return float(cube_mm)
-    need = 2.0 * (float(np.percentile(h.max(axis=1), quantile)) + CROP_MARGIN_MM)
+    size = np.where(np.all(np.isfinite(h), axis=1), h.max(axis=1), 0.0)
+    biggest = 0.0
+    for a, b in _segments(len(size), sequence_breaks):
+        run = ndimage.median_filter(size[a:b], size=min(SPIKE_FRAMES, b - a), mode="mirror")
+        biggest = max(biggest, float(run.max()))
+    need = 2.0 * (biggest + CROP_MARGIN_MM)
     if need <= cube_mm:
         return float(cube_mm)
     grown = cube_mm + step_mm * np.ceil((need - cube_mm) / step_mm)

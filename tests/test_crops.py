@@ -496,8 +496,11 @@ def test_session_cube_grows_only_for_hands_that_do_not_fit():
     assert session_cube_mm(half) == 220.0  # 2 * (90 + 8) = 196 fits
     half[:, 1] = 110.0  # 2 * (110 + 8) = 236 -> 240 (10 mm steps)
     assert session_cube_mm(half) == 240.0
-    half[0, 1] = 500.0  # one wild frame in 200 does not blow the cube up (99th percentile)
+    half[7, 1] = 500.0  # one wild frame does not blow the cube up (a spike, not a hand) ...
     assert session_cube_mm(half) == 240.0
+    half[8, 1] = 130.0  # ... but a hand larger for two frames running grows it: 2 * (130 + 8)
+    assert session_cube_mm(half) == 280.0
+    assert session_cube_mm(half, sequence_breaks=[8]) == 240.0  # not across a break
     assert session_cube_mm(np.full((3, 3), np.nan)) == 220.0
     assert session_cube_mm(np.tile([300.0, 300.0, 0.0], (5, 1))) == 400.0  # capped
 

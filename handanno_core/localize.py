@@ -1059,8 +1059,10 @@ def centres_at(
     :func:`smooth_centres` interpolates frames without a hand and (if ``smooth``) smooths, cut
     at ``sequence_breaks``; a located centre moves at most the slack its hand leaves in the crop
     (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half extent`` in
-    z). Centre rows stay NaN only in segments where no frame had a hand; extents stay NaN where
-    the frame had none.
+    z), unless its hand does not fit the cube at all (a one-frame spike that
+    :func:`session_cube_mm` did not grow the cube for: a localization slip), which is smoothed
+    freely. Centre rows stay NaN only in segments where no frame had a hand; extents stay NaN
+    where the frame had none.
     """
     geometry = np.asarray(geometry, dtype=np.float64)
     raw = np.full((len(geometry), 3), np.nan)
@@ -1069,6 +1071,9 @@ def centres_at(
         loc = _box_of(geometry[i], cube_mm)
         raw[i], half[i] = loc.centre_mm, loc.half_extent_mm
     slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
+    # a hand that does not fit the cube (a spike the session cube did not grow for: a
+    # localization slip) does not bound its centre: smoothing takes its neighbours' instead
+    slack[np.any(slack[:, :2] < 0.0, axis=1)] = np.nan
     breaks = sorted(set(int(b) for b in (sequence_breaks or [])))
     return smooth_centres(raw, breaks, smooth=smooth, max_shift_mm=slack), half
 

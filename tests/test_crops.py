@@ -593,3 +593,18 @@ def test_locate_crops_grows_the_cube_to_a_fixed_point():
     np.testing.assert_allclose(again, centres)
     same, unchanged = locate_crops(seq, spec)
     assert unchanged == spec
+
+
+def test_locate_crops_reads_every_frame_once_even_when_the_cube_grows():
+    """The hand's geometry does not depend on the cube: growing the session's cube re-places the
+    crops from it instead of locating every frame again (a second full pass at 76k frames)."""
+    from handanno_core.crops import CropSpec, locate_crops
+    from handanno_core.localize import locate_hands_with_extent
+
+    palms = [[10.0 * np.sin(i / 3.0), 5.0, 330.0 + 2.0 * i] for i in range(8)]
+    seq = SphereHandSequence(palms)
+    centres, spec = locate_crops(seq, CropSpec(120.0, 64))
+    assert spec.cube_mm > 120.0  # the hand did not fit: the cube grew
+    assert seq.reads == len(seq)
+    again, _ = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)
+    np.testing.assert_allclose(again, centres)

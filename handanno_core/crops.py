@@ -266,25 +266,21 @@ def locate_crops(
     workers: int = 1,
 ) -> tuple[np.ndarray, CropSpec]:
     """Crop centres ``(N, 3)`` mm of every frame and the spec they hold the hand in (``workers``
-    processes, see :func:`handanno_core.localize.locate_hands_with_extent`).
+    processes, see :func:`handanno_core.localize.locate_hand_geometry`).
 
-    :func:`handanno_core.localize.locate_hands_with_extent` at ``spec``'s cube; when the hand does
-    not fit (:func:`handanno_core.localize.session_cube_mm`) the cube grows and the frames are
-    located again (centres and extents depend on the cube), until the cube stops growing, so a
-    rebuilt cache gives the same crops. Bad frames go to ``report`` on the first pass only.
+    The hand's geometry is found once per frame, whatever the cube
+    (:func:`handanno_core.localize.locate_hand_geometry`); the centres at ``spec``'s cube follow
+    from it (:func:`handanno_core.localize.centres_at`). When the hand does not fit
+    (:func:`handanno_core.localize.session_cube_mm`) the cube grows and the centres are placed
+    again from the same geometry (they depend on the cube), until the cube stops growing: one
+    pass over the frames, and a rebuilt cache gives the same crops.
     """
-    from .localize import locate_hands_with_extent, session_cube_mm
+    from .localize import centres_at, locate_hand_geometry, session_cube_mm
 
-    centres, half = locate_hands_with_extent(
-        sequence, report=report, cube_mm=spec.cube_mm, progress=progress, workers=workers
-    )
-    while (cube := session_cube_mm(half, spec.cube_mm)) != spec.cube_mm:
+    geometry = locate_hand_geometry(sequence, report=report, progress=progress, workers=workers)
+    breaks = sequence.sequence_breaks
+    centres, half = centres_at(geometry, spec.cube_mm, breaks)
+    while (cube := session_cube_mm(half, spec.cube_mm, sequence_breaks=breaks)) != spec.cube_mm:
         spec = spec.with_cube(cube)
-        centres, half = locate_hands_with_extent(
-            sequence,
-            report=BadFrameReport(),
-            cube_mm=spec.cube_mm,
-            progress=progress,
-            workers=workers,
-        )
+        centres, half = centres_at(geometry, spec.cube_mm, breaks)
     return centres, spec

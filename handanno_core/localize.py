@@ -1,8 +1,11 @@
 """Hand localization without ground truth (DESIGN.md step 2): where the hand is, how big it is.
 
-:func:`locate_hand_region` finds the hand in one depth map and returns its centre and half
-extent; :func:`locate_hands` does it for every frame of a sequence and smooths over time without
-crossing sequence breaks or moving a centre further than the frame's own hand allows.
+:func:`hand_geometry` finds the hand in one depth map and returns what a crop needs of it,
+whatever the cube (its extent in ray angle and depth, the room behind it, its wrist side);
+:func:`locate_hand_region` places a crop of a given cube on it (centre, half extent).
+:func:`locate_hand_geometry` does it for every frame of a sequence (once: a session's cube can
+grow without locating again) and :func:`centres_at` places the crops at a cube and smooths over
+time without crossing sequence breaks or moving a centre further than the frame's own hand allows.
 
 One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
 
@@ -24,15 +27,22 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    Only narrow contacts: the arm's way out, unless rule (b) below finds the arm's stump at the
    other end of the region (more than ``END_PART_MM`` from every contact): then the contacts
    are fingertips on the image border and the stump is the attachment.
-   Without contacts: (a) an arm pointing at the camera and cut by the sensor's near range ends
-   in a wide rim on the silhouette at the region's nearest depth (within ``STUMP_NEAR_MM`` of
-   ``min_depth_mm``): that rim; (b) an elongated region (longer than a hand by
-   ``ARM_EXTRA_MM``): its two ends (``END_PART_MM`` each) vote which is the cut forearm: the
-   more solid one (points / convex hull), the one with fewer edge nodes (fingers, the gaps
-   between them and their depth steps make edges; a forearm or sleeve is one smooth cylinder),
-   the one farther from the previous frame's hand (it counts more than one shape cue, less than
-   two: a sleeve's open end is not solid, a fist has few edges); (c) otherwise no attachment. A region larger than ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one
-   smooth surface) has no attachment either.
+   The *rim*: a wide (``ARM_CONTACT_MM``) group of silhouette nodes (no depth next to them)
+   within ``STUMP_BAND_MM`` of the region's nearest depth: where an arm pointing at the camera
+   is cut by the sensor's near range or ends in a sleeve's open end.
+   Without contacts: (a) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm``: that rim; (b) an
+   elongated region (longer than a hand by ``ARM_EXTRA_MM``; longer than a hand only, if both
+   shape cues and the previous frame agree): its two ends (``END_PART_MM`` each) vote which is
+   the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
+   (fingers, the gaps between them and their depth steps make edges; a forearm or sleeve is one
+   smooth cylinder), the one holding the rim, the one farther from the previous frame's hand
+   (it counts more than one cue, less than two: a sleeve's open end is not solid, a fist has
+   few edges); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
+   whose near range is farther, a Kinect's 400 mm), tentatively: step 4 keeps it if the hand
+   shows past the arm's far end or the region runs at least a hand's length from the rim (a
+   palm facing the camera does not); (d) otherwise no attachment. A region larger than
+   ``MAX_ARM_AREA_MM2`` (the arm runs into the body on one smooth surface) has no attachment
+   either.
 4. **The hand is the far end.** Geodesic distance ``g`` from the attachment over the region; the
    hand is the nodes with ``g >= g_end - HAND_LENGTH_MM`` (``g_end`` the 99.5th percentile),
    plus the region's surfaces the attachment does not reach (the seed's blob, split from the
@@ -40,20 +50,26 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
-   the end are the hand. Without an attachment (a hand alone, or with a short forearm floating
+   the end are the hand, the end its wrist side (hidden by the arm). The seed's surfaces the attachment does not reach join it only where they lie
+   nearer the hand than the attachment (not bits of a sleeve's inside next to its rim). Without an attachment (a hand alone, or with a short forearm floating
    free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
    surface, palm and fingers); its extent is that of the points within
    ``FREE_EXTENT_RADIUS_MM`` (fixed radii: an extent that grew with the cube grew the cube again).
 
-The centre is the middle of the hand's extent in ray angle (so the crop, a projection, holds its
-outermost pixels) and in depth, moved back if needed so that the cube's back is
-``HIDDEN_DEPTH_MM`` behind the farthest visible surface of the hand and its wrist (the arm's
-``WRIST_ZONE_MM`` beyond the hand region): what the sensor does not see of the
-hand (fingers pointing away behind the palm or the back of the hand, joint centres under the skin)
-lies behind what it sees; surface in front of the cube stays foreground in a crop, surface behind
-it does not. The half extent (mm at the centre's depth) sizes the crop: see
-:func:`session_cube_mm` and the smoothing bound in :func:`locate_hands_with_extent`.
+The centre (:func:`_box_of`) is the middle of the hand's extent in ray angle (so the crop, a
+projection, holds its outermost pixels) and in depth, moved back if needed so that the cube's
+back is ``HIDDEN_DEPTH_MM`` behind the farthest visible surface of the hand and its wrist (the
+arm's ``WRIST_ZONE_MM`` beyond the hand region), and half its slack towards the wrist side. What
+the sensor does not see of the hand (fingers pointing away behind the palm or the back of the
+hand, joint centres under the skin) lies behind what it sees, so the back then goes deeper, up
+to ``HIDDEN_MAX_MM``, unless a surface is visible behind the hand (a body, a table: the back
+stays ``BEHIND_GAP_MM`` in front of it) or the hand's image extent would use up more than
+``DEPTH_SHARE`` of the slack in the cube's box (a deeper centre makes the box smaller: the
+hidden side never grows the cube).
+Surface in front of the cube stays foreground in a crop, surface behind it does not. The half
+extent (mm at the centre's depth) sizes the crop: see :func:`session_cube_mm` and the smoothing
+bound in :func:`centres_at`.
 
 Constants were chosen on ``tests/forearm_scenes.TUNE_CASES`` (synthetic hand + long arm, seeds
 1-2, arm angles 15-165 deg in 30 deg steps), ``HIDDEN_DEPTH_MM`` on the benchmark suite's tune
@@ -64,7 +80,11 @@ real SR305 hands (``tests/test_real_frames.py``); and
 by looking at the real frames in ``../shared/data`` (the solidity rule was written for the HANDS
 2017 frame, whose arm ends inside the image); benchmarks/bench_crops.py reports on
 ``REPORT_CASES`` (seeds 11-13, arm angles 0-180 deg in 30 deg steps, other azimuths) and the
-suite's report part.
+suite's report part. Fourth round (``HIDDEN_MAX_MM``, ``BEHIND_GAP_MM``, the rim vote, the
+tentative rim's hand-length test, the relaxed length gate): the suite's tune part, the forearm
+tune cases and 15 tune-side sequences rendered with the report part's Kinect 320x240 egocentric
++ sleeve configuration (and 2 with the fast-motion varied-hand one) but tune-side motion seeds
+(``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5).
 """
 
 from __future__ import annotations
@@ -88,6 +108,9 @@ __all__ = [
     "locate_hand_region",
     "locate_hands",
     "locate_hands_with_extent",
+    "locate_hand_geometry",
+    "centres_at",
+    "hand_geometry",
     "session_cube_mm",
     "smooth_centres",
 ]
@@ -122,8 +145,15 @@ MAX_HAND_AREA_MM2 = 30000.0
 #: the arm's far end: nodes within this geodesic distance (mm) of its farthest.
 END_MM = 40.0
 #: the hand's hidden side (fingers pointing away behind the palm, joint centres under the skin)
-#: lies at most this far (mm) behind its farthest visible surface: the cube's back is there.
+#: lies behind its farthest visible surface: the cube's back is at least this far (mm) behind it
+#: ...
 HIDDEN_DEPTH_MM = 70.0
+#: ... and up to this far (mm) when nothing visible lies behind the hand in the crop (fingers
+#: pointing away from the camera hidden behind the palm or a fist) ...
+HIDDEN_MAX_MM = 130.0
+#: ... keeping this far (mm) in front of a surface visible behind the hand (a body, a table), so
+#: the deeper cube does not take it in.
+BEHIND_GAP_MM = 20.0
 #: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
 MAX_ARM_AREA_MM2 = 100000.0
 #: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
@@ -137,8 +167,16 @@ EDGE_RATIO = 1.2
 #: cue counts 1).
 TRACK_RATIO = 1.5
 TRACK_VOTE = 1.5
+#: the seed is the component with the most pixels within this radius (mm) of the previous
+#: frame's hand (half the default cube, whatever the session's cube) ...
+TRACK_RADIUS_MM = 110.0
+#: ... unless the hand found that way lies this far (mm) from it: located again without the hint.
+TRACK_JUMP_MM = 220.0
 #: an arm-end crop moves this share of its slack from the fingertips towards the wrist.
 WRIST_SHIFT = 0.5
+#: the cube goes deeper for the hand's hidden side only as far as this share of the slack left
+#: in x, y (a deeper centre makes the box smaller in the image) is used up.
+DEPTH_SHARE = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
@@ -150,6 +188,9 @@ ATTACH_STEPS = 4
 #: the wrist's surface, up to this far (geodesic, mm) beyond the hand region, sets the cube's
 #: back too (a finger curled behind the palm lies behind the wrist's depth).
 WRIST_ZONE_MM = 30.0
+#: the session's cube holds every frame's hand but a spike this many frames long, less than half
+#: (the running median over SPIKE_FRAMES frames of the hand's size: a localization slip).
+SPIKE_FRAMES = 3
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -286,7 +327,6 @@ def _seed(
     band_mm: float,
     min_area_mm2: float,
     prev_centre_mm: np.ndarray | None,
-    cube_mm: float,
 ) -> tuple[np.ndarray | None, float]:
     """The seed component (mask ``(H, W)``, nearest depth mm) or ``(None, NaN)``: the band is
     anchored at the 0.5th-percentile depth, moved past bands with nothing sizeable and
@@ -299,7 +339,7 @@ def _seed(
         if np.all(np.isfinite(p)) and p[2] > 0:
             uv = camera.project(p)
             prev_uvz = np.array([uv[0], uv[1], p[2]])
-            prev_radius_px = camera.fx * 0.5 * cube_mm / p[2]
+            prev_radius_px = camera.fx * TRACK_RADIUS_MM / p[2]
     zv = z[valid]
     k = max(0, int(0.005 * zv.size) - 1)
     d_near = float(np.partition(zv, k)[k]) - 20.0  # include the few pixels in front of it
@@ -468,6 +508,7 @@ def _stump_of_free_arm(
     region: np.ndarray,
     degree: np.ndarray,
     prev_centre_mm: np.ndarray | None = None,
+    rim: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """For a region with no wide contact: if it is elongated (longer than ``HAND_LENGTH_MM +
     ARM_EXTRA_MM`` along its principal axis), which end is the forearm's cut (the stump) and
@@ -485,7 +526,7 @@ def _stump_of_free_arm(
     centred = p - p.mean(axis=0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
     t = centred @ axis
-    if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM:
+    if t.max() - t.min() < HAND_LENGTH_MM:
         return None
     solidity, edge = [], []
     ends = (t <= t.min() + END_PART_MM, t >= t.max() - END_PART_MM)
@@ -501,12 +542,26 @@ def _stump_of_free_arm(
         vote += 1.0 if solidity[1] > solidity[0] else -1.0
     if max(edge) >= EDGE_RATIO * max(min(edge), 1e-6):
         vote += 1.0 if edge[1] < edge[0] else -1.0
+    shape_vote = vote
+    if rim is not None and rim.any():
+        # a wide rim at the region's nearest depth (an arm cut by the near range or a sleeve's
+        # open end) lies at the arm's end
+        in_end = [bool((rim[idx] & end).any()) for end in ends]
+        if in_end[0] != in_end[1]:
+            vote += 1.0 if in_end[1] else -1.0
+    track = 0.0
     if prev_centre_mm is not None:
         # the hand does not jump from one end to the other between frames: the end much nearer
         # the previous frame's hand is the hand (outvotes one shape cue, not two)
         d = [np.linalg.norm(p[end].mean(axis=0) - prev_centre_mm) for end in ends]
         if max(d) >= TRACK_RATIO * min(d):
-            vote += TRACK_VOTE if d[0] < d[1] else -TRACK_VOTE
+            track = TRACK_VOTE if d[0] < d[1] else -TRACK_VOTE
+    vote += track
+    if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM and not (
+        abs(shape_vote) == 2.0 and track * shape_vote > 0
+    ):
+        # barely longer than a hand: an arm only if both shape cues and the previous frame agree
+        return None
     if vote == 0.0:
         return None
     k = 1 if vote > 0 else 0
@@ -517,8 +572,12 @@ def _stump_of_free_arm(
 
 
 def _free_blob(
-    z: np.ndarray, mask: np.ndarray, camera: CameraIntrinsics, cube_mm: float, front_mm: float
-) -> HandLocation:
+    z: np.ndarray,
+    mask: np.ndarray,
+    camera: CameraIntrinsics,
+    front_mm: float,
+    scene: _Scene | None = None,
+) -> np.ndarray:
     """No attachment: mean shift from the seed's nearest points (see module docstring); the
     extent is that of the seed's points within ``FREE_EXTENT_RADIUS_MM`` of the centre (hand and
     whatever of the forearm is that close: without an arm end the two are not told apart)."""
@@ -537,7 +596,7 @@ def _free_blob(
         if done:
             break
     near = pts[np.sum((pts - centre) ** 2, axis=1) <= FREE_EXTENT_RADIUS_MM**2]
-    return _box_of(near, "free-blob", cube_mm, centre)
+    return _hand_geometry(near, "free-blob", centre, scene=scene)
 
 
 def _attachment(
@@ -566,32 +625,47 @@ def _attachment(
     narrow = contact & ~attach
     inner = region[edges[:, 0]] & region[edges[:, 1]]
     degree = np.bincount(edges[inner].ravel(), minlength=len(pts))
+    # an arm pointing at the camera, cut by the sensor's near range or ending in a sleeve's open
+    # end, shows a wide iso-depth rim at the region's nearest depth, on its silhouette (no depth
+    # next to it); fingertips there are narrow, a palm facing the camera is not on the silhouette
+    z_lo = np.percentile(pts[region, 2], 1)
+    rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
+    rim = _wide_contacts(rim, rr, cc, zs.shape, pts)
     if not attach.any() and contact.any():
         # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
         # shape says the arm ends elsewhere (fingertips touching the image border)
-        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
         far = stump is not None and _far_apart(pts, contact, stump, END_PART_MM)
         return (stump if far else contact), narrow & False, False
     if attach.any():
         return attach, narrow, False
-    # no contact: an arm pointing at the camera and cut by the sensor's near range ends in a wide
-    # iso-depth rim at the region's nearest depth (within STUMP_NEAR_MM of min_depth_mm), on its
-    # silhouette (no depth next to it); fingertips there are narrow, a palm facing the camera is
-    # not on the silhouette
-    z_lo = np.percentile(pts[region, 2], 1)
-    rim = region & (pts[:, 2] <= z_lo + STUMP_BAND_MM) & _next_to_no_depth(vs)[rr, cc]
-    attach = _wide_contacts(rim, rr, cc, zs.shape, pts)
-    if attach.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
-        return attach, narrow, False
-    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev)
+    # no contact: a rim within STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
+    if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
+        return rim, narrow, False
+    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
     if stump is not None:
         return stump, narrow, False
-    # a wide rim far from the near range: a sleeve or forearm pointing at the camera and ending
-    # in view, if the hand shows past its far end (tentative: step 4 checks)
-    return (attach if attach.any() else None), narrow, True
+    # a wide rim farther from the near range: a sleeve or forearm pointing at the camera and
+    # ending in view, or the near range of a sensor that cuts farther than min_depth_mm
+    # (tentative: step 4 checks that the hand shows past its far end or that the region runs a
+    # hand's length from it)
+    return (rim if rim.any() else None), narrow, True
 
 
 def locate_hand_region(
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+    **kwargs,
+) -> HandLocation:
+    """Centre and half extent of the hand in ``depth`` ``(H, W)`` mm (module docstring, steps
+    1-4) for a crop of ``cube_mm``: :func:`hand_geometry` (keyword arguments as there) placed by
+    :func:`_box_of`."""
+    return _box_of(hand_geometry(depth, camera, **kwargs), cube_mm)
+
+
+def hand_geometry(
     depth: np.ndarray,
     camera: CameraIntrinsics,
     *,
@@ -599,15 +673,17 @@ def locate_hand_region(
     max_depth_mm: float = 1500.0,
     band_mm: float = 150.0,
     min_area_mm2: float = MIN_HAND_AREA_MM2,
-    cube_mm: float = DEFAULT_CROP.cube_mm,
     prev_centre_mm: np.ndarray | None = None,
     front_mm: float = 40.0,
     hand_length_mm: float = HAND_LENGTH_MM,
-) -> HandLocation:
-    """Centre and half extent of the hand in ``depth`` ``(H, W)`` mm (module docstring, steps 1-4).
+) -> np.ndarray:
+    """The hand's geometry row ``(GEOMETRY_LEN,)`` in ``depth`` ``(H, W)`` mm (module docstring,
+    steps 1-4; all NaN without a hand): what a crop at any cube needs (:func:`_box_of`), found
+    without the cube, so a session's cube can grow without locating again.
 
-    ``prev_centre_mm`` (3,): the previous frame's centre; if given (and finite) the seed is the
-    sizeable component with the most pixels within ``cube_mm / 2`` of its projection.
+    ``prev_centre_mm`` (3,): the previous frame's hand (:func:`_geometry_middle`); if given (and
+    finite) the seed is the sizeable component with the most pixels within ``TRACK_RADIUS_MM``
+    of its projection, and the free-arm vote counts it.
     """
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
@@ -615,10 +691,10 @@ def locate_hand_region(
     z = cv2.medianBlur(depth, 5)
     valid = (z >= min_depth_mm) & (z <= max_depth_mm) & (depth > 0)
     if not valid.any():
-        return HandLocation.none()
-    mask, d_seed = _seed(z, valid, camera, band_mm, min_area_mm2, prev_centre_mm, cube_mm)
+        return _no_geometry()
+    mask, d_seed = _seed(z, valid, camera, band_mm, min_area_mm2, prev_centre_mm)
     if mask is None:
-        return HandLocation.none()
+        return _no_geometry()
 
     prev = None
     if prev_centre_mm is not None and np.all(np.isfinite(prev_centre_mm)):
@@ -631,7 +707,13 @@ def locate_hand_region(
     seed_s = mask[::stride, ::stride]
     win = vs & (zs <= d_seed + WINDOW_MM)
     if not (seed_s & win).any():
-        return _free_blob(z, mask, camera, cube_mm, front_mm)
+        return _free_blob(z, mask, camera, front_mm)
+    vr, vc = np.nonzero(vs)  # the frame's visible surface (the room behind the hand)
+    vz = zs[vr, vc]
+    scene = _Scene(
+        camera.backproject(np.stack([vc * stride, vr * stride], axis=-1).astype(np.float64), vz),
+        (stride * vz) ** 2 / (camera.fx * camera.fy),
+    )
     ids = np.full(zs.shape, -1, np.int64)
     ids[win] = np.arange(int(win.sum()))
     rr, cc = np.nonzero(win)
@@ -645,14 +727,14 @@ def locate_hand_region(
     node_area = (stride * pts[:, 2]) ** 2 / (camera.fx * camera.fy)
     if float(node_area[region].sum()) > MAX_ARM_AREA_MM2:
         # the arm runs into a body on one smooth surface: its ends are not where the hand is
-        return _free_blob(z, mask, camera, cube_mm, front_mm)
+        return _free_blob(z, mask, camera, front_mm, scene)
 
     # step 3: attachment (where the arm comes from)
     attach, narrow, tentative = _attachment(
         pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm
     )
     if attach is None:
-        return _free_blob(z, mask, camera, cube_mm, front_mm)
+        return _free_blob(z, mask, camera, front_mm, scene)
 
     # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
     # image border) are not taken for the hand's far end
@@ -668,29 +750,38 @@ def locate_hand_region(
         )
         ok &= ~np.isfinite(g_narrow)
     if not ok.any():
-        return _free_blob(z, mask, camera, cube_mm, front_mm)
+        return _free_blob(z, mask, camera, front_mm, scene)
     g_end = np.percentile(g[ok], 99.5)
     hand = ok & (g >= g_end - hand_length_mm)
     behind = _hand_behind_end(
         graph, pts, ids, rr, cc, region, ok & (g >= g_end - END_MM), camera, stride
     )
-    if behind is not None:
-        hand = behind
-    elif tentative:
-        return _free_blob(z, mask, camera, cube_mm, front_mm)
-    wrist = None
+    if behind is None and tentative and g_end < hand_length_mm:
+        # no hand past the rim and the region ends within a hand's length of it: the rim is not
+        # an arm's (a palm facing the camera)
+        return _free_blob(z, mask, camera, front_mm, scene)
     if behind is None:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+    else:  # the hand emerges from the arm's far end: its wrist is there, hidden by the arm
+        wrist = pts[ok & (g >= g_end - END_MM)].mean(axis=0)
+        hand = behind
     # the seed's surfaces that the arm's does not reach (a depth step: fingers pointing at or
-    # away from the camera, a hand bent at the wrist) are hand too
-    hand |= region & ~np.isfinite(g)
+    # away from the camera, a hand bent at the wrist) are hand too, those nearer the hand than
+    # the attachment (not bits of a sleeve's inside next to its rim)
+    apart = np.flatnonzero(region & ~np.isfinite(g))
+    if len(apart):
+        from scipy.spatial import cKDTree
+
+        d_hand = cKDTree(pts[hand]).query(pts[apart])[0]
+        d_attach = cKDTree(pts[attach]).query(pts[apart])[0]
+        hand[apart[d_hand < d_attach]] = True
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
         z_far = float(
             np.percentile(pts[ok & (g >= g_end - hand_length_mm - WRIST_ZONE_MM), 2], 99.8)
         )
-    return _box_of(pts[hand], "arm-end", cube_mm, wrist_mm=wrist, z_far_mm=z_far)
+    return _hand_geometry(pts[hand], "arm-end", wrist_mm=wrist, z_far_mm=z_far, scene=scene)
 
 
 def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -715,54 +806,147 @@ def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) 
     return hand
 
 
-def _box_of(
+@dataclass(frozen=True)
+class _Scene:
+    """The frame's visible surface on the grid: points ``(K, 3)`` mm and their metric areas
+    ``(K,)`` mm^2."""
+
+    pts: np.ndarray
+    area: np.ndarray
+
+
+def _hidden_depth(scene: _Scene | None, a_lo: np.ndarray, a_hi: np.ndarray, z_hi: float) -> float:
+    """How far (mm) the cube's back lies behind the hand's farthest visible surface ``z_hi``.
+
+    The hand's hidden side (fingers pointing away behind the palm or a fist) may lie up to
+    ``HIDDEN_MAX_MM`` behind what the sensor sees; the back goes that deep unless a surface is
+    visible behind the hand (in its ray-angle box ``a_lo..a_hi`` (2,)): then it stays
+    ``BEHIND_GAP_MM`` in front of that
+    surface (its depth where ``NEAR_AREA_MM2`` of it are reached), but at least
+    ``HIDDEN_DEPTH_MM`` behind the hand. Without a scene: ``HIDDEN_DEPTH_MM``.
+    """
+    if scene is None:
+        return HIDDEN_DEPTH_MM
+    z = scene.pts[:, 2]
+    ang = scene.pts[:, :2] / z[:, None]
+    behind = np.all((ang >= a_lo) & (ang <= a_hi), axis=1) & (z > z_hi + 1.0)
+    if not behind.any():
+        return HIDDEN_MAX_MM
+    order = np.argsort(z[behind])
+    reached = np.cumsum(scene.area[behind][order]) >= NEAR_AREA_MM2
+    if not reached.any():
+        return HIDDEN_MAX_MM
+    z_behind = float(z[behind][order][int(np.argmax(reached))])
+    return float(np.clip(z_behind - BEHIND_GAP_MM - z_hi, HIDDEN_DEPTH_MM, HIDDEN_MAX_MM))
+
+
+#: a frame's hand geometry (:func:`_hand_geometry`), cube-independent, as one float64 row:
+#: ray-angle box a_lo (2), a_hi (2); depth z_lo, z_hi (mm); hidden depth (mm, the room behind the
+#: hand, :func:`_hidden_depth`); wrist side (3, mm, NaN: none); given centre (3, mm, NaN: the
+#: middle of the box); method (index in ``METHODS``; NaN: no hand).
+GEOMETRY_LEN = 14
+METHODS = ("none", "arm-end", "free-blob")
+
+
+def _hand_geometry(
     points: np.ndarray,
     method: str,
-    cube_mm: float,
     centre_mm: np.ndarray | None = None,
     wrist_mm: np.ndarray | None = None,
     z_far_mm: float | None = None,
-) -> HandLocation:
-    """Centre and half extent of ``points`` ``(M, 3)`` mm as a crop sees them.
-
-    Centre (``centre_mm`` if given, only moved back along its ray): the middle of their extent in ray angle (x/z, y/z);
-    in depth the middle of their 0.2-99.8th percentiles, moved back if needed so that the cube's
-    back is ``HIDDEN_DEPTH_MM`` behind the farthest (a crop keeps surface in front of the cube as
-    foreground, -1, but drops what is behind it). With ``wrist_mm`` (the hand's wrist side) the centre moves
-    ``WRIST_SHIFT`` of the slack (``cube_mm / 2 - CROP_MARGIN_MM - half extent``) towards it.
-    Half extent (with ``wrist_mm``, plus ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand
-    region ends ``HAND_LENGTH_MM`` from the fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
-    nearer the camera projects further out), z in mm, each the larger side around the centre.
-    """
+    scene: _Scene | None = None,
+) -> np.ndarray:
+    """The cube-independent geometry ``(GEOMETRY_LEN,)`` of hand ``points`` ``(M, 3)`` mm as a
+    crop sees it: their extent in ray angle (x/z, y/z), their depth range (0.2-99.8th
+    percentiles; ``z_far_mm``, the wrist's surface beyond the hand region, extends it), the room
+    behind them (:func:`_hidden_depth` over the frame's visible ``scene``), the wrist side and the
+    given centre (mean shift); :func:`_box_of` places the crop at any cube from it."""
     z = points[:, 2]
     ang = points[:, :2] / z[:, None]
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
     z_lo, z_hi = np.percentile(z, [0.2, 99.8])
     if z_far_mm is not None:
         z_hi = max(z_hi, z_far_mm)
-    if centre_mm is None:
-        zc = max(0.5 * (z_lo + z_hi), z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
-        centre = np.array([*(0.5 * (a_lo + a_hi) * zc), zc])
+    nan3 = np.full(3, np.nan)
+    return np.array(
+        [
+            *a_lo,
+            *a_hi,
+            z_lo,
+            z_hi,
+            _hidden_depth(scene, a_lo, a_hi, z_hi),
+            *(nan3 if wrist_mm is None else wrist_mm),
+            *(nan3 if centre_mm is None else centre_mm),
+            METHODS.index(method),
+        ]
+    )
+
+
+def _no_geometry() -> np.ndarray:
+    """The geometry row ``(GEOMETRY_LEN,)`` of a frame without a hand (all NaN)."""
+    return np.full(GEOMETRY_LEN, np.nan)
+
+
+def _geometry_middle(geometry: np.ndarray) -> np.ndarray:
+    """The hand's middle ``(3,)`` mm of a geometry row (the given centre, else the middle of its
+    ray-angle box at its middle depth; NaN without a hand): the previous frame's hand, the next
+    frame's hint."""
+    if np.all(np.isfinite(geometry[10:13])):
+        return geometry[10:13].copy()
+    zm = 0.5 * (geometry[4] + geometry[5])
+    return np.array([*(0.5 * (geometry[0:2] + geometry[2:4]) * zm), zm])
+
+
+def _box_of(geometry: np.ndarray, cube_mm: float) -> HandLocation:
+    """Centre and half extent of the crop of a hand geometry row (:func:`_hand_geometry`) at a
+    cube of ``cube_mm`` (all NaN, method "none", without a hand).
+
+    Centre: the given centre (mean shift) if any, else the middle of the ray-angle box at the
+    middle of the depth range; moved back along its ray if needed so that the cube's back is
+    ``HIDDEN_DEPTH_MM`` behind the farthest visible surface (a crop keeps surface in front of the
+    cube as foreground, -1, but drops what is behind it). With a wrist side the centre moves
+    ``WRIST_SHIFT`` of the slack (``cube_mm / 2 - CROP_MARGIN_MM - half extent``) towards it.
+    Then deeper, up to the geometry's hidden depth behind the farthest surface, as far as the
+    hand's image extent uses at most ``DEPTH_SHARE`` of the slack left in x and y (a deeper
+    centre makes the box smaller in the image: the hidden side never grows the cube, and the
+    fingertips keep room). Half extent (with a wrist side, plus
+    ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand region ends ``HAND_LENGTH_MM`` from the
+    fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
+    nearer the camera projects further out), z in mm, each the larger side around the centre.
+    """
+    g = np.asarray(geometry, dtype=np.float64)
+    if not np.isfinite(g[13]):
+        return HandLocation.none()
+    a_lo, a_hi, z_lo, z_hi, hidden = g[0:2], g[2:4], g[4], g[5], g[6]
+    wrist, given = g[7:10], g[10:13]
+    if np.all(np.isfinite(given)):
+        ray = given / given[2]
+        zc = float(given[2])
     else:
-        centre = np.asarray(centre_mm, dtype=np.float64)
-        zc = max(centre[2], z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)
-        centre = centre * (zc / centre[2])  # same ray, moved back if needed
-    ac = centre[:2] / zc
+        ray = np.array([*(0.5 * (a_lo + a_hi)), 1.0])
+        zc = 0.5 * (z_lo + z_hi)
+    zc = max(zc, z_hi + HIDDEN_DEPTH_MM - 0.5 * cube_mm)  # moved back along its ray if needed
+    ac = ray[:2]
     allowance = np.zeros(2)
-    if wrist_mm is not None:
+    if np.all(np.isfinite(wrist)):
         # use part of the slack the crop leaves around the hand on the wrist's side: the far end
         # (fingertips) stays well inside, and the wrist and some forearm are in the crop too
         half = 0.5 * (a_hi - a_lo) * zc
         slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - half)
-        towards = np.asarray(wrist_mm, dtype=np.float64)[:2] / wrist_mm[2] - ac
+        towards = wrist[:2] / wrist[2] - ac
         norm = np.linalg.norm(towards)
         if norm > 1e-9:
             ac = ac + WRIST_SHIFT * slack / zc * towards / norm
-            centre = np.array([*(ac * zc), zc])
             allowance = WRIST_ALLOWANCE_MM * np.abs(towards) / norm
-    half_xy = np.maximum(a_hi - ac, ac - a_lo) * zc + allowance
+    half_ang = np.maximum(a_hi - ac, ac - a_lo)
+    slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - (half_ang * zc + allowance))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_fit = float(np.min(zc + DEPTH_SHARE * slack / half_ang))
+    zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit))
+    centre = np.array([*(ac * zc), zc])
+    half_xy = half_ang * zc + allowance
     half_z = max(z_hi - zc, zc - z_lo)
-    return HandLocation(centre, np.array([*half_xy, half_z]), method)
+    return HandLocation(centre, np.array([*half_xy, half_z]), METHODS[int(g[13])])
 
 
 def locate_hand(depth: np.ndarray, camera: CameraIntrinsics, **kwargs) -> np.ndarray:
@@ -835,41 +1019,76 @@ def locate_hands_with_extent(
     workers: int = 1,
     **locate_kwargs,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Hand centres ``(N, 3)`` mm and half extents ``(N, 3)`` mm for every frame of ``sequence``.
+    """Hand centres ``(N, 3)`` mm and half extents ``(N, 3)`` mm for every frame of ``sequence``
+    at a cube of ``cube_mm``: :func:`locate_hand_geometry` then :func:`centres_at` (see there)."""
+    geometry = locate_hand_geometry(sequence, report, progress, workers, **locate_kwargs)
+    return centres_at(geometry, cube_mm, sequence.sequence_breaks, smooth=smooth)
 
-    Each frame is located with :func:`locate_hand_region` using the previous frame's centre
-    (within the same segment) as a hint; frames without a hand and bad frames (``FrameError``,
-    recorded in ``report``; raised if ``report`` is None) are NaN before gap filling. Then
-    :func:`smooth_centres` interpolates gaps and (if ``smooth``) smooths, cut at
-    ``sequence.sequence_breaks``; a located centre moves at most the slack its hand leaves in
-    the crop (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half
-    extent`` in z). Centre rows stay NaN only in segments where no frame had a hand; extents stay
-    NaN where the frame had none. ``workers`` > 1: runs of whole segments are located in that
-    many processes (the hint chain starts afresh at every break anyway), with the same result.
+
+def locate_hand_geometry(
+    sequence: DepthSequence,
+    report: BadFrameReport | None = None,
+    progress: bool = False,
+    workers: int = 1,
+    **locate_kwargs,
+) -> np.ndarray:
+    """The hand's geometry ``(N, GEOMETRY_LEN)`` in every frame of ``sequence``
+    (:func:`hand_geometry`; whatever the cube, so a grown cube needs no second pass).
+
+    Each frame is located using the previous frame's hand (:func:`_geometry_middle`, within the
+    same segment) as a hint, and again without it if the hand found lies ``TRACK_JUMP_MM`` from
+    it; frames without a hand and bad frames (``FrameError``, recorded in ``report``; raised if
+    ``report`` is None) are NaN rows. ``workers`` > 1: runs of whole segments are located in
+    that many processes (the hint chain starts afresh at every break anyway), the same result.
     """
     n = len(sequence)
-    breaks = set(int(b) for b in sequence.sequence_breaks)
-    if workers > 1 and breaks:
-        raw, half = _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs)
-    else:
-        raw, half = _locate_range(sequence, range(n), report, cube_mm, progress, locate_kwargs)
+    if workers > 1 and sequence.sequence_breaks:
+        return _locate_parallel(sequence, report, progress, workers, locate_kwargs)
+    return _locate_range(sequence, range(n), report, progress, locate_kwargs)
+
+
+def centres_at(
+    geometry: np.ndarray,
+    cube_mm: float,
+    sequence_breaks: _Seq[int] | None = None,
+    smooth: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Crop centres ``(N, 3)`` mm and hand half extents ``(N, 3)`` mm at a cube of ``cube_mm``
+    from the frames' geometry ``(N, GEOMETRY_LEN)`` (:func:`_box_of` per frame).
+
+    :func:`smooth_centres` interpolates frames without a hand and (if ``smooth``) smooths, cut
+    at ``sequence_breaks``; a located centre moves at most the slack its hand leaves in the crop
+    (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half extent`` in
+    z), unless its hand does not fit the cube at all (a one-frame spike that
+    :func:`session_cube_mm` did not grow the cube for: a localization slip), which is smoothed
+    freely. Centre rows stay NaN only in segments where no frame had a hand; extents stay NaN
+    where the frame had none.
+    """
+    geometry = np.asarray(geometry, dtype=np.float64)
+    raw = np.full((len(geometry), 3), np.nan)
+    half = np.full((len(geometry), 3), np.nan)
+    for i in np.flatnonzero(np.isfinite(geometry[:, 13])):
+        loc = _box_of(geometry[i], cube_mm)
+        raw[i], half[i] = loc.centre_mm, loc.half_extent_mm
     slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
-    return smooth_centres(raw, sorted(breaks), smooth=smooth, max_shift_mm=slack), half
+    # a hand that does not fit the cube (a spike the session cube did not grow for: a
+    # localization slip) does not bound its centre: smoothing takes its neighbours' instead
+    slack[np.any(slack[:, :2] < 0.0, axis=1)] = np.nan
+    breaks = sorted(set(int(b) for b in (sequence_breaks or [])))
+    return smooth_centres(raw, breaks, smooth=smooth, max_shift_mm=slack), half
 
 
 def _locate_range(
     sequence: DepthSequence,
     frames: range,
     report: BadFrameReport | None,
-    cube_mm: float,
     progress: bool,
     locate_kwargs: dict,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Raw (unsmoothed) centres and half extents ``(N, 3)`` of ``frames`` (the rest NaN); the
-    hint chain starts afresh at ``frames.start``, at every break and after every bad frame."""
+) -> np.ndarray:
+    """Geometry rows ``(N, GEOMETRY_LEN)`` of ``frames`` (the rest NaN); the hint chain starts
+    afresh at ``frames.start``, at every break and after every bad frame."""
     n = len(sequence)
-    raw = np.full((n, 3), np.nan)
-    half = np.full((n, 3), np.nan)
+    out = np.full((n, GEOMETRY_LEN), np.nan)
     breaks = set(int(b) for b in sequence.sequence_breaks)
     prev = None
     it = sequence.iter_depth(frames, report=report)
@@ -881,32 +1100,30 @@ def _locate_range(
     for i, depth in it:
         if i in breaks or i != last + 1:
             prev = None  # new segment, or the previous frame was bad
-        loc = locate_hand_region(
-            depth, sequence.camera, cube_mm=cube_mm, prev_centre_mm=prev, **locate_kwargs
-        )
-        c = loc.centre_mm
-        if np.all(np.isfinite(c)) and prev is not None and np.linalg.norm(c - prev) > cube_mm:
-            # the hint led astray or the hand jumped: retry without it
-            loc = locate_hand_region(depth, sequence.camera, cube_mm=cube_mm, **locate_kwargs)
-            c = loc.centre_mm
-        raw[i] = c
-        half[i] = loc.half_extent_mm
-        prev = c if np.all(np.isfinite(c)) else None
+        geo = hand_geometry(depth, sequence.camera, prev_centre_mm=prev, **locate_kwargs)
+        mid = _geometry_middle(geo)
+        if np.all(np.isfinite(mid)) and prev is not None:
+            if np.linalg.norm(mid - prev) > TRACK_JUMP_MM:
+                # the hint led astray or the hand jumped: again without it
+                geo = hand_geometry(depth, sequence.camera, **locate_kwargs)
+                mid = _geometry_middle(geo)
+        out[i] = geo
+        prev = mid if np.all(np.isfinite(mid)) else None
         last = i
-    return raw, half
+    return out
 
 
-def _locate_job(sequence, cube_mm: float, locate_kwargs: dict, job: tuple[int, int]):
+def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int]):
     """One process's share: frames ``job = (a, b)``, whole segments. Bad frames come back as
     ``(path, frame, problem)`` (a FrameError does not pickle)."""
     a, b = job
     report = BadFrameReport()
-    raw, half = _locate_range(sequence, range(a, b), report, cube_mm, False, locate_kwargs)
+    out = _locate_range(sequence, range(a, b), report, False, locate_kwargs)
     bad = [(e.path, e.frame, e.problem) for e in report.errors]
-    return raw[a:b], half[a:b], bad
+    return out[a:b], bad
 
 
-def _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs):
+def _locate_parallel(sequence, report, progress, workers, locate_kwargs) -> np.ndarray:
     """:func:`_locate_range` of every frame, runs of whole segments in ``workers`` processes."""
     from functools import partial
 
@@ -915,8 +1132,7 @@ def _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs
 
     n = len(sequence)
     jobs = frame_ranges(n, workers, breaks=sequence.sequence_breaks)
-    raw = np.full((n, 3), np.nan)
-    half = np.full((n, 3), np.nan)
+    out = np.full((n, GEOMETRY_LEN), np.nan)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -924,20 +1140,20 @@ def _locate_parallel(sequence, report, cube_mm, progress, workers, locate_kwargs
         bar = tqdm(total=len(jobs), desc=f"locating hand ({workers} processes)", unit="part")
     with Runner(workers, fresh_processes=True) as runner:
         done = runner.map(
-            partial(_locate_job, sequence, cube_mm, locate_kwargs),
+            partial(_locate_job, sequence, locate_kwargs),
             jobs,
             progress=None if bar is None else lambda *_: bar.update(1),
         )
     if bar is not None:
         bar.close()
-    for (a, b), (r, h, bad) in zip(jobs, done, strict=True):
-        raw[a:b], half[a:b] = r, h
+    for (a, b), (rows, bad) in zip(jobs, done, strict=True):
+        out[a:b] = rows
         errors = [FrameError(*e) for e in bad]
         if errors and report is None:
             raise errors[0]
         if report is not None:
             report.errors.extend(errors)
-    return raw, half
+    return out
 
 
 def locate_hands(
@@ -958,18 +1174,26 @@ def session_cube_mm(
     half_extent_mm: np.ndarray,
     cube_mm: float = DEFAULT_CROP.cube_mm,
     *,
-    quantile: float = 99.0,
+    sequence_breaks: _Seq[int] | None = None,
     step_mm: float = 10.0,
     max_cube_mm: float = 400.0,
 ) -> float:
     """Cube edge (mm) for a whole session: ``cube_mm``, grown (in ``step_mm`` steps, at most
-    ``max_cube_mm``) until the ``quantile`` percentile of the frames' hand size in x and y (twice
-    ``half_extent_mm`` ``(N, 3)``) fits with ``CROP_MARGIN_MM`` to spare on each side."""
+    ``max_cube_mm``) until the hand of every frame fits (its size in x and y, twice
+    ``half_extent_mm`` ``(N, 3)``, with ``CROP_MARGIN_MM`` to spare on each side), but a spike:
+    the size is the running median over ``SPIKE_FRAMES`` frames within each segment between
+    ``sequence_breaks`` (a hand's size persists from frame to frame; one frame much larger than
+    both its neighbours is a localization slip, not a larger hand). Frames without a hand count
+    as size 0."""
     h = np.asarray(half_extent_mm, dtype=np.float64)[:, :2]
-    h = h[np.all(np.isfinite(h), axis=1)]
-    if len(h) == 0:
+    if not np.isfinite(h).any():
         return float(cube_mm)
-    need = 2.0 * (float(np.percentile(h.max(axis=1), quantile)) + CROP_MARGIN_MM)
+    size = np.where(np.all(np.isfinite(h), axis=1), h.max(axis=1), 0.0)
+    biggest = 0.0
+    for a, b in _segments(len(size), sequence_breaks):
+        run = ndimage.median_filter(size[a:b], size=min(SPIKE_FRAMES, b - a), mode="mirror")
+        biggest = max(biggest, float(run.max()))
+    need = 2.0 * (biggest + CROP_MARGIN_MM)
     if need <= cube_mm:
         return float(cube_mm)
     grown = cube_mm + step_mm * np.ceil((need - cube_mm) / step_mm)

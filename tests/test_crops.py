@@ -496,8 +496,11 @@ def test_session_cube_grows_only_for_hands_that_do_not_fit():
     assert session_cube_mm(half) == 220.0  # 2 * (90 + 8) = 196 fits
     half[:, 1] = 110.0  # 2 * (110 + 8) = 236 -> 240 (10 mm steps)
     assert session_cube_mm(half) == 240.0
-    half[0, 1] = 500.0  # one wild frame in 200 does not blow the cube up (99th percentile)
+    half[7, 1] = 500.0  # one wild frame does not blow the cube up (a spike, not a hand) ...
     assert session_cube_mm(half) == 240.0
+    half[8, 1] = 130.0  # ... but a hand larger for two frames running grows it: 2 * (130 + 8)
+    assert session_cube_mm(half) == 280.0
+    assert session_cube_mm(half, sequence_breaks=[8]) == 240.0  # not across a break
     assert session_cube_mm(np.full((3, 3), np.nan)) == 220.0
     assert session_cube_mm(np.tile([300.0, 300.0, 0.0], (5, 1))) == 400.0  # capped
 
@@ -543,24 +546,36 @@ def test_free_blob_extent_does_not_grow_with_the_cube():
     assert small.half_extent_mm[0] <= FREE_EXTENT_RADIUS_MM + 5.0  # not the whole 210 mm
 
 
-def test_cube_back_lies_behind_the_farthest_visible_surface():
+def test_cube_back_lies_behind_the_farthest_visible_surface_and_in_front_of_a_body():
     """A plate tilted 45 deg away (depth 450..560 mm): the hand's hidden side lies behind what the
-    sensor sees, so the cube's back is HIDDEN_DEPTH_MM behind its farthest visible point."""
-    from handanno_core.localize import HIDDEN_DEPTH_MM, locate_hand_region
+    sensor sees, so the cube's back is HIDDEN_MAX_MM behind its farthest visible point when nothing
+    is behind it; with a wall behind, BEHIND_GAP_MM in front of the wall, never less than
+    HIDDEN_DEPTH_MM behind the plate."""
+    from handanno_core.localize import (
+        BEHIND_GAP_MM,
+        HIDDEN_DEPTH_MM,
+        HIDDEN_MAX_MM,
+        locate_hand_region,
+    )
 
     cam = MSRA_CAMERA
     vv, uu = np.mgrid[0 : cam.height, 0 : cam.width]
     ry = (vv - cam.cy) / cam.fy
     rx = (uu - cam.cx) / cam.fx
     z = 500.0 / (1.0 - ry)  # the plane z = 500 + y (45 deg), along each ray
-    y = ry * z
-    x = rx * z
-    depth = np.where((np.abs(x) <= 45.0) & (np.abs(y) <= 55.0), z, 0.0).astype(np.float32)
-    loc = locate_hand_region(depth, cam, cube_mm=220.0)
+    plate = (np.abs(rx * z) <= 45.0) & (np.abs(ry * z) <= 55.0)
+    depth = np.where(plate, z, 0.0).astype(np.float32)
     z_far = float(np.percentile(depth[depth > 0], 99.8))
-    assert loc.centre_mm[2] + 110.0 == pytest.approx(z_far + HIDDEN_DEPTH_MM, abs=8.0)
-    # the nearest surface is still inside the cube (or just in front: foreground, -1)
-    assert depth[depth > 0].min() >= loc.centre_mm[2] - 220.0
+    backs = {}
+    for wall in (None, z_far + 110.0, z_far + 60.0):
+        d = depth if wall is None else np.where(plate, depth, wall).astype(np.float32)
+        loc = locate_hand_region(d, cam, cube_mm=220.0)
+        backs[wall] = loc.centre_mm[2] + 110.0
+        # the nearest surface is still inside the cube (or just in front: foreground, -1)
+        assert depth[depth > 0].min() >= loc.centre_mm[2] - 220.0
+    assert backs[None] == pytest.approx(z_far + HIDDEN_MAX_MM, abs=8.0)
+    assert backs[z_far + 110.0] == pytest.approx(z_far + 110.0 - BEHIND_GAP_MM, abs=8.0)
+    assert backs[z_far + 60.0] == pytest.approx(z_far + HIDDEN_DEPTH_MM, abs=8.0)
 
 
 def test_locate_crops_grows_the_cube_to_a_fixed_point():
@@ -578,3 +593,18 @@ def test_locate_crops_grows_the_cube_to_a_fixed_point():
     np.testing.assert_allclose(again, centres)
     same, unchanged = locate_crops(seq, spec)
     assert unchanged == spec
+
+
+def test_locate_crops_reads_every_frame_once_even_when_the_cube_grows():
+    """The hand's geometry does not depend on the cube: growing the session's cube re-places the
+    crops from it instead of locating every frame again (a second full pass at 76k frames)."""
+    from handanno_core.crops import CropSpec, locate_crops
+    from handanno_core.localize import locate_hands_with_extent
+
+    palms = [[10.0 * np.sin(i / 3.0), 5.0, 330.0 + 2.0 * i] for i in range(8)]
+    seq = SphereHandSequence(palms)
+    centres, spec = locate_crops(seq, CropSpec(120.0, 64))
+    assert spec.cube_mm > 120.0  # the hand did not fit: the cube grew
+    assert seq.reads == len(seq)
+    again, _ = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)
+    np.testing.assert_allclose(again, centres)

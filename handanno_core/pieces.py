@@ -56,6 +56,7 @@ from .fileio import atomic_save_npz
 from .handmodel import Kinematics
 from .hands import BoneTable, bone_table
 from .parallel import Runner
+from .refine import sub_problem
 from .skeleton import Skeleton
 
 __all__ = ["Piece", "PiecesResult", "plan_pieces", "refine_pieces"]
@@ -305,34 +306,19 @@ def refine_pieces(
     shared, tmpdir = _shared_crops(crops, remote)
 
     def task_of(p: Piece) -> _Task:
-        window_frames = np.arange(p.start, p.stop)
-        c = closest[window_frames]
-        extra = np.unique(c[(c >= 0) & ((c < p.start) | (c >= p.stop))])
-        frames = np.concatenate([window_frames, extra])
-        local = {int(f): i for i, f in enumerate(frames)}
-        w = len(window_frames)
-        local_refs = np.asarray([local[int(f)] for f in frames if is_ref[f]], dtype=np.int64)
+        sub = sub_problem(np.arange(p.start, p.stop), closest, is_ref, reference_annotations)
         return _Task(
             piece=p,
-            frames=frames,
+            frames=sub.frames,
             crops=shared,
-            init=init[frames],
-            boxes=boxes[frames],
-            centres=centres[frames],
-            refs=local_refs,
-            annotations={
-                local[int(f)]: reference_annotations[int(f)]
-                for f in frames
-                if is_ref[f] and int(f) in reference_annotations
-            },
-            closest=np.concatenate(
-                [
-                    np.asarray([local.get(int(f), -1) for f in c], dtype=np.int64),
-                    np.arange(w, len(frames)),
-                ]
-            ),
-            breaks=list(range(w, len(frames))),
-            fixed=np.arange(w, len(frames)),
+            init=init[sub.frames],
+            boxes=boxes[sub.frames],
+            centres=centres[sub.frames],
+            refs=sub.refs,
+            annotations=sub.annotations,
+            closest=sub.closest,
+            breaks=sub.breaks,
+            fixed=sub.extra,
             kwargs=kwargs[hand_of_piece[p.index]],
         )
 

@@ -790,53 +790,95 @@ def refine(
     )
 
 
+@dataclass
+class SubProblem:
+    """Some frames of a refinement as their own system, in local frame indices.
+
+    ``frames`` (n,) global frame indices: the ``own`` frames being solved (ascending), then the
+    closest references they use that are not among them (appended as fixed frames, each behind
+    a break). ``refs`` local reference frames; ``annotations`` local frame -> annotation;
+    ``closest`` (n,) local closest reference (-1 for none; an appended reference is its own);
+    ``breaks`` local breaks (gaps and sequence breaks among the own frames, then one before
+    every appended reference); ``extra`` the appended frames' local indices (keep them fixed).
+    """
+
+    frames: np.ndarray
+    own: int
+    refs: np.ndarray
+    annotations: dict[int, FrameAnnotation]
+    closest: np.ndarray
+    breaks: list[int]
+    extra: np.ndarray
+
+
+def sub_problem(
+    own: np.ndarray,
+    closest_reference: np.ndarray,
+    is_reference: np.ndarray,
+    reference_annotations: dict[int, FrameAnnotation],
+    sequence_breaks: Iterable[int] = (),
+) -> SubProblem:
+    """The sub-problem of the ascending global frames ``own`` (a piece's window, one hand's
+    frames); ``closest_reference`` (N,) and ``is_reference`` (N,) bool are the whole problem's."""
+    own = np.asarray(own, dtype=np.int64)
+    c = closest_reference[own]
+    extra = np.setdiff1d(np.unique(c[c >= 0]), own)
+    frames = np.concatenate([own, extra])
+    m = len(own)
+    local = np.full(len(closest_reference), -1, dtype=np.int64)
+    local[frames] = np.arange(len(frames))
+    breaks = {int(b) for b in sequence_breaks}
+    cut = [i for i in range(1, m) if own[i] != own[i - 1] + 1 or int(own[i]) in breaks]
+    refs = np.flatnonzero(is_reference[frames])
+    return SubProblem(
+        frames=frames,
+        own=m,
+        refs=refs,
+        annotations={
+            int(i): reference_annotations[int(frames[i])]
+            for i in refs
+            if int(frames[i]) in reference_annotations
+        },
+        closest=np.concatenate([np.where(c >= 0, local[np.maximum(c, 0)], -1), local[extra]]),
+        breaks=cut + list(range(m, len(frames))),
+        extra=np.arange(m, len(frames)),
+    )
+
+
 def _refine_by_hand(table: BoneTable, init_mm, fixed: np.ndarray, t0: float, **kw) -> RefineResult:
     """:func:`refine` with several bone-length sets: the frames of each set (one person's hand,
     whole sequences, so no temporal term joins two sets) are solved as their own system with
-    their own bones. A frame whose closest reference (its appearance template) has other bones
-    gets that reference appended as a fixed frame behind a break, as a piece does
-    (:mod:`handanno_core.pieces`). Energies and terms are summed over the sets."""
+    their own bones (:func:`sub_problem`, as a piece of :mod:`handanno_core.pieces` is).
+    Energies and terms are summed over the sets."""
     init = np.asarray(init_mm, dtype=np.float64)
     n = len(init)
     closest = kw.pop("closest_reference")
-    refs = np.asarray(sorted({int(r) for r in kw.pop("reference_frames")}), dtype=np.int64)
-    annotations = kw.pop("reference_annotations")
-    breaks = {int(b) for b in kw.pop("sequence_breaks")}
     is_ref = np.zeros(n, dtype=bool)
-    is_ref[refs] = True
+    is_ref[np.asarray(list({int(r) for r in kw.pop("reference_frames")}), dtype=np.int64)] = True
+    annotations = kw.pop("reference_annotations")
+    breaks = kw.pop("sequence_breaks")
+    crops, boxes, centres = kw.pop("crops"), np.asarray(kw.pop("boxes")), kw.pop("centres_mm")
+    centres = np.asarray(centres)
     joints = init.copy()
     results: list[RefineResult] = []
     kept: list[int] = []
     for h in range(len(table.lengths)):
-        own = table.frames_of(h)
-        c = closest[own]
-        extra = np.setdiff1d(np.unique(c[c >= 0]), own)
-        frames = np.concatenate([own, extra])
-        local = np.full(n, -1, dtype=np.int64)
-        local[frames] = np.arange(len(frames))
-        m = len(own)
-        cut = [i for i in range(1, m) if own[i] != own[i - 1] + 1 or int(own[i]) in breaks]
+        sub = sub_problem(table.frames_of(h), closest, is_ref, annotations, breaks)
+        frames, m = sub.frames, sub.own
         res = refine(
             init[frames],
-            crops=kw["crops"][frames],
-            boxes=np.asarray(kw["boxes"])[frames],
-            centres_mm=np.asarray(kw["centres_mm"])[frames],
-            camera=kw["camera"],
-            skeleton=kw["skeleton"],
+            crops=crops[frames],
+            boxes=boxes[frames],
+            centres_mm=centres[frames],
             bone_lengths_mm=table.lengths[h],
-            reference_frames=np.flatnonzero(is_ref[frames]),
-            reference_annotations={
-                int(local[f]): a for f, a in annotations.items() if local[int(f)] >= 0
-            },
-            closest_reference=np.where(
-                np.concatenate([c, extra]) >= 0, local[np.maximum(np.concatenate([c, extra]), 0)], -1
-            ),
-            sequence_breaks=cut + list(range(m, len(frames))),
-            fixed_frames=np.concatenate([np.flatnonzero(fixed[own]), np.arange(m, len(frames))]),
-            **{k: v for k, v in kw.items() if k not in ("crops", "boxes", "centres_mm", "camera",
-                                                        "skeleton")},
-        )  # fmt: skip
-        joints[own] = res.joints_mm[:m]
+            reference_frames=sub.refs,
+            reference_annotations=sub.annotations,
+            closest_reference=sub.closest,
+            sequence_breaks=sub.breaks,
+            fixed_frames=np.concatenate([np.flatnonzero(fixed[frames[:m]]), sub.extra]),
+            **kw,
+        )
+        joints[frames[:m]] = res.joints_mm[:m]
         kept += [int(frames[i]) for i in res.info.get("kept_initialization", []) if i < m]
         results.append(res)
     longest = max(len(r.energy_history) for r in results)

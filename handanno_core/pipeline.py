@@ -451,6 +451,18 @@ def lift(
         joints_mm.update(result.joints_mm)
         confidence_of.update(result.confidence)
         bones[names[h]] = np.asarray(result.bone_lengths_mm, dtype=np.float64)
+    if session.model.settings.lift_refit and not session.skeleton.has_finger_segments:
+        _log(f"lift: no hand-model refit for the {session.skeleton.name} layout", quiet)
+    elif session.model.settings.lift_refit:
+        # one refit per distinct set of bones, as propagation personalizes one model per set
+        sets: dict[bytes, list[int]] = {}
+        for f in sorted(joints_mm):
+            sets.setdefault(bones[names[hand[f]]].tobytes(), []).append(f)
+        for frames in sets.values():
+            _refit_with_model(
+                session, frames, annotations, joints_mm, bones[names[hand[frames[0]]]], quiet,
+                workers,
+            )  # fmt: skip
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
     confidence = results["confidence"]
@@ -476,6 +488,39 @@ def lift(
             quiet,
         )
     return joints_mm
+
+
+def _refit_with_model(
+    session: Session, frames: list[int], annotations: dict, joints_mm: dict[int, np.ndarray],
+    bone_lengths_mm: np.ndarray, quiet: bool, workers: int,
+) -> None:  # fmt: skip
+    """Replace ``joints_mm[f]`` of the lifted references ``frames`` (one set of bones) by their
+    refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`)."""
+    from .lift.model_refit import refit_references
+
+    index = np.asarray(frames, dtype=np.int64)
+    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
+    s = session.model.settings
+    refit = refit_references(
+        np.stack([joints_mm[f] for f in frames]),
+        [annotations[f] for f in frames],
+        crops[index],
+        boxes[index],
+        centres[index],
+        session.camera,
+        session.skeleton,
+        bone_lengths_mm,
+        cube_mm=s.cube_mm,
+        noise_px=s.click_noise_px,
+    )
+    for i, f in enumerate(frames):
+        joints_mm[f] = refit.joints_mm[i]
+    source = "set" if s.click_noise_px is not None else "estimated"
+    _log(
+        f"lift: {int(np.sum(~refit.kept))} of {len(frames)} references refitted with the hand "
+        f"model (click noise {refit.noise_px:.2f} px, {source})",
+        quiet,
+    )
 
 
 def _reference_joints(session: Session, results: dict[str, np.ndarray]) -> dict[int, np.ndarray]:

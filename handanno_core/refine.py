@@ -133,9 +133,11 @@ class RefineWeights:
     init_huber_mm: float = 10.0
     patch_size: int = 7
     patch_spacing_px: float = 2.0
-    #: multiplies the hand-model energy of each frame (handmodel.frame_energy) inside the LM; 0
-    #: leaves the model to propagation (which fits it to every frame) and to the never-worse check
-    model: float = 0.0
+    #: with the model on, multiplies the hand-model energy of each frame (handmodel.frame_energy)
+    #: inside the LM (0: the model only in propagation and the never-worse check, where ~90 % of
+    #: the frames kept their initialization); 3 chosen on the suite's tune part over 0, 0.3, 1, 3
+    #: (``benchmarks/bench_refine_model.py``, figures in the README)
+    model: float = 3.0
     #: with the model on, the temporal weight of a frame pair is divided by 1 + (v / this)², v the
     #: pair's median joint displacement in the initialization (mm/frame): fast motion is not
     #: smoothed away

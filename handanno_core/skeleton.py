@@ -94,6 +94,21 @@ class Skeleton:
         return np.flatnonzero(self.parent_array == joint)
 
     @property
+    def has_finger_segments(self) -> bool:
+        """Every fingertip is at least 3 bones from the root: the fingers' proximal, middle and
+        distal segments are bones, so the capsule hand model (:mod:`handanno_core.handmodel`) can
+        stand for the hand. NYU's 14 joints (palm centre -> middle -> tip) are not: their
+        palm-to-middle bone runs through the palm."""
+        parents = self.parent_array
+        for tip in self.fingertips or ():
+            depth, k = 0, int(tip)
+            while parents[k] >= 0:
+                depth, k = depth + 1, int(parents[k])
+            if depth < 3:
+                return False
+        return bool(self.fingertips)
+
+    @property
     def angle_joints(self) -> np.ndarray:
         """Joints with angle limits, ``(A,)``; their single child is ``angle_children``."""
         if self.flexion_limits_deg is None:

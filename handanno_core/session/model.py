@@ -44,6 +44,10 @@ class Settings(BaseModel):
     eps_mm: float = 15.0
     angle_limits: bool = True
     aligner: str = "dis"
+    #: refit the lifted references with the personalized hand model (``lift.model_refit``)
+    lift_refit: bool = True
+    #: the annotators' click noise (px) the refit trusts the clicks by; None: estimated per lift
+    click_noise_px: float | None = None
 
 
 class SelectionModel(BaseModel):

@@ -1,0 +1,92 @@
+"""The lift with and without the hand-model refit of the references (``lift.model_refit``).
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_lift_refit.py /tmp/suite --part tune [--noise 0,1,2,3]
+        [--ref-fraction 0.05] [--strategy uniform] --json OUT
+
+For every sequence of the suite part and every click noise: one session (the pipeline's
+``select``, the simulated annotator with that noise), lifted twice on the same annotations, refit
+off and on (``Settings.lift_refit``). Per run: lift error on the references (mean / median / max
+mm), the click noise the refit estimated, the seconds of each lift. The machine load is recorded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import re
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from handanno_core import pipeline
+from handanno_core.bench import run_session
+from handanno_core.evaluate import error_summary
+from handanno_core.suite import read_suite
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("suite")
+    ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
+    ap.add_argument("--noise", default="0,2")
+    ap.add_argument("--ref-fraction", type=float, default=0.05)
+    ap.add_argument("--strategy", default="uniform")
+    ap.add_argument("--json", required=True)
+    args = ap.parse_args()
+    noises = [float(x) for x in args.noise.split(",")]
+    entries = read_suite(args.suite, args.part)
+    tmp = Path(tempfile.mkdtemp(prefix="bench-lift-refit-"))
+    rows = []
+    for name, _part, path in entries:
+        base = pipeline.new_session(tmp / "base", path, overwrite=True)
+        gt = base.open_sequence().ground_truth.joints_mm
+        pipeline.ensure_crops(base, quiet=True)
+        for noise in noises:
+            session = run_session(base, tmp / "run")
+            pipeline.select(
+                session, strategy=args.strategy, ref_fraction=args.ref_fraction, figures=False,
+                quiet=True,
+            )  # fmt: skip
+            pipeline.annotate_from_gt(session, noise_px=noise, quiet=True)
+            refs = session.reference_frames
+            row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
+            for refit in (False, True):
+                session.model.settings.lift_refit = refit
+                log = io.StringIO()
+                t = time.perf_counter()
+                with contextlib.redirect_stdout(log):
+                    pipeline.lift(session)
+                row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
+                lifted = session.load_results()["lifted_mm"][refs]
+                row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])
+                found = re.findall(r"click noise ([0-9.]+) px", log.getvalue())
+                if refit and found:
+                    row["click_noise_estimated_px"] = [float(x) for x in found]
+            row["load_avg_1m"] = round(os.getloadavg()[0], 2)
+            rows.append(row)
+            print(
+                f"{name:>28} noise {noise:3.1f}  lift {row['lift']['mean_mm']:6.3f} / "
+                f"{row['lift']['max_mm']:6.1f}  refit {row['refit']['mean_mm']:6.3f} / "
+                f"{row['refit']['max_mm']:6.1f} mm  est {row.get('click_noise_estimated_px')} "
+                f"({row['lift_s_off']:.1f} / "
+                f"{row['lift_s_on']:.1f} s, load {row['load_avg_1m']:.1f})",
+                flush=True,
+            )
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+            session.close()
+        base.close()
+    for key in ("lift", "refit"):
+        for noise in noises:
+            sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]
+            print(f"{key:>6} noise {noise:3.1f}: mean of means {np.mean(sel):.3f} mm ({len(sel)})")
+
+
+if __name__ == "__main__":
+    main()

@@ -216,6 +216,14 @@ def _add_stage_commands(add, session_arg) -> None:
     session_arg(p)
     p.add_argument("--workers", type=int, default=1, help="local processes")
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
+    p.add_argument(
+        "--no-refit", action="store_true",
+        help="skip the refit of the lifted references with the personalized hand model",
+    )  # fmt: skip
+    p.add_argument(
+        "--click-noise-px", type=float,
+        help="the annotators' click noise (px) the refit trusts the clicks by (default: estimated)",
+    )  # fmt: skip
 
     p = add("propagate", "propagate references to every frame")
     session_arg(p)
@@ -527,7 +535,10 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
     elif cmd == "lift":
         session = _open(args, write=True)
         warn_incomplete_references(session)
-        pipeline.lift(session, workers=args.workers, scheduler=args.scheduler)
+        pipeline.lift(
+            session, workers=args.workers, scheduler=args.scheduler,
+            refit=False if args.no_refit else None, click_noise_px=args.click_noise_px,
+        )  # fmt: skip
     elif cmd == "propagate":
         _propagate(args)
     elif cmd == "refine":

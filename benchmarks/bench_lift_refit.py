@@ -7,7 +7,7 @@ Usage::
 
 For every sequence of the suite part and every click noise: one session (the pipeline's
 ``select``, the simulated annotator with that noise), lifted twice on the same annotations, refit
-off and on (``Settings.lift_refit``). Per run: lift error on the references (mean / median / max
+off and on (``pipeline.lift(refit=)``). Per run: lift error on the references (mean / median / max
 mm), the click noise the refit estimated, the seconds of each lift. The machine load is recorded.
 """
 
@@ -58,11 +58,10 @@ def main() -> None:
             refs = session.reference_frames
             row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
             for refit in (False, True):
-                session.model.settings.lift_refit = refit
                 log = io.StringIO()
                 t = time.perf_counter()
                 with contextlib.redirect_stdout(log):
-                    pipeline.lift(session)
+                    pipeline.lift(session, refit=refit)
                 row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
                 lifted = session.load_results()["lifted_mm"][refs]
                 row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])

@@ -397,8 +397,14 @@ def lift(
     scheduler: str | None = None,
     quiet: bool = False,
     progress: Progress = None,
+    refit: bool | None = None,
+    click_noise_px: float | None = None,
 ) -> dict[int, np.ndarray]:
     """Lift every annotated reference to 3D; store ``lifted_mm`` and the (estimated) bone lengths.
+
+    ``refit`` (default: the session's ``lift_refit``) refits the lifted references with the
+    personalized hand model (:mod:`handanno_core.lift.model_refit`), trusting the clicks by
+    ``click_noise_px`` (default: the session's ``click_noise_px``, else estimated).
 
     With several hands (``session.model.hands``) the references of each hand are lifted together
     and give that hand's bone lengths; a hand without an annotated reference gets the mean of
@@ -451,9 +457,10 @@ def lift(
         joints_mm.update(result.joints_mm)
         confidence_of.update(result.confidence)
         bones[names[h]] = np.asarray(result.bone_lengths_mm, dtype=np.float64)
-    if session.model.settings.lift_refit and not session.skeleton.has_finger_segments:
+    refit = session.model.settings.lift_refit if refit is None else refit
+    if refit and not session.skeleton.has_finger_segments:
         _log(f"lift: no hand-model refit for the {session.skeleton.name} layout", quiet)
-    elif session.model.settings.lift_refit:
+    elif refit:
         # one refit per distinct set of bones, as propagation personalizes one model per set
         sets: dict[bytes, list[int]] = {}
         for f in sorted(joints_mm):
@@ -461,7 +468,7 @@ def lift(
         for frames in sets.values():
             _refit_with_model(
                 session, frames, annotations, joints_mm, bones[names[hand[frames[0]]]], quiet,
-                workers,
+                workers, click_noise_px,
             )  # fmt: skip
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
@@ -492,7 +499,7 @@ def lift(
 
 def _refit_with_model(
     session: Session, frames: list[int], annotations: dict, joints_mm: dict[int, np.ndarray],
-    bone_lengths_mm: np.ndarray, quiet: bool, workers: int,
+    bone_lengths_mm: np.ndarray, quiet: bool, workers: int, click_noise_px: float | None,
 ) -> None:  # fmt: skip
     """Replace ``joints_mm[f]`` of the lifted references ``frames`` (one set of bones) by their
     refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`)."""
@@ -501,6 +508,7 @@ def _refit_with_model(
     index = np.asarray(frames, dtype=np.int64)
     crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
     s = session.model.settings
+    noise = s.click_noise_px if click_noise_px is None else click_noise_px
     refit = refit_references(
         np.stack([joints_mm[f] for f in frames]),
         [annotations[f] for f in frames],
@@ -511,11 +519,11 @@ def _refit_with_model(
         session.skeleton,
         bone_lengths_mm,
         cube_mm=s.cube_mm,
-        noise_px=s.click_noise_px,
+        noise_px=noise,
     )
     for i, f in enumerate(frames):
         joints_mm[f] = refit.joints_mm[i]
-    source = "set" if s.click_noise_px is not None else "estimated"
+    source = "given" if noise is not None else "estimated"
     _log(
         f"lift: {int(np.sum(~refit.kept))} of {len(frames)} references refitted with the hand "
         f"model (click noise {refit.noise_px:.2f} px, {source})",

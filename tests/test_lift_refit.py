@@ -96,3 +96,34 @@ def test_only_layouts_with_finger_segments_are_refitted():
     assert {k: s.has_finger_segments for k, s in SKELETONS.items()} == {
         "msra21": True, "blender24": True, "icvl16": True, "nyu14": False,
     }  # fmt: skip
+
+
+def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
+    from app.cli import main
+    from handanno_core.datasets import open_sequence
+    from handanno_core.session import Session
+
+    data, sessions = tmp_path / "data", tmp_path / "sessions"
+    assert main(["synth", str(data), "--frames", "24", "--seed", "2", "--workers", "1"]) == 0
+    base = ["--sessions-dir", str(sessions)]
+    assert main([*base, "new", "s", str(data)]) == 0
+    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.25"]) == 0
+    assert main([*base, "annotate-from-gt", "s", "--noise-px", "2"]) == 0
+    gt = open_sequence(data).ground_truth.joints_mm
+    errors, logs = {}, {}
+    for name, extra in [
+        ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
+    ]:  # fmt: skip
+        capsys.readouterr()
+        assert main([*base, "lift", "s", *extra]) == 0
+        logs[name] = capsys.readouterr().out
+        with Session.open(sessions / "s") as session:
+            refs = session.reference_frames
+            lifted = session.load_results()["lifted_mm"][refs]
+        errors[name] = float(np.linalg.norm(lifted - gt[refs], axis=-1).mean())
+    assert "refitted" not in logs["plain"]
+    assert "estimated" in logs["estimated"] and "(click noise 0.00 px, given)" in logs["given"]
+    # 2 px clicks: the refit with the estimated noise beats the plain lift and trusting the
+    # clicks as exact
+    assert errors["estimated"] < errors["plain"], errors
+    assert errors["estimated"] < errors["given"], errors

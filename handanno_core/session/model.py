@@ -44,6 +44,9 @@ class Settings(BaseModel):
     eps_mm: float = 15.0
     angle_limits: bool = True
     aligner: str = "dis"
+    #: fit the personalized hand model to every frame in propagation and refinement (issue 13;
+    #: ``handanno propagate/refine --model/--no-model`` override it per call)
+    hand_model: bool = False
 
 
 class SelectionModel(BaseModel):

@@ -167,7 +167,9 @@ def run_bench(
             session.close()
             for i, use_model in enumerate(models or [None]):
                 run_folder = folder
-                if i + 1 < len(models or [None]):  # all but the last value run in a copy of the lift
+                if i + 1 < len(
+                    models or [None]
+                ):  # all but the last value run in a copy of the lift
                     run_folder = folder.with_name(f"{folder.name}-model{i}")
                     copy_session(folder, run_folder)
                 run = _propagate_and_refine(
@@ -222,16 +224,20 @@ def _propagate_and_refine(
     gt_bones: bool,
     with_model_keys: bool,
 ) -> dict:
-    """Propagate and refine the lifted session in ``folder`` (hand model ``use_model``; None: the
-    session default) and return its run: ``fields`` + errors, ``timings`` + stage times, and
+    """Propagate and refine the lifted session in ``folder`` (hand model ``use_model``, stored as
+    the session's setting; None: the session default) and return its run: ``fields`` + errors, ``timings`` + stage times, and
     with ``with_model_keys`` ``"model"`` and ``"kept_initialization"``."""
     session = Session.open(folder)
+    if use_model is not None:  # the session's setting, so that review rounds use it too
+        with session.lock:
+            session.model.settings.hand_model = use_model
+            session.save()
     refs = session.reference_frames
     t = time.perf_counter()
-    pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True, use_model=use_model)
+    pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True)
     timings["propagate"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
-    refined = pipeline.refine(session, quiet=True, use_model=use_model)
+    refined = pipeline.refine(session, quiet=True)
     timings["refine"] = round(time.perf_counter() - t, 3)
     run = {
         **fields,
@@ -243,7 +249,7 @@ def _propagate_and_refine(
         "peak_rss_mb": round(peak_rss_mb(), 1),
     }
     if with_model_keys:
-        run["model"] = bool(use_model)
+        run["model"] = bool(session.model.settings.hand_model)
         run["kept_initialization"] = len(refined.info.get("kept_initialization", []))
     session.close()
     return run

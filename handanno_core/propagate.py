@@ -22,14 +22,15 @@ reference), parents always before children:
    25 mm predicted). When a joint-angle limit of the skeleton is exceeded by more than 3 deg, the
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
-5. with the hand model on (``hand_model=True``, off by default: about 3x the CPU per frame;
-   :mod:`handanno_core.handmodel`), the personalized capsule model is fitted to the frame's own
-   depth from the candidate start of lowest energy (the flowed pose, the parent's pose, the nearest
-   references before and after the frame in time; ``model_fits`` starts) and the fit of lowest
-   energy is kept (:func:`_model_fit`) unless its own evidence says it failed: its data +
-   free-space energy above ``model_fail_ratio`` times the references' level (the model does not
-   explain the frame's depth: a wrong start, the hand fitted to another surface); the frame then
-   keeps its flowed pose. Measured by ``handanno bench --model off,on`` (README, hand model
+5. with the hand model on (``hand_model=True``; this function's default is off, a session's
+   ``settings.hand_model`` is on; about 3x the CPU per frame; :mod:`handanno_core.handmodel`),
+   the personalized capsule model is fitted to the frame's own depth from the candidate start of
+   lowest energy (the flowed pose, the parent's pose, the nearest references before and after the
+   frame in time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fit`)
+   unless its own evidence says it failed: its data + free-space energy above
+   ``model_fail_ratio`` times the references' level (the model does not explain the frame's
+   depth: a wrong start, the hand fitted to another surface); the frame then keeps its flowed
+   pose. Measured by ``handanno bench --model off,on`` (README, hand model
    section).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a

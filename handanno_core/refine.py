@@ -37,7 +37,8 @@ apart), are assembled with batched numpy products (no Python loops over
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
 lowers the true robust energy, so ``energy_history`` never increases.
 
-**Hand model** (``hand_model=True``; off by default): the velocity term's weight (itself off by
+**Hand model** (``hand_model=True``; this function's default is off, a session's
+``settings.hand_model`` is on): the velocity term's weight (itself off by
 default) of each frame pair is divided by ``1 + (v / temporal_motion_mm)²`` (``v`` the pair's
 median joint displacement in the initialization), and after the solve a frame whose hand-model
 energy (:func:`handanno_core.handmodel.frame_energy`, fitted to its own crop) rose to more than 3x

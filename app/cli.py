@@ -42,6 +42,19 @@ def _strings(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
 
+def _switches(text: str) -> list[bool]:
+    """``off,on`` -> [False, True]."""
+    values = {"off": False, "on": True}
+    out = []
+    for x in _strings(text):
+        if x.lower() not in values:
+            raise argparse.ArgumentTypeError(f"{x!r}: expected off or on")
+        out.append(values[x.lower()])
+    if not out:
+        raise argparse.ArgumentTypeError("expected off, on or off,on")
+    return out
+
+
 WORKFLOW = """workflow (one session, in this order):
   handanno new SESSION DATASET        create a session for a depth sequence
   handanno select SESSION             choose the reference frames (5 % by default)
@@ -231,14 +244,14 @@ def _add_stage_commands(add, session_arg) -> None:
     p.add_argument("--scheduler", help="tcp://HOST:PORT of a Dask distributed scheduler")
     p.add_argument("--aligner", choices=ALIGNERS, help="flow method (default: the session's)")
     use_model = (
-        "fit the personalized hand model to each frame's depth (articulated ICP; off by default: "
-        "about 5x slower, see README)"
+        "fit the personalized hand model to each frame's depth (articulated ICP, README 'Personalized "
+        "hand model'); --no-model switches it off. Default: the session's setting"
     )
-    p.add_argument("--model", action="store_true", help=use_model)
+    p.add_argument("--model", action=argparse.BooleanOptionalAction, default=None, help=use_model)
 
     p = add("refine", "global refinement of all frames")
     session_arg(p)
-    p.add_argument("--model", action="store_true", help=use_model)
+    p.add_argument("--model", action=argparse.BooleanOptionalAction, default=None, help=use_model)
     p.add_argument(
         "--window",
         type=int,
@@ -288,6 +301,12 @@ def _add_bench_command(add) -> None:
         help="comma-separated selection strategies",
     )
     p.add_argument("--noise-px", type=float, default=0.0, help="2D click noise (std, px)")
+    p.add_argument(
+        "--model",
+        type=_switches,
+        help="hand model in propagation and refinement, comma-separated off/on (e.g. off,on: both "
+        "on the same lift, each run's JSON says which). Default: the session default, one run",
+    )
     p.add_argument("--workers", type=int, default=2, help="local processes")
     p.add_argument("--aligner", choices=ALIGNERS, help="flow method (default: the session's)")
     p.add_argument(
@@ -567,6 +586,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
             format=args.format,
             fractions=args.ref_fraction,
             strategies=args.strategy,
+            models=args.model,
             noise_px=args.noise_px,
             json_out=args.json_out,
             workers=args.workers,

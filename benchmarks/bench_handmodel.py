@@ -14,10 +14,10 @@ before/after. A batched fit of all frames at once (as refinement evaluates the t
 
 Writes benchmarks/results/handmodel.json.
 
-``--compare DATASET ...`` instead runs the pipeline of ``handanno bench`` (``--strategy`` selection,
-simulated exact 2D annotator, bones estimated by the lift) once per dataset and reference
-fraction, then propagation + refinement twice on the same lift: without and with the hand model
-(``use_model`` off / on), and prints both rows side by side (``--json`` to save them).
+``--compare DATASET ...`` instead runs ``handanno bench --model off,on`` (``--strategy``
+selection, simulated exact 2D annotator, bones estimated by the lift; propagation + refinement
+twice on the same lift, without and with the hand model) and prints its tables (``--json`` to
+save them; ``--part`` for a suite folder).
 """
 
 from __future__ import annotations
@@ -44,68 +44,22 @@ def compare(
     json_out: str | None,
     strategy: str = "uniform",
     workers: int = 1,
-) -> None:
-    """With / without the hand model on the same selection and lift (see the module docstring)."""
-    import shutil
+    part: str | None = None,
+) -> dict:
+    """With / without the hand model on the same selection and lift: ``handanno bench --model
+    off,on`` (:func:`handanno_core.bench.run_bench_datasets`), one strategy."""
+    from handanno_core.bench import run_bench_datasets
 
-    from handanno_core import pipeline
-    from handanno_core.bench import peak_rss_mb, run_session, stage_errors
-
-    rows = []
-    tmp = Path(tempfile.mkdtemp(prefix="bench-handmodel-cmp-"))
-    for dataset in datasets:
-        base = pipeline.new_session(tmp / "base", dataset, overwrite=True)
-        gt = base.open_sequence().ground_truth.joints_mm
-        pipeline.ensure_crops(base, quiet=True)
-        for fraction in fractions:
-            session = run_session(base, tmp / f"run-{fraction:g}")
-            pipeline.select(
-                session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True
-            )
-            pipeline.annotate_from_gt(session, quiet=True)
-            t = time.perf_counter()
-            pipeline.lift(session, workers=workers, quiet=True)
-            t_lift = time.perf_counter() - t
-            refs = session.reference_frames
-            for use_model in (False, True):
-                t = time.perf_counter()
-                pipeline.propagate(session, workers=workers, quiet=True, use_model=use_model)
-                t_prop = time.perf_counter() - t
-                t = time.perf_counter()
-                res = pipeline.refine(session, quiet=True, use_model=use_model)
-                t_ref = time.perf_counter() - t
-                row = {
-                    "dataset": str(dataset),
-                    "frames": int(session.num_frames),
-                    "ref_fraction": fraction,
-                    "strategy": strategy,
-                    "workers": workers,
-                    "references": int(len(refs)),
-                    "model": use_model,
-                    **stage_errors(session.load_results(), gt, refs),
-                    "kept_initialization": len(res.info.get("kept_initialization", [])),
-                    "timings_s": {
-                        "lift": round(t_lift, 1),
-                        "propagate": round(t_prop, 1),
-                        "refine": round(t_ref, 1),
-                    },
-                    "peak_rss_mb": round(peak_rss_mb(), 1),
-                    "load_average": [round(x, 2) for x in os.getloadavg()],
-                }
-                rows.append(row)
-                print(
-                    f"{Path(dataset).name:>12} {fraction * 100:4.0f}% model={use_model!s:5} "
-                    f"init {row['init']['mean_mm']:6.2f} / max {row['init']['max_mm']:6.1f}  "
-                    f"final {row['final']['mean_mm']:6.2f} / max {row['final']['max_mm']:6.1f}  "
-                    f"nonref {row['final_non_reference']['mean_mm']:6.2f}  "
-                    f"t_prop {t_prop:6.1f} t_ref {t_ref:6.1f} s  load {os.getloadavg()[0]:.1f}",
-                    flush=True,
-                )
-                if json_out:
-                    Path(json_out).write_text(json.dumps(rows, indent=1))
-            session.close()
-        base.close()
-    shutil.rmtree(tmp, ignore_errors=True)
+    out = json_out or str(Path(tempfile.mkdtemp(prefix="bench-handmodel-cmp-")) / "compare.json")
+    return run_bench_datasets(
+        datasets,
+        part=part,
+        json_out=out,
+        fractions=fractions,
+        strategies=[strategy],
+        models=[False, True],
+        workers=workers,
+    )
 
 
 def _frames(args):
@@ -142,10 +96,11 @@ def main() -> None:
     ap.add_argument("--json", dest="json_out")
     ap.add_argument("--strategy", default="uniform", help="selection strategy of --compare")
     ap.add_argument("--workers", type=int, default=1, help="processes of --compare")
+    ap.add_argument("--part", choices=["tune", "report", "all"], help="suite part of --compare")
     args = ap.parse_args()
     if args.compare:
         fractions = [float(f) for f in args.fractions.split(",")]
-        compare(args.compare, fractions, args.json_out, args.strategy, args.workers)
+        compare(args.compare, fractions, args.json_out, args.strategy, args.workers, args.part)
         return
 
     seq, crops, centres, boxes, cube_mm = _frames(args)

@@ -58,6 +58,14 @@ def run_session(base: Session, folder: Path) -> Session:
     return session
 
 
+def copy_session(folder: Path, to: Path) -> None:
+    """Copy a closed session folder to ``to`` (replaced if it exists); symlinks (the shared crop
+    cache) stay symlinks."""
+    if to.exists():
+        shutil.rmtree(to)
+    shutil.copytree(folder, to, symlinks=True)
+
+
 def stage_errors(results: dict, gt: np.ndarray, refs: np.ndarray) -> dict:
     """Error summaries of a run: ``lift`` (references), ``init``, ``final``, ``final_non_reference``."""
     non_ref = np.setdiff1d(np.arange(len(gt)), refs)
@@ -97,9 +105,16 @@ def run_bench(
     work_dir: str | Path | None = None,
     quiet: bool = False,
     review: dict | None = None,
+    models: list[bool] | None = None,
 ) -> dict:
     """``review``: keyword arguments of :func:`handanno_core.review_loop.bench_run_review`
-    (``rounds``, ``budget``, ``rankings``, ``prefill``, ...); None: no pre-fill, no review rounds."""
+    (``rounds``, ``budget``, ``rankings``, ``prefill``, ...); None: no pre-fill, no review rounds.
+
+    ``models``: hand model off/on (``[False, True]``: propagation and refinement run once per
+    value on the same selection, annotation and lift, each from a copy of the session made after
+    the lift; each run's JSON gains ``"model"`` and ``"kept_initialization"``, the frames
+    refinement returned at their initialization). None: the session default, one run, today's
+    JSON keys."""
     json_out = Path(json_out)
     json_out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(work_dir) if work_dir else Path(tempfile.mkdtemp(prefix="handanno-bench-"))
@@ -149,35 +164,40 @@ def run_bench(
             t = time.perf_counter()
             pipeline.lift(session, workers=workers, quiet=True)
             timings["lift"] = round(time.perf_counter() - t, 3)
-
-            t = time.perf_counter()
-            pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True)
-            timings["propagate"] = round(time.perf_counter() - t, 3)
-
-            t = time.perf_counter()
-            pipeline.refine(session, quiet=True)
-            timings["refine"] = round(time.perf_counter() - t, 3)
-
-            run = {
-                "strategy": strategy,
-                "ref_fraction_target": fraction,
-                "references": int(len(refs)),
-                "corrections": len(session.model.corrections),
-                "noise_px": noise_px,
-                "bones": "ground-truth" if gt_bones else "estimated",
-                **stage_errors(session.load_results(), gt, refs),
-                "timings_s": timings,
-                "peak_rss_mb": round(peak_rss_mb(), 1),
-            }
-            runs.append(run)
             session.close()
-            if review:
-                from .review_loop import bench_run_review
+            for i, use_model in enumerate(models or [None]):
+                run_folder = folder
+                if i + 1 < len(
+                    models or [None]
+                ):  # all but the last value run in a copy of the lift
+                    run_folder = folder.with_name(f"{folder.name}-model{i}")
+                    copy_session(folder, run_folder)
+                run = _propagate_and_refine(
+                    run_folder,
+                    use_model,
+                    {
+                        "strategy": strategy,
+                        "ref_fraction_target": fraction,
+                        "references": int(len(refs)),
+                    },
+                    dict(timings),
+                    gt,
+                    workers=workers,
+                    aligner=aligner,
+                    noise_px=noise_px,
+                    gt_bones=gt_bones,
+                    with_model_keys=bool(models),
+                )
+                runs.append(run)
+                if review:
+                    from .review_loop import bench_run_review
 
-                bench_run_review(run, folder, review, prefilled, noise_px, workers, aligner, quiet)
-            json_out.write_text(json.dumps(doc, indent=2))
-            if not quiet:
-                print(_row(run), flush=True)
+                    bench_run_review(
+                        run, run_folder, review, prefilled, noise_px, workers, aligner, quiet
+                    )
+                json_out.write_text(json.dumps(doc, indent=2))
+                if not quiet:
+                    print(_row(run), flush=True)
     if not quiet:
         print()
         print(format_table(doc))
@@ -191,10 +211,61 @@ def run_bench(
     return doc
 
 
+def _propagate_and_refine(
+    folder: Path,
+    use_model: bool | None,
+    fields: dict,
+    timings: dict,
+    gt: np.ndarray,
+    *,
+    workers: int,
+    aligner: str | None,
+    noise_px: float,
+    gt_bones: bool,
+    with_model_keys: bool,
+) -> dict:
+    """Propagate and refine the lifted session in ``folder`` (hand model ``use_model``, stored as
+    the session's setting; None: the session default) and return its run: ``fields`` + errors, ``timings`` + stage times, and
+    with ``with_model_keys`` ``"model"`` and ``"kept_initialization"``."""
+    session = Session.open(folder)
+    if use_model is not None:  # the session's setting, so that review rounds use it too
+        with session.lock:
+            session.model.settings.hand_model = use_model
+            session.save()
+    refs = session.reference_frames
+    t = time.perf_counter()
+    pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True)
+    timings["propagate"] = round(time.perf_counter() - t, 3)
+    t = time.perf_counter()
+    refined = pipeline.refine(session, quiet=True)
+    timings["refine"] = round(time.perf_counter() - t, 3)
+    run = {
+        **fields,
+        "corrections": len(session.model.corrections),
+        "noise_px": noise_px,
+        "bones": "ground-truth" if gt_bones else "estimated",
+        **stage_errors(session.load_results(), gt, refs),
+        "timings_s": timings,
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+    }
+    if with_model_keys:
+        run["model"] = bool(session.model.settings.hand_model)
+        run["kept_initialization"] = len(refined.info.get("kept_initialization", []))
+    session.close()
+    return run
+
+
+def _label(run: dict) -> str:
+    """The strategy, with ``+model`` / ``-model`` when the run says whether the model was on."""
+    if "model" not in run:
+        return run["strategy"]
+    return f"{run['strategy']}{'+' if run['model'] else '-'}model"
+
+
 def _row(run: dict) -> str:
     t = run["timings_s"]
     return (
-        f"{run['strategy']:>10} {run['ref_fraction_target'] * 100:5.1f}% {run['references']:5d} "
+        f"{_label(run):>10} {run['ref_fraction_target'] * 100:5.1f}% {run['references']:5d} "
         f"| {run['init']['mean_mm']:6.2f} {run['init']['median_mm']:6.2f} {run['init']['max_mm']:7.1f} "
         f"| {run['final']['mean_mm']:6.2f} {run['final']['median_mm']:6.2f} {run['final']['max_mm']:7.1f} "
         f"| {run['final_non_reference']['mean_mm']:6.2f} | {run['lift']['mean_mm']:5.2f} "
@@ -221,9 +292,9 @@ def plot_error_vs_fraction(doc: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    for strategy in dict.fromkeys(r["strategy"] for r in doc["runs"]):
+    for strategy in dict.fromkeys(_label(r) for r in doc["runs"]):
         rows = sorted(
-            (r for r in doc["runs"] if r["strategy"] == strategy),
+            (r for r in doc["runs"] if _label(r) == strategy),
             key=lambda r: r["ref_fraction_target"],
         )
         x = [100 * r["references"] / doc["frames"] for r in rows]
@@ -268,14 +339,21 @@ def expand_datasets(paths: list[str | Path], part: str | None = None) -> list[di
 def summarize_datasets(docs: list[dict]) -> list[dict]:
     """Per (strategy, fraction, noise, bones): the mean over datasets of each dataset's mean error
     and the worst max (mm), for lift, init, final and final_non_reference; ``datasets`` counts
-    the datasets that ran that configuration; ``refine_worse`` lists those where final > init."""
+    the datasets that ran that configuration; ``refine_worse`` lists those where final > init.
+    Runs with and without the hand model (``"model"``) are separate rows."""
     groups: dict[tuple, list[tuple[str, dict]]] = {}
     for doc in docs:
         for run in doc["runs"]:
-            key = (run["strategy"], run["ref_fraction_target"], run["noise_px"], run["bones"])
+            key = (
+                run["strategy"],
+                run["ref_fraction_target"],
+                run["noise_px"],
+                run["bones"],
+                run.get("model"),
+            )
             groups.setdefault(key, []).append((doc.get("name", doc["dataset"]), run))
     rows = []
-    for (strategy, fraction, noise, bones), runs in groups.items():
+    for (strategy, fraction, noise, bones, model), runs in groups.items():
         row = {
             "strategy": strategy,
             "ref_fraction_target": fraction,
@@ -283,6 +361,8 @@ def summarize_datasets(docs: list[dict]) -> list[dict]:
             "bones": bones,
             "datasets": len(runs),
         }
+        if model is not None:
+            row["model"] = model
         for stage in ("lift", "init", "final", "final_non_reference"):
             row[stage] = {
                 "mean_of_means_mm": round(
@@ -315,7 +395,7 @@ def format_summary(doc: dict) -> str:
     ]
     for r in doc["summary"]:
         lines.append(
-            f"{r['strategy']:>10} {r['ref_fraction_target'] * 100:5.1f}% {r['datasets']:3d} "
+            f"{_label(r):>10} {r['ref_fraction_target'] * 100:5.1f}% {r['datasets']:3d} "
             f"| {r['lift']['mean_of_means_mm']:5.2f} | {r['init']['mean_of_means_mm']:6.2f} "
             f"| {r['final']['mean_of_means_mm']:11.2f} {r['final']['worst_mean_mm']:6.2f} "
             f"{r['final']['worst_max_mm']:7.1f} | {r['final_non_reference']['mean_of_means_mm']:6.2f} "

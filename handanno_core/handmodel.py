@@ -698,7 +698,8 @@ def frame_energy(
     Returns ``(energy (n,), terms {name: (n,)}, x (n,J,3), extra)``; with ``want_jac`` ``extra`` =
     (H (n,P,P), g (n,P)) Gauss-Newton normal equations in θ, else per-capsule diagnostics
     ``{"capsule_data_mm": (n,C) mean |point residual| (NaN: no points), "capsule_free": (n,C)
-    fraction of samples violating free space}`` (an empty dict without ``diagnostics``).
+    fraction of samples violating free space, "capsule_points": (n,C) observed points whose
+    nearest capsule it is}`` (an empty dict without ``diagnostics``).
     """
     e, terms, x, extra = _energy(
         model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics
@@ -903,7 +904,16 @@ def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnos
     if want_jac:
         return energy, terms, x, (acc.state(), v0)
     if diagnostics:
-        return energy, terms, x, {"capsule_data_mm": cap_data, "capsule_free": cap_free}
+        return (
+            energy,
+            terms,
+            x,
+            {
+                "capsule_data_mm": cap_data,
+                "capsule_free": cap_free,
+                "capsule_points": num,
+            },
+        )
     return energy, terms, x, {}
 
 

@@ -551,10 +551,11 @@ def propagate(
     progress: Progress = None,
     on_result: Callable | None = None,
     quiet: bool = False,
-    use_model: bool = False,
+    use_model: bool | None = None,
 ):
     """Propagate lifted references to every frame along the selection's parent forest
-    (``use_model``: fit the personalized hand model to every frame, see ``handmodel``)."""
+    (``use_model``: fit the personalized hand model to every frame, see ``handmodel``; None: the
+    session's ``settings.hand_model``)."""
     from .propagate import PropagationSettings
     from .propagate import propagate as run_propagation
 
@@ -583,7 +584,7 @@ def propagate(
         progress=progress,
         on_result=on_result,
         settings=PropagationSettings.from_session(session.model.settings),
-        hand_model=use_model,
+        hand_model=session.model.settings.hand_model if use_model is None else use_model,
     )
     computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))
     with session.lock:
@@ -619,7 +620,7 @@ def refine(
     progress: Callable | None = None,
     save: bool = True,
     quiet: bool = False,
-    use_model: bool = False,
+    use_model: bool | None = None,
     window: int | None = None,
     overlap: int | None = None,
     workers: int = 1,
@@ -637,7 +638,11 @@ def refine(
     ones in overlapping windows of ``window`` (default ``pieces.DEFAULT_WINDOW``) frames, pieces
     in parallel; returns a ``PiecesResult``), checkpointed per piece in the session's
     ``refine-pieces/`` folder so that a killed run resumes (``resume=False`` ignores them).
+    ``use_model``: the hand-model checks of :func:`handanno_core.refine.refine` (None: the
+    session's ``settings.hand_model``).
     """
+    if use_model is None:
+        use_model = session.model.settings.hand_model
     if whole and (window is not None or workers > 1 or scheduler is not None):
         raise ValueError(
             "a whole solve is one system in one process: no window, workers or scheduler"

@@ -22,12 +22,16 @@ reference), parents always before children:
    25 mm predicted). When a joint-angle limit of the skeleton is exceeded by more than 3 deg, the
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
-5. with the hand model on (``hand_model=True``, off by default: about 3x the CPU per frame;
-   :mod:`handanno_core.handmodel`), the personalized capsule model is fitted to the frame's own
-   depth from the candidate start of lowest energy (the flowed pose, the parent's pose, the nearest
-   references before and after the frame in time; ``model_fits`` starts) and the fit of lowest
-   energy is kept (:func:`_model_fit`); measured by ``benchmarks/bench_handmodel.py`` (README, hand
-   model section).
+5. with the hand model on (``hand_model=True``; this function's default is off, a session's
+   ``settings.hand_model`` is on; about 3x the CPU per frame; :mod:`handanno_core.handmodel`),
+   the personalized capsule model is fitted to the frame's own depth from the candidate start of
+   lowest energy (the flowed pose, the parent's pose, the nearest references before and after the
+   frame in time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fit`)
+   unless its own evidence says it failed: its data + free-space energy above
+   ``model_fail_ratio`` times the references' level (the model does not explain the frame's
+   depth: a wrong start, the hand fitted to another surface); the frame then keeps its flowed
+   pose. Measured by ``handanno bench --model off,on`` (README, hand model
+   section).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
@@ -116,6 +120,9 @@ class PropagationSettings:
     model_fits: int = 1  #: hand-model fits per frame: the candidate starts of lowest energy
     model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
+    #: the fit failed when its data + free-space energy exceeds this many times the references'
+    #: (median over the lifted references, :func:`_model_levels`): the frame keeps its flowed pose
+    model_fail_ratio: float = 5.0
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -180,6 +187,7 @@ class _Context:
     fit_weights: hm.FitWeights | None = None
     model_refs: np.ndarray | None = None  #: (K,) reference frames, sorted
     model_ref_joints: np.ndarray | None = None  #: (K, J, 3) their lifted joints
+    model_levels: np.ndarray | None = None  #: per model, the references' data + free energy
 
     def crops(self) -> np.ndarray:
         if self.crops_array is not None:
@@ -203,18 +211,18 @@ class _Context:
         state["crops_array"] = None
         return state
 
-    def with_model(
-        self, models: list[hm.HandModel] | None, known: dict, reference_joints
-    ) -> _Context:
-        """This context with the hand models to fit (one per bone-length set; None: off) and the
-        references they start from (the usable ones, sorted, with their lifted joints)."""
+    def with_model(self, models: tuple | None, known: dict, reference_joints) -> _Context:
+        """This context with the hand models to fit and their reference energy levels (``models``
+        from :func:`_hand_models`, one per bone-length set; None: off) and the references they
+        start from (the usable ones, sorted, with their lifted joints)."""
         if models is None:
             return self
         refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
         joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
         return dataclasses.replace(
-            self, hand_models=models, model_refs=refs, model_ref_joints=joints
-        )
+            self, hand_models=models[0], model_levels=models[1], model_refs=refs,
+            model_ref_joints=joints,
+        )  # fmt: skip
 
 
 _CROPS_CACHE: dict[tuple, np.ndarray] = {}
@@ -499,11 +507,15 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     the hand centres. All share one energy (priors: closeness to the flowed pose, the flowed 2D
     ``uv_f`` weighted by the flow's forward-backward consistency ``fb``), so the energies compare;
     the ``model_fits`` starts of lowest energy are fitted (batched) and the best fit is kept.
+    Guard: a fit whose data + free-space energy exceeds ``model_fail_ratio`` times the
+    references' (``ctx.model_levels``) failed, and the frame keeps ``x_flow``.
     Returns the joints (J,3) and a per-joint confidence factor (J,) from the fit residuals of the
-    capsules touching each joint (mean point-to-surface mm, fraction of free-space violations).
+    capsules touching each joint at the returned pose (mean point-to-surface mm, fraction of
+    free-space violations).
     """
     st = ctx.settings
-    model = ctx.hand_models[0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])]
+    h = 0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])
+    model = ctx.hand_models[h]
     c_f = ctx.centres_mm[frame]
     j = len(x_flow)
     starts = [x_flow, joints_s + (c_f - ctx.centres_mm[src])]
@@ -542,10 +554,12 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     )
     k = int(np.argmin(fit.energy))
     x = fit.joints_mm[k]
+    level = fit.terms["data"][k] + fit.terms["free_space"][k]
+    if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
+        x = x_flow  # the fit does not explain the frame's depth: keep the flowed pose
     _, _, _, diag = hm.frame_energy(
-        model, kin, fit.root[k : k + 1], fit.u[k : k + 1], obs.take([0]), ctx.camera, w,
-        priors.take([0]),
-    )  # fmt: skip
+        model, kin, *kin.fit(x[None]), obs.take([0]), ctx.camera, w, priors.take([0])
+    )
     res = diag["capsule_data_mm"][0]
     free = diag["capsule_free"][0]
     touch = np.zeros((j, len(model.pairs)), dtype=bool)
@@ -889,16 +903,20 @@ def _name_bad_references(problems: dict[int, str], bad_refs: dict[int, str], par
 def _hand_models(
     hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
     bones: BoneTable, settings: PropagationSettings,
-) -> list[hm.HandModel] | None:  # fmt: skip
+) -> tuple[list[hm.HandModel], np.ndarray] | None:  # fmt: skip
     """The hand models to fit, one per row of ``bones.lengths`` (``hand_model=True``: each
-    personalized from the usable references with those bones, else from all of them)."""
+    personalized from the usable references with those bones, else from all of them), and each
+    one's reference level (:func:`_model_levels`; inf without references)."""
     if hand_model is False or hand_model is None:
         return None
-    if isinstance(hand_model, hm.HandModel):
-        return [hand_model] * len(bones.lengths)
     refs = sorted(f for f in known if f in reference_joints)
+    given = isinstance(hand_model, hm.HandModel)
     if not refs:
-        return None
+        return (
+            ([hand_model] * len(bones.lengths), np.full(len(bones.lengths), np.inf))
+            if given
+            else None
+        )
     ref_frames = np.asarray(refs, dtype=np.int64)
     obs = hm.observe(
         np.asarray(crops[ref_frames], dtype=np.float32),
@@ -908,14 +926,33 @@ def _hand_models(
         cube_mm=settings.cube_mm,
     )
     ref_joints = np.stack([known[f][0] for f in refs])
-    if bones.single:
-        return [hm.personalize(skeleton, bones.lengths[0], ref_joints, obs)]
-    models = []
+    models, levels = [], []
     for h, lengths in enumerate(bones.lengths):
-        own = np.flatnonzero(bones.hand[ref_frames] == h)
-        own = own if len(own) else np.arange(len(refs))
-        models.append(hm.personalize(skeleton, lengths, ref_joints[own], obs.take(own)))
-    return models
+        own = np.arange(len(refs))
+        if not bones.single:
+            own = np.flatnonzero(bones.hand[ref_frames] == h)
+            own = own if len(own) else np.arange(len(refs))
+        model = (
+            hand_model
+            if given
+            else hm.personalize(skeleton, lengths, ref_joints[own], obs.take(own))
+        )
+        models.append(model)
+        levels.append(_model_levels(model, ref_joints[own], obs.take(own), camera))
+    return models, np.asarray(levels)
+
+
+def _model_levels(
+    model: hm.HandModel, joints_mm: np.ndarray, obs: hm.FrameObservations, camera
+) -> float:
+    """How well the model explains verified poses: the median over the references (K,J,3) mm of
+    the data + free-space energy (:func:`handmodel.frame_energy`) at their lifted poses. A fitted
+    frame far above it is a fit that failed (hand on the wrong surface, wrong minimum)."""
+    kin = hm.Kinematics(model.skeleton, model.bone_lengths_mm)
+    _, terms, _, _ = hm.frame_energy(
+        model, kin, *kin.fit(joints_mm), obs, camera, hm.FitWeights(), diagnostics=False
+    )
+    return float(np.median(terms["data"] + terms["free_space"]))
 
 
 @contextmanager

@@ -219,3 +219,52 @@ def test_forearm_behind_the_wrist_is_ignored(scene):
     res = hm.fit_frames(model, _perturb_joints(x, 15.0, signs)[None], obs, CAM, iterations=60)
     err = np.linalg.norm(res.joints_mm[0] - x, axis=1)
     assert err.max() <= 1.0, np.round(err, 2)
+
+
+def _noisy_crop(depth: np.ndarray, centre: np.ndarray, rng) -> np.ndarray:
+    """The crop of a rendered depth map with 2 mm sensor noise on the hand."""
+    depth = np.where(depth > 0, depth + rng.normal(0.0, 2.0, depth.shape), 0.0)
+    return crop_depth(depth.astype(np.float32), CAM, centre)
+
+
+def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
+    """A frame is fitted from the flowed pose (here the reference's pose, which the hand has left
+    by 15 degrees at every joint). Where the frame shows the hand, the fit is kept (it recovers the
+    new pose); where the frame shows another surface (a 45 mm ball in the hand's place), the fit's
+    data + free-space energy is far above the reference's and the frame keeps its flowed pose,
+    which the fit without the guard would have moved ~45 mm."""
+    from handanno_core import propagate as prop
+    from handanno_core.hands import bone_table
+
+    rng = np.random.default_rng(0)
+    x = _pose("open")
+    model = _model(x)
+    signs = [(-1) ** i for i in range(len(MSRA21.angle_joints))]
+    moved = _perturb_joints(x, 15.0, signs)
+    c0, c1 = x.mean(axis=0), moved.mean(axis=0)
+    ref_crop = _noisy_crop(_render(model, x), c0, rng)
+    level = prop._model_levels(
+        model, x[None], hm.observe(ref_crop[None], crop_boxes(c0, CAM)[None], c0[None], CAM), CAM
+    )
+    hand_crop = _noisy_crop(_render(model, moved), c1, rng)
+    empty = np.zeros((0, 3))
+    ball = Primitives(
+        c1[None], c1[None] + [0, 0, 1e-3], np.array([45.0]), empty, np.zeros((0, 3, 3)), empty
+    )
+    ball_crop = _noisy_crop(render_depth(ball, CAM), c1, rng)
+    ctx = prop._Context(
+        None, 0, (2, *ref_crop.shape), "float32", np.stack([crop_boxes(c, CAM) for c in (c0, c1)]),
+        np.stack([c0, c1]), None, CAM, MSRA21, bone_table(model.bone_lengths_mm, 2, 20), "dis", {},
+        prop.PropagationSettings(), hand_models=[model], model_levels=np.array([level]),
+        model_refs=np.array([0]), model_ref_joints=x[None],
+    )  # fmt: skip
+
+    def fit(crop, ratio):
+        c = replace(ctx, settings=prop.PropagationSettings(model_fail_ratio=ratio))
+        out, conf = prop._model_fit(c, 0, 1, x, x, CAM.project(x), np.zeros(21), crop)
+        return np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
+
+    to_flow, to_truth = fit(hand_crop, 5.0)
+    assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
+    assert fit(ball_crop, 5.0)[0] == 0.0  # failed: the flowed pose, unchanged
+    assert fit(ball_crop, 0.0)[0] > 20.0  # without the guard the fit leaves it

@@ -381,3 +381,33 @@ def test_bench_runs_share_the_base_crop_cache_with_a_grown_cube(tmp_path):
     )
     pipeline.ensure_crops(run, quiet=True)
     assert (tmp_path / "base" / "crops.npy").stat().st_mtime_ns == stamp  # not cut again
+
+
+def test_cli_bench_model_option(monkeypatch, tmp_path):
+    from app.cli import main
+
+    seen = []
+    monkeypatch.setattr(bench, "run_bench_datasets", lambda paths, **kw: seen.append(kw["models"]))
+    args = ["bench", str(tmp_path / "d"), "--json", str(tmp_path / "b.json")]
+    assert main(args + ["--model", "off,on"]) == 0
+    assert main(args) == 0
+    assert seen == [[False, True], None]  # None: the session default, one run
+    with pytest.raises(SystemExit):
+        main(args + ["--model", "maybe"])
+
+
+def test_bench_with_and_without_the_model_on_one_lift(tmp_path):
+    data = synth.generate_sequence(tmp_path / "seq", frames=24, seed=4, progress=False, workers=1)
+    kw = dict(fractions=[0.1], strategies=["uniform"], workers=1, quiet=True)
+    doc = bench.run_bench(data, json_out=tmp_path / "m.json", models=[False, True], **kw)
+    off, on = doc["runs"]
+    assert (off["model"], on["model"]) == (False, True)
+    assert off["lift"] == on["lift"] and off["timings_s"]["lift"] == on["timings_s"]["lift"]
+    assert off["init"] != on["init"]  # the model changed propagation
+    assert off["kept_initialization"] == 0
+    # without the option: one run, today's keys
+    (plain,) = bench.run_bench(data, json_out=tmp_path / "p.json", **kw)["runs"]
+    assert "model" not in plain and "kept_initialization" not in plain
+    assert plain["lift"] == off["lift"]
+    rows = bench.summarize_datasets([doc])
+    assert [r["model"] for r in rows] == [False, True]

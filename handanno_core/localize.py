@@ -652,12 +652,14 @@ def _attachment(
         return (stump if far else contact), narrow & False, False
     if attach.any():
         return attach, narrow, False
-    # no contact: a rim within STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
-    if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
-        return rim, narrow, False
+    # no contact: an elongated region's ends vote which is the arm's cut (the rim is one vote:
+    # fingers curled towards the camera near the sensor make a rim too); else a rim within
+    # STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
     stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
     if stump is not None:
         return stump, narrow, False
+    if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
+        return rim, narrow, False
     # a wide rim farther from the near range: a sleeve or forearm pointing at the camera and
     # ending in view, or the near range of a sensor that cuts farther than min_depth_mm
     # (tentative: step 4 checks that the hand shows past its far end or that the region runs a

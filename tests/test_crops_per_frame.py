@@ -175,3 +175,26 @@ def test_frames_held_together_do_not_size_the_session_cube(monkeypatch):
     geometry[2:5, 14] = 0.0
     _, spec, box = locate_crops(FramesSequence([np.zeros((2, 2), np.float32)] * 7))
     assert spec.cube_mm > 220.0 and np.all(box == spec.cube_mm)
+
+
+def test_the_app_cuts_a_frames_cloud_at_its_own_box(tmp_path):
+    """The app's hand cloud of a frame with its own larger box is cut at that box (else the
+    fingertips the crop holds would be missing from the cloud); other frames at the session's
+    cube; a cache without per-frame boxes (older sessions) at the session's cube."""
+    from types import SimpleNamespace
+
+    from app.control.frames import FrameStore
+    from handanno_core.session import CROPS_META_FILE
+
+    session = SimpleNamespace(
+        folder=tmp_path,
+        num_frames=3,
+        model=SimpleNamespace(settings=SimpleNamespace(cube_mm=250.0)),
+    )
+    np.savez(
+        tmp_path / CROPS_META_FILE, centres_mm=np.zeros((3, 3)), box_cubes_mm=[250.0, 310.0, 250.0]
+    )
+    store = FrameStore(session)
+    assert [store.cube_of(i) for i in range(3)] == [250.0, 310.0, 250.0]
+    np.savez(tmp_path / CROPS_META_FILE, centres_mm=np.zeros((3, 3)))
+    assert [FrameStore(session).cube_of(i) for i in range(3)] == [250.0] * 3

@@ -161,6 +161,10 @@ HIDDEN_MAX_MM = 130.0
 #: ... keeping this far (mm) in front of a surface visible behind the hand (a body, a table), so
 #: the deeper cube does not take it in.
 BEHIND_GAP_MM = 20.0
+#: ... and only as far as the hand's nearest visible surface stays this far (mm) behind the
+#: crop's front limit, a cube in front of the centre (joint centres lie a few mm in front of the
+#: surface's 0.2th depth percentile).
+FRONT_MARGIN_MM = 20.0
 #: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
 MAX_ARM_AREA_MM2 = 100000.0
 #: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
@@ -979,7 +983,10 @@ def _box_of(geometry: np.ndarray, cube_mm: float, box_cube_mm: float | None = No
     slack = np.maximum(0.0, 0.5 * box - CROP_MARGIN_MM - (half_ang * zc + allowance))
     with np.errstate(divide="ignore", invalid="ignore"):
         z_fit = float(np.min(zc + DEPTH_SHARE * slack / half_ang))
-    zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit))
+    # the hidden side never pushes the hand's nearest surface out of the crop's front (surface
+    # up to a cube in front of the centre stays foreground)
+    z_front = z_lo + cube_mm - FRONT_MARGIN_MM
+    zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit, z_front))
     centre = np.array([*(ac * zc), zc])
     half_xy = half_ang * zc + allowance
     half_z = max(z_hi - zc, zc - z_lo)

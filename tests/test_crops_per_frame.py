@@ -198,3 +198,28 @@ def test_the_app_cuts_a_frames_cloud_at_its_own_box(tmp_path):
     assert [store.cube_of(i) for i in range(3)] == [250.0, 310.0, 250.0]
     np.savez(tmp_path / CROPS_META_FILE, centres_mm=np.zeros((3, 3)))
     assert [FrameStore(session).cube_of(i) for i in range(3)] == [250.0] * 3
+
+
+def _deep_hand_row(z_near: float, z_far: float) -> np.ndarray:
+    """A hand geometry row whose visible surface spans ``z_near..z_far`` mm in depth (90 x 120 mm
+    across), nothing visible behind it (hidden side up to HIDDEN_MAX_MM)."""
+    x, y, z = np.meshgrid([-45.0, 45.0], [-60.0, 60.0], np.linspace(z_near, z_far, 50))
+    row = localize._hand_geometry(np.stack([x.ravel(), y.ravel(), z.ravel()], 1), "arm-end")
+    row[6] = localize.HIDDEN_MAX_MM
+    return row
+
+
+def test_the_hidden_side_never_pushes_the_hands_front_out_of_the_crop(monkeypatch):
+    """Must trigger: a hand 330 mm deep in a 290 mm cube (a forearm pointing away in its region):
+    the cube's back would go 130 mm behind its farthest surface, moving the centre so deep that
+    the nearest surface (the fingertips) falls more than a cube in front of it, out of the crop.
+    The centre stops FRONT_MARGIN_MM short of that. Must not: a hand 60 mm deep, where the hidden
+    side fits, is placed as before."""
+    deep, shallow = _deep_hand_row(650.0, 980.0), _deep_hand_row(500.0, 560.0)
+    z_deep = localize._box_of(deep, 290.0).centre_mm[2]
+    z_shallow = localize._box_of(shallow, 290.0).centre_mm[2]
+    assert z_deep - 290.0 <= deep[4] - localize.FRONT_MARGIN_MM + 1e-6  # the front stays in
+    assert z_deep + 145.0 >= deep[5] + localize.HIDDEN_DEPTH_MM - 1e-6  # the back as before
+    monkeypatch.setattr(localize, "FRONT_MARGIN_MM", -1e6)  # the rule off
+    assert localize._box_of(deep, 290.0).centre_mm[2] - 290.0 > deep[4]  # the front was cut
+    assert localize._box_of(shallow, 290.0).centre_mm[2] == z_shallow

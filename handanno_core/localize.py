@@ -30,14 +30,15 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    The *rim*: a wide (``ARM_CONTACT_MM``) group of silhouette nodes (no depth next to them)
    within ``STUMP_BAND_MM`` of the region's nearest depth: where an arm pointing at the camera
    is cut by the sensor's near range or ends in a sleeve's open end.
-   Without contacts: (a) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm``: that rim; (b) an
-   elongated region (longer than a hand by ``ARM_EXTRA_MM``; longer than a hand only, if both
-   shape cues and the previous frame agree): its two ends (``END_PART_MM`` each) vote which is
-   the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
+   Without contacts: (a) an elongated region (longer than a hand by ``ARM_EXTRA_MM``; longer
+   than a hand only, if both shape cues and the previous frame agree): its two ends
+   (``END_PART_MM`` each) vote which is the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
    (fingers, the gaps between them and their depth steps make edges; a forearm or sleeve is one
    smooth cylinder), the one holding the rim, the one farther from the previous frame's hand
    (it counts more than one cue, less than two: a sleeve's open end is not solid, a fist has
-   few edges); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
+   few edges); (b) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm`` (where the near range cut
+   the arm; after the vote, since fingers curled towards the camera near the sensor make such a
+   rim too); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
    whose near range is farther, a Kinect's 400 mm), tentatively: step 4 keeps it if the hand
    shows past the arm's far end or the region runs at least a hand's length from the rim (a
    palm facing the camera does not); (d) otherwise no attachment. A region larger than
@@ -50,7 +51,11 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
-   the end are the hand, the end its wrist side (hidden by the arm). The seed's surfaces the attachment does not reach join it only where they lie
+   the end are the hand, the end its wrist side (hidden by the arm); but when the region is larger
+   than a sleeve or forearm pointing at the camera shows (``REGION_HAND_MM2``) and that surface
+   is less than ``BEHIND_SHARE`` of its area (a finger seen past a fingertip looks the same), the
+   hand is both, the far end and that surface, and the frame gets its own crop box (the
+   geometry's own-box column). The seed's surfaces the attachment does not reach join it only where they lie
    nearer the hand than the attachment (not bits of a sleeve's inside next to its rim). Without an attachment (a hand alone, or with a short forearm floating
    free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
@@ -84,7 +89,15 @@ suite's report part. Fourth round (``HIDDEN_MAX_MM``, ``BEHIND_GAP_MM``, the rim
 tentative rim's hand-length test, the relaxed length gate): the suite's tune part, the forearm
 tune cases and 15 tune-side sequences rendered with the report part's Kinect 320x240 egocentric
 + sleeve configuration (and 2 with the fast-motion varied-hand one) but tune-side motion seeds
-(``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5).
+(``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5). Fifth round
+(``BEHIND_SHARE``, ``REGION_HAND_MM2``, the vote before the near-range rim, ``FRONT_MARGIN_MM``,
+the per-frame box :func:`frame_cubes_mm`): the same tune side plus the suite's tune part at
+frames-scale 1.0.
+
+A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
+not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and
+frames whose hand is two candidates held together get their own box instead of growing the
+session's cube for every frame.
 """
 
 from __future__ import annotations

@@ -212,6 +212,13 @@ def ensure_crops(
     # a frame whose hand does not fit the session's cube has a larger image box (box_cubes):
     # the boxes carry it to every stage, depth stays at the session's cube
     boxes = crop_boxes(centres, sequence.camera, cube_mm=box_cubes, size=grown.size)
+    own = box_cubes > grown.cube_mm
+    if own.any():
+        _log(
+            f"crops: {int(own.sum())} frames with their own larger box "
+            f"(up to {box_cubes.max():g} mm; depth at the session's {grown.cube_mm:g} mm)",
+            quiet,
+        )
     # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
     compute_crops(
         sequence,

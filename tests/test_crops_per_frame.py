@@ -223,3 +223,41 @@ def test_the_hidden_side_never_pushes_the_hands_front_out_of_the_crop(monkeypatc
     monkeypatch.setattr(localize, "FRONT_MARGIN_MM", -1e6)  # the rule off
     assert localize._box_of(deep, 290.0).centre_mm[2] - 290.0 > deep[4]  # the front was cut
     assert localize._box_of(shallow, 290.0).centre_mm[2] == z_shallow
+
+
+def _curled_hand_near_the_sensor():
+    """An arm floating in view (80 mm wide, 520 mm deep at its cut far end, 285 mm at the wrist)
+    whose hand is the nearest part, 270 mm from the sensor: a palm and four curled fingers (8 mm
+    wide, 15 mm apart) bending back to 292 mm, so the knuckles make a wide rim at the region's
+    nearest depth, within 150 mm of the sensor's near range (150 mm)."""
+    fingers = [(110.0, 170.0, a, a + 8.0, (270.0, 292.0)) for a in (-45.0, -22.0, 1.0, 24.0)]
+    arm = (-300.0, 60.0, -40.0, 40.0, (520.0, 285.0))
+    return _scene(arm, (60.0, 110.0, -45.0, 32.0, (285.0, 270.0)), *fingers)
+
+
+def _short_arm_cut_by_the_near_range():
+    """An arm pointing at the camera, cut by the near range at 190 mm, 100 mm long in the image,
+    with its hand (palm and four fingers) at 350-360 mm: too short for the ends to vote."""
+    fingers = [(110.0, 160.0, a, a + 10.0, (355.0, 360.0)) for a in (-45.0, -22.0, 1.0, 24.0)]
+    arm = (-40.0, 60.0, -35.0, 35.0, (190.0, 350.0))
+    return _scene(arm, (60.0, 110.0, -45.0, 34.0, (350.0, 355.0)), *fingers)
+
+
+def test_an_elongated_regions_ends_vote_before_the_near_range_rim(monkeypatch):
+    """Must trigger: fingers curled towards the camera near the sensor make a rim like an arm cut
+    by the near range; the elongated region's ends vote (the forearm's cut end is more solid,
+    the fingers make edges; the rim is one vote), so the hand is the crop, not the forearm's far
+    end (which the rim alone gives: the vote switched off). Must not: an arm cut by the near
+    range too short to vote keeps the rim as its attachment (the hand at its far end), exactly
+    as without the vote."""
+    g = hand_geometry(_curled_hand_near_the_sensor(), CAM)
+    assert g[2] >= 0.95 * 170.0 / 292.0  # the fingertips
+    assert g[0] > -100.0 / 400.0  # not the forearm's far end (x = -300 mm at 520 mm)
+    monkeypatch.setattr(localize, "_stump_of_free_arm", lambda *a, **k: None)
+    rim_only = hand_geometry(_curled_hand_near_the_sensor(), CAM)
+    assert rim_only[2] < 0.0  # the rim alone: the crop on the forearm's far end
+    short = hand_geometry(_short_arm_cut_by_the_near_range(), CAM)  # the rim alone
+    monkeypatch.undo()
+    voted = hand_geometry(_short_arm_cut_by_the_near_range(), CAM)
+    np.testing.assert_array_equal(voted, short)
+    assert voted[2] >= 0.95 * 160.0 / 360.0 and voted[0] > -40.0 / 190.0  # the hand, not the cut

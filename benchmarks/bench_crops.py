@@ -160,38 +160,43 @@ def _load_baseline(path: Path):
     return importlib.import_module("baseline_core.crops")
 
 
-def baseline_locate(baseline, seq) -> tuple[np.ndarray, float]:
-    """Centres ``(N, 3)`` and cube (mm) of another checkout, as its pipeline would crop ``seq``."""
+def baseline_locate(baseline, seq) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """Centres ``(N, 3)``, cube (mm) and frames' own cubes in x, y (``(N,)`` mm, None where that
+    checkout has none) of another checkout, as its pipeline would crop ``seq``."""
     if hasattr(baseline, "locate_crops"):
-        centres, spec = baseline.locate_crops(seq)
-        return centres, spec.cube_mm
+        out = baseline.locate_crops(seq)
+        return out[0], out[1].cube_mm, (out[2] if len(out) > 2 else None)
     import importlib
 
     loc = importlib.import_module("baseline_core.localize")
     if not hasattr(loc, "session_cube_mm"):
-        return baseline.locate_hands(seq), 220.0
+        return baseline.locate_hands(seq), 220.0, None
     cube = 220.0
     centres, half = loc.locate_hands_with_extent(seq, cube_mm=cube)
     while (grown := loc.session_cube_mm(half, cube)) != cube:
         cube = grown
         centres, half = loc.locate_hands_with_extent(seq, cube_mm=cube)
-    return centres, cube
+    return centres, cube, None
 
 
-def crop_scores(seq, centres: np.ndarray, cube: float, size: int = 128) -> dict:
+def crop_scores(
+    seq, centres: np.ndarray, cube: float, size: int = 128, box_cubes: np.ndarray | None = None
+) -> dict:
     """Per-sequence scores of crop centres ``(N, 3)`` against the sequence's ground truth.
 
     A joint is inside in x, y when its projection is within the half cube less 8 mm of the crop
-    centre (crop pixels converted at the cube's scale); in depth (``xyz``) when it is also not
-    behind the cube and at most a cube in front of the centre (the crop keeps surface up to half a
-    cube in front of the cube as foreground, clamped to -1); ``cube`` (strict) when within the
-    cube itself (``|dz| <= cube / 2``).
+    centre (crop pixels converted at the cube's scale; ``box_cubes`` ``(N,)``: each frame's own
+    cube in x, y, default ``cube``); in depth (``xyz``) when it is also not behind the cube and at
+    most a cube in front of the centre (the crop keeps surface up to half a cube in front of the
+    cube as foreground, clamped to -1); ``cube`` (strict) when within the cube itself
+    (``|dz| <= cube / 2``). Depth is always at the session's ``cube``.
     """
     gt = seq.ground_truth.joints_mm
-    boxes = crop_boxes(centres, seq.camera, cube, size)
+    box = np.full(len(gt), float(cube)) if box_cubes is None else np.asarray(box_cubes, float)
+    boxes = crop_boxes(centres, seq.camera, box, size)
     xy = image_to_crop(seq.camera.project(gt), boxes[:, None, :])
-    mm = (xy - (size - 1) / 2) * cube / size
-    ok_xy = np.all(np.abs(mm) <= cube / 2 - 8.0, axis=(1, 2))
+    mm = (xy - (size - 1) / 2) * box[:, None, None] / size
+    ok_xy = np.all(np.abs(mm) <= box[:, None, None] / 2 - 8.0, axis=(1, 2))
     dz = gt[..., 2] - centres[:, None, 2]
     ok_z = np.all((dz <= cube / 2) & (dz >= -cube), axis=1)
     ok_cube = np.all(np.abs(dz) <= cube / 2, axis=1)
@@ -204,6 +209,8 @@ def crop_scores(seq, centres: np.ndarray, cube: float, size: int = 128) -> dict:
         "frames_out": np.flatnonzero(~(ok_xy & ok_z)).tolist()[:50],
         "centre_to_centroid_median_mm": float(np.median(d)),
         "centre_to_centroid_p90_mm": float(np.percentile(d, 90)),
+        "frames_box_grown": int(np.sum(box > cube)),
+        "box_cube_max_mm": float(box.max()),
     }
 
 
@@ -217,15 +224,22 @@ def bench_suite(folder: Path, part: str, baseline=None) -> dict:
     for name, _, path in read_suite(folder, part):
         seq = open_sequence(path)
         t0 = time.perf_counter()
-        centres, spec = locate_crops(seq)
+        centres, spec, box = locate_crops(seq)
         ms = 1e3 * (time.perf_counter() - t0) / len(seq)
-        row = {"sequence": name, "after": {**crop_scores(seq, centres, spec.cube_mm)}}
+        row = {
+            "sequence": name,
+            "after": {**crop_scores(seq, centres, spec.cube_mm, box_cubes=box)},
+        }
         row["after"].update(cube_mm=spec.cube_mm, ms_per_frame=ms)
         if baseline is not None:
             t0 = time.perf_counter()
-            old, cube = baseline_locate(baseline, seq)
+            old, cube, old_box = baseline_locate(baseline, seq)
             ms = 1e3 * (time.perf_counter() - t0) / len(seq)
-            row["before"] = {**crop_scores(seq, old, cube), "cube_mm": cube, "ms_per_frame": ms}
+            row["before"] = {
+                **crop_scores(seq, old, cube, box_cubes=old_box),
+                "cube_mm": cube,
+                "ms_per_frame": ms,
+            }
         rows.append(row)
         _print_row(name, row)
     return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}
@@ -237,7 +251,8 @@ def _print_row(name: str, row: dict) -> None:
         f"  {name:28s} inside {a['inside_xy_pct']:5.1f}% (depth too {a['inside_xyz_pct']:5.1f}%, "
         f"in cube {a['inside_cube_pct']:5.1f}%) centre-centroid "
         f"{a['centre_to_centroid_median_mm']:5.1f}/{a['centre_to_centroid_p90_mm']:5.1f} mm "
-        f"cube {a['cube_mm']:.0f} {a['ms_per_frame']:5.1f} ms/f"
+        f"cube {a['cube_mm']:.0f} (box grown on {a.get('frames_box_grown', 0)} frames, to "
+        f"{a.get('box_cube_max_mm', a['cube_mm']):.0f}) {a['ms_per_frame']:5.1f} ms/f"
         + (
             f" | before {b['inside_xy_pct']:5.1f}% ({b['inside_xyz_pct']:5.1f}%) cube "
             f"{b['cube_mm']:.0f}"
@@ -271,19 +286,23 @@ def bench_forearm(cases, baseline=None) -> dict:
     for case in cases:
         seq = case_sequence(case)
         t0 = time.perf_counter()
-        centres, spec = locate_crops(seq)
+        centres, spec, box = locate_crops(seq)
         ms = 1e3 * (time.perf_counter() - t0) / len(seq)
         row = {"case": case.name, "theta_deg": case.theta_deg, "sleeve": case.sleeve}
         row["after"] = {
-            **crop_scores(seq, centres, spec.cube_mm),
+            **crop_scores(seq, centres, spec.cube_mm, box_cubes=box),
             "cube_mm": spec.cube_mm,
             "ms_per_frame": ms,
         }
         if baseline is not None:
             t0 = time.perf_counter()
-            old, cube = baseline_locate(baseline, seq)
+            old, cube, old_box = baseline_locate(baseline, seq)
             ms = 1e3 * (time.perf_counter() - t0) / len(seq)
-            row["before"] = {**crop_scores(seq, old, cube), "cube_mm": cube, "ms_per_frame": ms}
+            row["before"] = {
+                **crop_scores(seq, old, cube, box_cubes=old_box),
+                "cube_mm": cube,
+                "ms_per_frame": ms,
+            }
         rows.append(row)
         _print_row(case.name, row)
     return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}

@@ -57,7 +57,8 @@ def crop_boxes(
     cube_mm: float = DEFAULT_CROP.cube_mm,
     size: int = DEFAULT_CROP.size,
 ) -> np.ndarray:
-    """Image boxes ``(..., 4)`` float64 ``[u_left, v_top, sx, sy]`` for centres ``(..., 3)`` mm.
+    """Image boxes ``(..., 4)`` float64 ``[u_left, v_top, sx, sy]`` for centres ``(..., 3)`` mm
+    at a cube of ``cube_mm`` (a float, or one per centre ``(...,)``: frames' own cubes in x, y).
 
     ``sx = fx * cube_mm / z_c / size`` (image px per crop px), box centred on the projection of
     the centre. NaN centres give NaN boxes.
@@ -97,17 +98,21 @@ def crop_depth(
     centre_mm: np.ndarray,
     cube_mm: float = DEFAULT_CROP.cube_mm,
     size: int = DEFAULT_CROP.size,
+    box_cube_mm: float | None = None,
 ) -> np.ndarray:
     """Normalized ``(size, size)`` float32 crop of ``depth (H, W)`` mm around ``centre_mm (3,)``.
 
-    Nearest-neighbour resampling of the box from :func:`crop_boxes` (outside the image = no
-    depth), then ``(d - z_c) / (cube_mm / 2)`` with the background rules in the module docstring
-    (no depth / behind / far in front = +1, just in front = -1). A NaN centre gives all +1.
+    Nearest-neighbour resampling of the box from :func:`crop_boxes` at ``box_cube_mm`` (the
+    frame's own cube in x and y, default ``cube_mm``; outside the image = no depth), then
+    ``(d - z_c) / (cube_mm / 2)`` with the background rules in the module docstring (no depth /
+    behind / far in front = +1, just in front = -1): depth is always at the session's
+    ``cube_mm``. A NaN centre gives all +1.
     """
     c = np.asarray(centre_mm, dtype=np.float64)
     if not np.all(np.isfinite(c)) or c[2] <= 0:
         return np.full((size, size), CropSpec.BACKGROUND, np.float32)
-    u_left, v_top, sx, sy = crop_boxes(c, camera, cube_mm, size)
+    box_cube = cube_mm if box_cube_mm is None else float(box_cube_mm)
+    u_left, v_top, sx, sy = crop_boxes(c, camera, box_cube, size)
     # dst (x, y) -> src (u, v) = (sx * x + u0, sy * y + v0)
     m = np.array(
         [[sx, 0.0, u_left + 0.5 * sx - 0.5], [0.0, sy, v_top + 0.5 * sy - 0.5]], dtype=np.float64
@@ -138,6 +143,7 @@ def compute_crops(
     progress: bool = False,
     chunk_frames: int = 256,
     workers: int = 1,
+    box_cubes_mm: np.ndarray | None = None,
 ) -> np.ndarray:
     """Normalized crops ``(N, size, size)`` float16 for every frame (see :func:`crop_depth`).
 
@@ -147,18 +153,23 @@ def compute_crops(
     it an in-memory array is returned. Bad frames (``FrameError``, recorded in ``report``; raised
     if ``report`` is None) and NaN centres stay all +1. ``workers`` > 1 (with ``out_path``):
     ranges of frames are cut by that many processes, each writing its own part of the file; the
-    same bytes as one process.
+    same bytes as one process. ``box_cubes_mm`` ``(N,)`` (optional): each frame's own cube in x
+    and y (:func:`locate_crops`; default ``cube_mm``); depth is at ``cube_mm`` in every frame.
     """
     n = len(sequence)
     centres = np.asarray(centres_mm, dtype=np.float64)
     if centres.shape != (n, 3):
         raise ValueError(f"centres must be ({n}, 3), got {centres.shape}")
+    box = np.full(n, float(cube_mm)) if box_cubes_mm is None else np.asarray(box_cubes_mm, float)
+    if box.shape != (n,):
+        raise ValueError(f"box_cubes_mm must be ({n},), got {box.shape}")
+    cubes = (float(cube_mm), box)
     frame_shape = (size, size)
     if out_path is None:
         out = np.full((n, *frame_shape), CropSpec.BACKGROUND, np.float16)
         for a in range(0, n, chunk_frames):
             b = min(n, a + chunk_frames)
-            out[a:b] = _crop_chunk(sequence, centres, a, b, cube_mm, size, report)
+            out[a:b] = _crop_chunk(sequence, centres, a, b, cubes, size, report)
         return out
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -169,7 +180,7 @@ def compute_crops(
     file = (str(tmp), offset, frame_shape)
     if workers > 1 and n > 1:
         _crop_parallel(
-            sequence, centres, file, cube_mm, size, report, progress, chunk_frames, workers
+            sequence, centres, file, cubes, size, report, progress, chunk_frames, workers
         )
     else:
         bar = None
@@ -179,7 +190,7 @@ def compute_crops(
             bar = tqdm(total=n, desc="cropping", unit="frame")
         for a in range(0, n, chunk_frames):
             b = min(n, a + chunk_frames)
-            _write_chunk(file, a, _crop_chunk(sequence, centres, a, b, cube_mm, size, report))
+            _write_chunk(file, a, _crop_chunk(sequence, centres, a, b, cubes, size, report))
             if bar is not None:
                 bar.update(b - a)
         if bar is not None:
@@ -188,8 +199,10 @@ def compute_crops(
     return np.load(out_path, mmap_mode="r")
 
 
-def _crop_chunk(sequence, centres, a, b, cube_mm, size, report) -> np.ndarray:
-    """Crops ``(b - a, size, size)`` float16 of frames ``a..b-1`` (bad frames to ``report``)."""
+def _crop_chunk(sequence, centres, a, b, cubes, size, report) -> np.ndarray:
+    """Crops ``(b - a, size, size)`` float16 of frames ``a..b-1`` (bad frames to ``report``);
+    ``cubes``: ``(cube_mm, box cubes (N,))``."""
+    cube_mm, box = cubes
     buf = np.full((b - a, size, size), CropSpec.BACKGROUND, np.float16)
     for i in range(a, b):
         if not np.all(np.isfinite(centres[i])):
@@ -201,7 +214,7 @@ def _crop_chunk(sequence, centres, a, b, cube_mm, size, report) -> np.ndarray:
                 raise
             report.errors.append(err)
             continue
-        buf[i - a] = crop_depth(depth, sequence.camera, centres[i], cube_mm, size)
+        buf[i - a] = crop_depth(depth, sequence.camera, centres[i], cube_mm, size, box[i])
     return buf
 
 
@@ -217,18 +230,18 @@ def _write_chunk(file: tuple[str, int, tuple[int, int]], a: int, buf: np.ndarray
     del target
 
 
-def _crop_job(sequence, centres, file, cube_mm, size, chunk_frames, job):
+def _crop_job(sequence, centres, file, cubes, size, chunk_frames, job):
     """One process's share ``job = (a, b)``, cut and written chunk by chunk; bad frames come back
     as ``(path, frame, problem)`` (a FrameError does not pickle)."""
     a, b = job
     report = BadFrameReport()
     for c in range(a, b, chunk_frames):
         d = min(b, c + chunk_frames)
-        _write_chunk(file, c, _crop_chunk(sequence, centres, c, d, cube_mm, size, report))
+        _write_chunk(file, c, _crop_chunk(sequence, centres, c, d, cubes, size, report))
     return [(e.path, e.frame, e.problem) for e in report.errors]
 
 
-def _crop_parallel(sequence, centres, file, cube_mm, size, report, progress, chunk_frames, workers):
+def _crop_parallel(sequence, centres, file, cubes, size, report, progress, chunk_frames, workers):
     from functools import partial
 
     from .parallel import Runner, frame_ranges
@@ -241,7 +254,7 @@ def _crop_parallel(sequence, centres, file, cube_mm, size, report, progress, chu
         bar = tqdm(total=len(jobs), desc=f"cropping ({workers} processes)", unit="part")
     with Runner(workers, fresh_processes=True) as runner:
         done = runner.map(
-            partial(_crop_job, sequence, centres, file, cube_mm, size, chunk_frames),
+            partial(_crop_job, sequence, centres, file, cubes, size, chunk_frames),
             jobs,
             progress=None if bar is None else lambda *_: bar.update(1),
         )
@@ -264,23 +277,40 @@ def locate_crops(
     report: BadFrameReport | None = None,
     progress: bool = False,
     workers: int = 1,
-) -> tuple[np.ndarray, CropSpec]:
-    """Crop centres ``(N, 3)`` mm of every frame and the spec they hold the hand in (``workers``
-    processes, see :func:`handanno_core.localize.locate_hand_geometry`).
+) -> tuple[np.ndarray, CropSpec, np.ndarray]:
+    """Crop centres ``(N, 3)`` mm of every frame, the session's spec and each frame's own cube in
+    x and y ``(N,)`` mm (``workers`` processes, see
+    :func:`handanno_core.localize.locate_hand_geometry`).
 
     The hand's geometry is found once per frame, whatever the cube
-    (:func:`handanno_core.localize.locate_hand_geometry`); the centres at ``spec``'s cube follow
-    from it (:func:`handanno_core.localize.centres_at`). When the hand does not fit
-    (:func:`handanno_core.localize.session_cube_mm`) the cube grows and the centres are placed
-    again from the same geometry (they depend on the cube), until the cube stops growing: one
-    pass over the frames, and a rebuilt cache gives the same crops.
+    (:func:`handanno_core.localize.locate_hand_geometry`); the centres at a cube follow from it
+    (:func:`handanno_core.localize.centres_at`). The session's cube grows until every frame's
+    hand but a one-frame spike fits (:func:`handanno_core.localize.session_cube_mm`; it sets
+    every crop's depth range), not counting frames whose hand is two candidates held together
+    (the geometry's own-box column); then a frame whose own hand still does not fit gets a
+    larger image box (:func:`handanno_core.localize.frame_cubes_mm`), the other frames' crops
+    unchanged.
+    Centres depend on the cube, so both are placed again from the same geometry until neither
+    grows: one pass over the frames, and a rebuilt cache gives the same crops.
     """
-    from .localize import centres_at, locate_hand_geometry, session_cube_mm
+    from .localize import centres_at, frame_cubes_mm, locate_hand_geometry, session_cube_mm
 
     geometry = locate_hand_geometry(sequence, report=report, progress=progress, workers=workers)
     breaks = sequence.sequence_breaks
+    own = geometry[:, 14] == 1.0  # frames with their own box do not size the session's cube
+
+    def session_cube(half):
+        half = np.where(own[:, None], np.nan, half)
+        return session_cube_mm(half, spec.cube_mm, sequence_breaks=breaks)
+
     centres, half = centres_at(geometry, spec.cube_mm, breaks)
-    while (cube := session_cube_mm(half, spec.cube_mm, sequence_breaks=breaks)) != spec.cube_mm:
+    while (cube := session_cube(half)) != spec.cube_mm:
         spec = spec.with_cube(cube)
         centres, half = centres_at(geometry, spec.cube_mm, breaks)
-    return centres, spec
+    boxes = frame_cubes_mm(half, spec.cube_mm)
+    while True:
+        centres, half = centres_at(geometry, spec.cube_mm, breaks, box_cubes_mm=boxes)
+        grown = np.maximum(boxes, frame_cubes_mm(half, spec.cube_mm))
+        if np.array_equal(grown, boxes):
+            return centres, spec, boxes
+        boxes = grown

@@ -30,14 +30,15 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    The *rim*: a wide (``ARM_CONTACT_MM``) group of silhouette nodes (no depth next to them)
    within ``STUMP_BAND_MM`` of the region's nearest depth: where an arm pointing at the camera
    is cut by the sensor's near range or ends in a sleeve's open end.
-   Without contacts: (a) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm``: that rim; (b) an
-   elongated region (longer than a hand by ``ARM_EXTRA_MM``; longer than a hand only, if both
-   shape cues and the previous frame agree): its two ends (``END_PART_MM`` each) vote which is
-   the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
+   Without contacts: (a) an elongated region (longer than a hand by ``ARM_EXTRA_MM``; longer
+   than a hand only, if both shape cues and the previous frame agree): its two ends
+   (``END_PART_MM`` each) vote which is the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
    (fingers, the gaps between them and their depth steps make edges; a forearm or sleeve is one
    smooth cylinder), the one holding the rim, the one farther from the previous frame's hand
    (it counts more than one cue, less than two: a sleeve's open end is not solid, a fist has
-   few edges); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
+   few edges); (b) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm`` (where the near range cut
+   the arm; after the vote, since fingers curled towards the camera near the sensor make such a
+   rim too); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
    whose near range is farther, a Kinect's 400 mm), tentatively: step 4 keeps it if the hand
    shows past the arm's far end or the region runs at least a hand's length from the rim (a
    palm facing the camera does not); (d) otherwise no attachment. A region larger than
@@ -50,7 +51,11 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    ``ATTACH_STEPS`` steps of ``ATTACH_MM`` (3D) of those (never the arm's nodes). If
    a hand-sized surface lies just behind the far end (15-300 mm deeper, within 2 grid nodes:
    the hand seen past the rim of a sleeve or forearm pointing at the camera), that surface and
-   the end are the hand, the end its wrist side (hidden by the arm). The seed's surfaces the attachment does not reach join it only where they lie
+   the end are the hand, the end its wrist side (hidden by the arm); but when the region is larger
+   than a sleeve or forearm pointing at the camera shows (``REGION_HAND_MM2``) and that surface
+   is less than ``BEHIND_SHARE`` of its area (a finger seen past a fingertip looks the same), the
+   hand is both, the far end and that surface, and the frame gets its own crop box (the
+   geometry's own-box column). The seed's surfaces the attachment does not reach join it only where they lie
    nearer the hand than the attachment (not bits of a sleeve's inside next to its rim). Without an attachment (a hand alone, or with a short forearm floating
    free, as the plain synthetic renderer draws it) the centre is the centre of mass of the
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
@@ -84,7 +89,15 @@ suite's report part. Fourth round (``HIDDEN_MAX_MM``, ``BEHIND_GAP_MM``, the rim
 tentative rim's hand-length test, the relaxed length gate): the suite's tune part, the forearm
 tune cases and 15 tune-side sequences rendered with the report part's Kinect 320x240 egocentric
 + sleeve configuration (and 2 with the fast-motion varied-hand one) but tune-side motion seeds
-(``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5).
+(``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5). Fifth round
+(``BEHIND_SHARE``, ``REGION_HAND_MM2``, the vote before the near-range rim, ``FRONT_MARGIN_MM``,
+the per-frame box :func:`frame_cubes_mm`): the same tune side plus the suite's tune part at
+frames-scale 1.0.
+
+A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
+not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and
+frames whose hand is two candidates held together get their own box instead of growing the
+session's cube for every frame.
 """
 
 from __future__ import annotations
@@ -112,6 +125,7 @@ __all__ = [
     "centres_at",
     "hand_geometry",
     "session_cube_mm",
+    "frame_cubes_mm",
     "smooth_centres",
 ]
 
@@ -140,8 +154,14 @@ ARM_CONTACT_MM = 30.0
 NARROW_END_MM = 40.0
 #: a hand seen past the arm's far end covers at least this metric area (mm^2) ...
 MIN_BEHIND_AREA_MM2 = 500.0
-#: ... and at most this metric area (mm^2).
+#: ... and at most this metric area (mm^2); ...
 MAX_HAND_AREA_MM2 = 30000.0
+#: when the arm's region is larger than what a sleeve or forearm pointing at the camera shows
+#: (``REGION_HAND_MM2``: its far end may be a hand itself) and the surface past its far end is
+#: less than this share of the region's area (a finger seen past a fingertip, or a hand past a
+#: rim), the hand is both: the region's far end and that surface.
+BEHIND_SHARE = 0.35
+REGION_HAND_MM2 = 10000.0
 #: the arm's far end: nodes within this geodesic distance (mm) of its farthest.
 END_MM = 40.0
 #: the hand's hidden side (fingers pointing away behind the palm, joint centres under the skin)
@@ -154,6 +174,10 @@ HIDDEN_MAX_MM = 130.0
 #: ... keeping this far (mm) in front of a surface visible behind the hand (a body, a table), so
 #: the deeper cube does not take it in.
 BEHIND_GAP_MM = 20.0
+#: ... and only as far as the hand's nearest visible surface stays this far (mm) behind the
+#: crop's front limit, a cube in front of the centre (joint centres lie a few mm in front of the
+#: surface's 0.2th depth percentile).
+FRONT_MARGIN_MM = 20.0
 #: an arm merged with this much surface (mm^2) runs into a body: no arm-end search.
 MAX_ARM_AREA_MM2 = 100000.0
 #: a region with no contact is an arm + hand if this much (mm) longer than a hand ...
@@ -457,7 +481,8 @@ def _hand_behind_end(
     end: np.ndarray,
     camera: CameraIntrinsics,
     stride: int,
-) -> np.ndarray | None:
+    region_area_mm2: float = 0.0,
+) -> tuple[np.ndarray | None, bool]:
     """The hand hidden behind the arm's far end (a sleeve or forearm pointing at the camera,
     the hand seen past its rim): nodes ``(M,)`` bool, or None.
 
@@ -465,7 +490,11 @@ def _hand_behind_end(
     image and 15-300 mm behind them; the surface grown from them (geodesic <= hand length) is
     the hand if its metric area is ``MIN_BEHIND_AREA_MM2`` (fingers peeking past the rim) ..
     ``MAX_HAND_AREA_MM2`` (so a body or a wall behind the fingertips does not count). Returns
-    those nodes and the end nodes (the rest of the hand is hidden behind the end).
+    those nodes and the end nodes (the rest of the hand is hidden behind the end), and whether
+    the region's far end may be the hand too: the region's area ``region_area_mm2`` exceeds
+    ``REGION_HAND_MM2`` (more than a sleeve or forearm pointing at the camera shows) and the
+    surface past it is less than ``BEHIND_SHARE`` of that (a finger seen past a fingertip looks
+    the same as a hand seen past a rim).
     """
     h, w = ids.shape
     end_grid = np.zeros((h, w), np.uint8)
@@ -478,7 +507,7 @@ def _hand_behind_end(
     dz = pts[:, 2] - z_end[rr, cc]
     cand &= (dz > 15.0) & (dz < 300.0)
     if cand.sum() < 3:
-        return None
+        return None, False
     d = dijkstra(
         graph, directed=False, indices=np.flatnonzero(cand), min_only=True, limit=HAND_LENGTH_MM
     )
@@ -487,8 +516,9 @@ def _hand_behind_end(
     # grid node area: (stride * z / f)^2
     area = float(np.sum((stride * z) ** 2) / (camera.fx * camera.fy))
     if not MIN_BEHIND_AREA_MM2 <= area <= MAX_HAND_AREA_MM2:
-        return None
-    return hand | end
+        return None, False
+    both = region_area_mm2 > REGION_HAND_MM2 and area < BEHIND_SHARE * region_area_mm2
+    return hand | end, both
 
 
 def _far_apart(pts: np.ndarray, a: np.ndarray, b: np.ndarray, dist_mm: float) -> bool:
@@ -639,12 +669,14 @@ def _attachment(
         return (stump if far else contact), narrow & False, False
     if attach.any():
         return attach, narrow, False
-    # no contact: a rim within STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
-    if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
-        return rim, narrow, False
+    # no contact: an elongated region's ends vote which is the arm's cut (the rim is one vote:
+    # fingers curled towards the camera near the sensor make a rim too); else a rim within
+    # STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
     stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
     if stump is not None:
         return stump, narrow, False
+    if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
+        return rim, narrow, False
     # a wide rim farther from the near range: a sleeve or forearm pointing at the camera and
     # ending in view, or the near range of a sensor that cuts farther than min_depth_mm
     # (tentative: step 4 checks that the hand shows past its far end or that the region runs a
@@ -725,7 +757,8 @@ def hand_geometry(
     d_from_seed = dijkstra(graph, directed=False, indices=seeds, min_only=True, limit=GROW_MM)
     region = np.isfinite(d_from_seed)
     node_area = (stride * pts[:, 2]) ** 2 / (camera.fx * camera.fy)
-    if float(node_area[region].sum()) > MAX_ARM_AREA_MM2:
+    region_area = float(node_area[region].sum())
+    if region_area > MAX_ARM_AREA_MM2:
         # the arm runs into a body on one smooth surface: its ends are not where the hand is
         return _free_blob(z, mask, camera, front_mm, scene)
 
@@ -753,35 +786,49 @@ def hand_geometry(
         return _free_blob(z, mask, camera, front_mm, scene)
     g_end = np.percentile(g[ok], 99.5)
     hand = ok & (g >= g_end - hand_length_mm)
-    behind = _hand_behind_end(
-        graph, pts, ids, rr, cc, region, ok & (g >= g_end - END_MM), camera, stride
+    behind, both = _hand_behind_end(
+        graph, pts, ids, rr, cc, region, ok & (g >= g_end - END_MM), camera, stride, region_area
     )
     if behind is None and tentative and g_end < hand_length_mm:
         # no hand past the rim and the region ends within a hand's length of it: the rim is not
         # an arm's (a palm facing the camera)
         return _free_blob(z, mask, camera, front_mm, scene)
-    if behind is None:  # the hand's nodes nearest the attachment: its wrist side
+    if behind is None or both:  # the hand's nodes nearest the attachment: its wrist side
         wrist = pts[hand & (g <= np.percentile(g[hand], 10))].mean(axis=0)
+        if both:  # the far end or the surface past it: the crop holds both (its own box)
+            hand = hand | behind
+            behind = None
     else:  # the hand emerges from the arm's far end: its wrist is there, hidden by the arm
         wrist = pts[ok & (g >= g_end - END_MM)].mean(axis=0)
         hand = behind
-    # the seed's surfaces that the arm's does not reach (a depth step: fingers pointing at or
-    # away from the camera, a hand bent at the wrist) are hand too, those nearer the hand than
-    # the attachment (not bits of a sleeve's inside next to its rim)
-    apart = np.flatnonzero(region & ~np.isfinite(g))
-    if len(apart):
-        from scipy.spatial import cKDTree
-
-        d_hand = cKDTree(pts[hand]).query(pts[apart])[0]
-        d_attach = cKDTree(pts[attach]).query(pts[apart])[0]
-        hand[apart[d_hand < d_attach]] = True
+    hand = _with_unreached(pts, hand, attach, region & ~np.isfinite(g))
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
         z_far = float(
             np.percentile(pts[ok & (g >= g_end - hand_length_mm - WRIST_ZONE_MM), 2], 99.8)
         )
-    return _hand_geometry(pts[hand], "arm-end", wrist_mm=wrist, z_far_mm=z_far, scene=scene)
+    return _hand_geometry(
+        pts[hand], "arm-end", wrist_mm=wrist, z_far_mm=z_far, scene=scene, own_box=both
+    )
+
+
+def _with_unreached(
+    pts: np.ndarray, hand: np.ndarray, attach: np.ndarray, unreached: np.ndarray
+) -> np.ndarray:
+    """``hand`` ``(M,)`` bool plus the region's nodes the attachment does not reach
+    (``unreached`` ``(M,)`` bool: a depth step, fingers pointing at or away from the camera, a
+    hand bent at the wrist) that lie nearer the hand than the attachment ``attach`` ``(M,)``
+    bool (not bits of a sleeve's inside next to its rim)."""
+    from scipy.spatial import cKDTree
+
+    hand = hand.copy()
+    apart = np.flatnonzero(unreached)
+    if len(apart):
+        d_hand = cKDTree(pts[hand]).query(pts[apart])[0]
+        d_attach = cKDTree(pts[attach]).query(pts[apart])[0]
+        hand[apart[d_hand < d_attach]] = True
+    return hand
 
 
 def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -843,8 +890,10 @@ def _hidden_depth(scene: _Scene | None, a_lo: np.ndarray, a_hi: np.ndarray, z_hi
 #: a frame's hand geometry (:func:`_hand_geometry`), cube-independent, as one float64 row:
 #: ray-angle box a_lo (2), a_hi (2); depth z_lo, z_hi (mm); hidden depth (mm, the room behind the
 #: hand, :func:`_hidden_depth`); wrist side (3, mm, NaN: none); given centre (3, mm, NaN: the
-#: middle of the box); method (index in ``METHODS``; NaN: no hand).
-GEOMETRY_LEN = 14
+#: middle of the box); method (index in ``METHODS``; NaN: no hand); own box (1: the hand is two
+#: candidates held together, the arm's far end and the surface past it: the frame gets its own
+#: box, :func:`frame_cubes_mm`, and does not size the session's cube; else 0).
+GEOMETRY_LEN = 15
 METHODS = ("none", "arm-end", "free-blob")
 
 
@@ -855,6 +904,7 @@ def _hand_geometry(
     wrist_mm: np.ndarray | None = None,
     z_far_mm: float | None = None,
     scene: _Scene | None = None,
+    own_box: bool = False,
 ) -> np.ndarray:
     """The cube-independent geometry ``(GEOMETRY_LEN,)`` of hand ``points`` ``(M, 3)`` mm as a
     crop sees it: their extent in ray angle (x/z, y/z), their depth range (0.2-99.8th
@@ -878,6 +928,7 @@ def _hand_geometry(
             *(nan3 if wrist_mm is None else wrist_mm),
             *(nan3 if centre_mm is None else centre_mm),
             METHODS.index(method),
+            float(own_box),
         ]
     )
 
@@ -897,9 +948,11 @@ def _geometry_middle(geometry: np.ndarray) -> np.ndarray:
     return np.array([*(0.5 * (geometry[0:2] + geometry[2:4]) * zm), zm])
 
 
-def _box_of(geometry: np.ndarray, cube_mm: float) -> HandLocation:
+def _box_of(geometry: np.ndarray, cube_mm: float, box_cube_mm: float | None = None) -> HandLocation:
     """Centre and half extent of the crop of a hand geometry row (:func:`_hand_geometry`) at a
-    cube of ``cube_mm`` (all NaN, method "none", without a hand).
+    cube of ``cube_mm`` (all NaN, method "none", without a hand). ``box_cube_mm`` (default
+    ``cube_mm``): the frame's own cube in x and y (the image box, :func:`frame_cubes_mm`); the
+    depth range stays ``cube_mm``, the session's.
 
     Centre: the given centre (mean shift) if any, else the middle of the ray-angle box at the
     middle of the depth range; moved back along its ray if needed so that the cube's back is
@@ -917,6 +970,7 @@ def _box_of(geometry: np.ndarray, cube_mm: float) -> HandLocation:
     g = np.asarray(geometry, dtype=np.float64)
     if not np.isfinite(g[13]):
         return HandLocation.none()
+    box = float(cube_mm if box_cube_mm is None else box_cube_mm)
     a_lo, a_hi, z_lo, z_hi, hidden = g[0:2], g[2:4], g[4], g[5], g[6]
     wrist, given = g[7:10], g[10:13]
     if np.all(np.isfinite(given)):
@@ -932,17 +986,20 @@ def _box_of(geometry: np.ndarray, cube_mm: float) -> HandLocation:
         # use part of the slack the crop leaves around the hand on the wrist's side: the far end
         # (fingertips) stays well inside, and the wrist and some forearm are in the crop too
         half = 0.5 * (a_hi - a_lo) * zc
-        slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - half)
+        slack = np.maximum(0.0, 0.5 * box - CROP_MARGIN_MM - half)
         towards = wrist[:2] / wrist[2] - ac
         norm = np.linalg.norm(towards)
         if norm > 1e-9:
             ac = ac + WRIST_SHIFT * slack / zc * towards / norm
             allowance = WRIST_ALLOWANCE_MM * np.abs(towards) / norm
     half_ang = np.maximum(a_hi - ac, ac - a_lo)
-    slack = np.maximum(0.0, 0.5 * cube_mm - CROP_MARGIN_MM - (half_ang * zc + allowance))
+    slack = np.maximum(0.0, 0.5 * box - CROP_MARGIN_MM - (half_ang * zc + allowance))
     with np.errstate(divide="ignore", invalid="ignore"):
         z_fit = float(np.min(zc + DEPTH_SHARE * slack / half_ang))
-    zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit))
+    # the hidden side never pushes the hand's nearest surface out of the crop's front (surface
+    # up to a cube in front of the centre stays foreground)
+    z_front = z_lo + cube_mm - FRONT_MARGIN_MM
+    zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit, z_front))
     centre = np.array([*(ac * zc), zc])
     half_xy = half_ang * zc + allowance
     half_z = max(z_hi - zc, zc - z_lo)
@@ -1052,28 +1109,39 @@ def centres_at(
     cube_mm: float,
     sequence_breaks: _Seq[int] | None = None,
     smooth: bool = True,
+    box_cubes_mm: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Crop centres ``(N, 3)`` mm and hand half extents ``(N, 3)`` mm at a cube of ``cube_mm``
-    from the frames' geometry ``(N, GEOMETRY_LEN)`` (:func:`_box_of` per frame).
+    from the frames' geometry ``(N, GEOMETRY_LEN)`` (:func:`_box_of` per frame);
+    ``box_cubes_mm`` ``(N,)`` (optional): each frame's own cube in x and y
+    (:func:`frame_cubes_mm`; default ``cube_mm`` for all).
 
     :func:`smooth_centres` interpolates frames without a hand and (if ``smooth``) smooths, cut
     at ``sequence_breaks``; a located centre moves at most the slack its hand leaves in the crop
-    (``cube_mm / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half extent`` in
-    z), unless its hand does not fit the cube at all (a one-frame spike that
-    :func:`session_cube_mm` did not grow the cube for: a localization slip), which is smoothed
-    freely. Centre rows stay NaN only in segments where no frame had a hand; extents stay NaN
-    where the frame had none.
+    (``box / 2 - CROP_MARGIN_MM - half extent`` in x and y, ``cube_mm / 2 - half extent`` in
+    z), unless its hand does not fit the session's cube (a one-frame spike that
+    :func:`session_cube_mm` did not grow the cube for: a localization slip, even with its own
+    box; not a hand held together from two candidates, column 14 of the geometry), which is
+    smoothed freely. Centre rows stay NaN only in segments where no frame had a
+    hand; extents stay NaN where the frame had none.
     """
     geometry = np.asarray(geometry, dtype=np.float64)
-    raw = np.full((len(geometry), 3), np.nan)
-    half = np.full((len(geometry), 3), np.nan)
+    n = len(geometry)
+    box = np.full(n, float(cube_mm)) if box_cubes_mm is None else np.asarray(box_cubes_mm, float)
+    if box.shape != (n,):
+        raise ValueError(f"box_cubes_mm must be ({n},), got {box.shape}")
+    raw = np.full((n, 3), np.nan)
+    half = np.full((n, 3), np.nan)
     for i in np.flatnonzero(np.isfinite(geometry[:, 13])):
-        loc = _box_of(geometry[i], cube_mm)
+        loc = _box_of(geometry[i], cube_mm, box[i])
         raw[i], half[i] = loc.centre_mm, loc.half_extent_mm
-    slack = 0.5 * cube_mm - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
-    # a hand that does not fit the cube (a spike the session cube did not grow for: a
-    # localization slip) does not bound its centre: smoothing takes its neighbours' instead
-    slack[np.any(slack[:, :2] < 0.0, axis=1)] = np.nan
+    room = np.stack([box, box, np.full(n, float(cube_mm))], axis=1)
+    slack = 0.5 * room - half - np.array([CROP_MARGIN_MM, CROP_MARGIN_MM, 0.0])
+    # a hand that does not fit the session's cube (a spike it did not grow for: a localization
+    # slip, whatever its own box) does not bound its centre: smoothing takes its neighbours'
+    # instead; a hand held together from two candidates (own box) keeps its own evidence
+    slip = np.any(0.5 * cube_mm - CROP_MARGIN_MM - half[:, :2] < 0.0, axis=1)
+    slack[(slip & (geometry[:, 14] != 1.0)) | np.any(slack[:, :2] < 0.0, axis=1)] = np.nan
     breaks = sorted(set(int(b) for b in (sequence_breaks or [])))
     return smooth_centres(raw, breaks, smooth=smooth, max_shift_mm=slack), half
 
@@ -1198,3 +1266,22 @@ def session_cube_mm(
         return float(cube_mm)
     grown = cube_mm + step_mm * np.ceil((need - cube_mm) / step_mm)
     return float(min(grown, max_cube_mm))
+
+
+def frame_cubes_mm(
+    half_extent_mm: np.ndarray,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+    *,
+    step_mm: float = 10.0,
+    max_cube_mm: float = 400.0,
+) -> np.ndarray:
+    """Each frame's own cube in x and y ``(N,)`` mm: the session's ``cube_mm``, or larger (in
+    ``step_mm`` steps, at most ``max_cube_mm``) where that frame's hand (twice its half extent
+    in x and y, ``half_extent_mm`` ``(N, 3)``, with ``CROP_MARGIN_MM`` to spare on each side)
+    does not fit it. Frames without a hand keep ``cube_mm``. Only the image box of those frames
+    grows: the other frames' crops, and every crop's depth range, stay the session's."""
+    h = np.asarray(half_extent_mm, dtype=np.float64)[:, :2]
+    size = np.where(np.all(np.isfinite(h), axis=1), h.max(axis=1), 0.0)
+    need = 2.0 * (size + CROP_MARGIN_MM)
+    grown = cube_mm + step_mm * np.ceil(np.maximum(need - cube_mm, 0.0) / step_mm - 1e-9)
+    return np.minimum(np.maximum(grown, float(cube_mm)), max(float(max_cube_mm), float(cube_mm)))

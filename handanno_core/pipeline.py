@@ -201,7 +201,7 @@ def ensure_crops(
     t0 = time.perf_counter()
     # The hand may not fit the session's cube: locate_crops grows it (all stages use it).
     spec = CropSpec.of(s)
-    centres, grown = locate_crops(
+    centres, grown, box_cubes = locate_crops(
         sequence, spec, report=report, progress=not quiet, workers=workers
     )
     if grown != spec:
@@ -209,7 +209,16 @@ def ensure_crops(
             s.cube_mm = grown.cube_mm
             session.save()
         _log(f"crops: hand larger than the cube, cube grown to {s.cube_mm:g} mm", quiet)
-    boxes = crop_boxes(centres, sequence.camera, cube_mm=grown.cube_mm, size=grown.size)
+    # a frame whose hand does not fit the session's cube has a larger image box (box_cubes):
+    # the boxes carry it to every stage, depth stays at the session's cube
+    boxes = crop_boxes(centres, sequence.camera, cube_mm=box_cubes, size=grown.size)
+    own = box_cubes > grown.cube_mm
+    if own.any():
+        _log(
+            f"crops: {int(own.sum())} frames with their own larger box "
+            f"(up to {box_cubes.max():g} mm; depth at the session's {grown.cube_mm:g} mm)",
+            quiet,
+        )
     # Bad frames were already reported by locate_hands; compute_crops leaves them at background.
     compute_crops(
         sequence,
@@ -220,6 +229,7 @@ def ensure_crops(
         report=BadFrameReport(),
         progress=not quiet,
         workers=workers,
+        box_cubes_mm=box_cubes,
     )
     atomic_save_npz(
         meta_path,
@@ -229,6 +239,7 @@ def ensure_crops(
             "size": np.asarray(grown.size),
             "centres_mm": centres,
             "boxes": boxes,
+            "box_cubes_mm": box_cubes,
             "crops_fingerprint": np.asarray(crops_fingerprint(crops_path)),
         },
     )

@@ -586,12 +586,13 @@ def test_locate_crops_grows_the_cube_to_a_fixed_point():
     from tests.forearm_scenes import ForearmCase, case_sequence
 
     seq = case_sequence(ForearmCase(1, 105.0, 100.0, False, frames=4))
-    centres, spec = locate_crops(seq, CropSpec(160.0, 64))
+    centres, spec, box = locate_crops(seq, CropSpec(160.0, 64))
+    assert np.all(box == spec.cube_mm)  # every frame's hand fits the session's cube
     assert spec.size == 64 and 160.0 < spec.cube_mm <= 400.0
     again, half = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)
     assert session_cube_mm(half, spec.cube_mm) == spec.cube_mm
     np.testing.assert_allclose(again, centres)
-    same, unchanged = locate_crops(seq, spec)
+    same, unchanged, _ = locate_crops(seq, spec)
     assert unchanged == spec
 
 
@@ -603,7 +604,7 @@ def test_locate_crops_reads_every_frame_once_even_when_the_cube_grows():
 
     palms = [[10.0 * np.sin(i / 3.0), 5.0, 330.0 + 2.0 * i] for i in range(8)]
     seq = SphereHandSequence(palms)
-    centres, spec = locate_crops(seq, CropSpec(120.0, 64))
+    centres, spec, _ = locate_crops(seq, CropSpec(120.0, 64))
     assert spec.cube_mm > 120.0  # the hand did not fit: the cube grew
     assert seq.reads == len(seq)
     again, _ = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)

@@ -40,10 +40,11 @@ def test_parallel_location_equals_serial_with_the_same_bad_frames(three_sequence
     seq = open_sequence(three_sequences)
     assert list(seq.sequence_breaks) == [16, 32]
     serial, parallel = BadFrameReport(), BadFrameReport()
-    c1, spec1 = locate_crops(seq, report=serial)
-    c2, spec2 = locate_crops(seq, report=parallel, workers=2)
+    c1, spec1, box1 = locate_crops(seq, report=serial)
+    c2, spec2, box2 = locate_crops(seq, report=parallel, workers=2)
     assert spec1 == spec2
     np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(box1, box2)
     assert [str(e) for e in parallel.errors] == [str(e) for e in serial.errors]
     assert serial.frames == [21]
 

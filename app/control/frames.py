@@ -34,6 +34,7 @@ class FrameStore:
         self._cache: OrderedDict[int, FrameData] = OrderedDict()
         self._lock = threading.Lock()
         self._centres = self._load_centres()
+        self._box_cubes = self._load_box_cubes()
         self._names: list[str] | None = None
 
     def _load_centres(self) -> np.ndarray | None:
@@ -51,6 +52,28 @@ class FrameStore:
         except (OSError, ValueError):
             return None
         return None
+
+    def _load_box_cubes(self) -> np.ndarray | None:
+        """Each frame's own crop cube in x, y (N,) mm from the crop cache (a frame whose hand did
+        not fit the session's cube has a larger one), if the pipeline stored them."""
+        path = self.session.folder / CROPS_META_FILE
+        try:
+            with np.load(path) as meta:
+                if "box_cubes_mm" in meta.files:
+                    c = np.asarray(meta["box_cubes_mm"], dtype=np.float64)
+                    if c.shape == (self.session.num_frames,):
+                        return c
+        except (OSError, ValueError):
+            return None
+        return None
+
+    def cube_of(self, frame: int) -> float:
+        """The cube (mm) the frame's hand cloud is cut at: the session's, or the frame's own
+        larger crop box."""
+        cube = float(self.session.model.settings.cube_mm)
+        if self._box_cubes is not None and np.isfinite(self._box_cubes[frame]):
+            cube = max(cube, float(self._box_cubes[frame]))
+        return cube
 
     def source_name(self, frame: int) -> str | None:
         """The dataset's name of ``frame``'s depth file (``sequence.frame_names``, relative to the
@@ -98,8 +121,6 @@ class FrameStore:
                 error=f"frame {frame}: depth is {depth.shape}, camera expects {(camera.height, camera.width)}",
             )
         centre = self.centre_of(frame, depth)
-        geometry = build_frame_geometry(
-            depth, camera, centre, cube_mm=self.session.model.settings.cube_mm
-        )
+        geometry = build_frame_geometry(depth, camera, centre, cube_mm=self.cube_of(frame))
         error = None if len(geometry.cloud_mm) else f"frame {frame}: no hand found in the depth map"
         return FrameData(frame, depth, geometry, error)

@@ -256,16 +256,22 @@ def _propagate_and_refine(
 
 
 def _label(run: dict) -> str:
-    """The strategy, with ``+model`` / ``-model`` when the run says whether the model was on."""
+    """The strategy, with ``+model`` / ``-model`` when the run says whether the model was on,
+    right-aligned in its table column (10 characters, 13 with the model)."""
     if "model" not in run:
-        return run["strategy"]
-    return f"{run['strategy']}{'+' if run['model'] else '-'}model"
+        return f"{run['strategy']:>10}"
+    return f"{run['strategy'] + ('+' if run['model'] else '-') + 'model':>13}"
+
+
+def _width(runs: list[dict]) -> int:
+    """Width of the strategy column: 13 with model labels, else 10."""
+    return 13 if any("model" in r for r in runs) else 10
 
 
 def _row(run: dict) -> str:
     t = run["timings_s"]
     return (
-        f"{_label(run):>10} {run['ref_fraction_target'] * 100:5.1f}% {run['references']:5d} "
+        f"{_label(run)} {run['ref_fraction_target'] * 100:5.1f}% {run['references']:5d} "
         f"| {run['init']['mean_mm']:6.2f} {run['init']['median_mm']:6.2f} {run['init']['max_mm']:7.1f} "
         f"| {run['final']['mean_mm']:6.2f} {run['final']['median_mm']:6.2f} {run['final']['max_mm']:7.1f} "
         f"| {run['final_non_reference']['mean_mm']:6.2f} | {run['lift']['mean_mm']:5.2f} "
@@ -275,7 +281,8 @@ def _row(run: dict) -> str:
 
 def format_table(doc: dict) -> str:
     head = (
-        f"{'strategy':>10} {'refs':>6} {'K':>5} | {'init: mean':>10} {'median':>6} {'max':>7} "
+        f"{'strategy':>{_width(doc['runs'])}} {'refs':>6} {'K':>5} | {'init: mean':>10} "
+        f"{'median':>6} {'max':>7} "
         f"| {'final: mean':>11} {'median':>5} {'max':>7} | {'nonref':>6} | {'lift':>5} "
         f"| {'t_sel':>5} {'t_lift':>5} {'t_prop':>6} {'t_ref':>6}"
     )
@@ -292,9 +299,9 @@ def plot_error_vs_fraction(doc: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    for strategy in dict.fromkeys(_label(r) for r in doc["runs"]):
+    for strategy in dict.fromkeys(_label(r).strip() for r in doc["runs"]):
         rows = sorted(
-            (r for r in doc["runs"] if _label(r) == strategy),
+            (r for r in doc["runs"] if _label(r).strip() == strategy),
             key=lambda r: r["ref_fraction_target"],
         )
         x = [100 * r["references"] / doc["frames"] for r in rows]
@@ -385,7 +392,8 @@ def summarize_datasets(docs: list[dict]) -> list[dict]:
 def format_summary(doc: dict) -> str:
     """The suite summary table of :func:`run_bench_datasets`' JSON."""
     head = (
-        f"{'strategy':>10} {'refs':>6} {'n':>3} | {'lift':>5} | {'init':>6} | {'final: mean':>11} "
+        f"{'strategy':>{_width(doc['summary'])}} {'refs':>6} {'n':>3} | {'lift':>5} | {'init':>6} "
+        f"| {'final: mean':>11} "
         f"{'worst':>6} {'max':>7} | {'nonref':>6} | refine worse on"
     )
     lines = [
@@ -395,7 +403,7 @@ def format_summary(doc: dict) -> str:
     ]
     for r in doc["summary"]:
         lines.append(
-            f"{_label(r):>10} {r['ref_fraction_target'] * 100:5.1f}% {r['datasets']:3d} "
+            f"{_label(r)} {r['ref_fraction_target'] * 100:5.1f}% {r['datasets']:3d} "
             f"| {r['lift']['mean_of_means_mm']:5.2f} | {r['init']['mean_of_means_mm']:6.2f} "
             f"| {r['final']['mean_of_means_mm']:11.2f} {r['final']['worst_mean_mm']:6.2f} "
             f"{r['final']['worst_max_mm']:7.1f} | {r['final_non_reference']['mean_of_means_mm']:6.2f} "

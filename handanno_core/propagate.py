@@ -554,11 +554,13 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     )
     k = int(np.argmin(fit.energy))
     x = fit.joints_mm[k]
+    pose = fit.root[k : k + 1], fit.u[k : k + 1]
     level = fit.terms["data"][k] + fit.terms["free_space"][k]
     if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
         x = x_flow  # the fit does not explain the frame's depth: keep the flowed pose
+        pose = kin.fit(x_flow[None])
     _, _, _, diag = hm.frame_energy(
-        model, kin, *kin.fit(x[None]), obs.take([0]), ctx.camera, w, priors.take([0])
+        model, kin, *pose, obs.take([0]), ctx.camera, w, priors.take([0])
     )
     res = diag["capsule_data_mm"][0]
     free = diag["capsule_free"][0]

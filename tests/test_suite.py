@@ -411,3 +411,20 @@ def test_bench_with_and_without_the_model_on_one_lift(tmp_path):
     assert plain["lift"] == off["lift"]
     rows = bench.summarize_datasets([doc])
     assert [r["model"] for r in rows] == [False, True]
+
+
+@pytest.mark.parametrize("command", ["propagate", "refine"])
+def test_cli_model_switch_defaults_to_the_session(command):
+    from app.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse([command, "sess"]).model is None  # the session's settings.hand_model
+    assert parse([command, "sess", "--no-model"]).model is False
+    assert parse([command, "sess", "--model"]).model is True
+
+
+def test_a_session_written_before_the_model_setting_reads_it_as_on():
+    from handanno_core.session.model import Settings
+
+    old = {"cube_mm": 250.0, "crop_size": 128, "descriptor": "downsampled", "aligner": "dis"}
+    assert Settings.model_validate(old).hand_model is True

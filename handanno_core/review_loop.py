@@ -15,9 +15,10 @@ app would, from ground truth (2D positions, visibility and depth order only):
   ``click_px``, accept the guesses. One click per moved joint.
 * :func:`annotate_prefilled` - the references, in time order, each opened pre-filled by
   :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
-  annotated before it (each is lifted right after it is annotated, with the skeleton's template
-  bones, so the next one can be pre-filled from it); a frame with nothing to pre-fill from costs
-  one click per joint.
+  annotated before it and fixed with :func:`interactive_fix` (default) or :func:`simulated_fix`;
+  after each, the references annotated so far are lifted with their bone lengths estimated (as
+  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones; a
+  frame with nothing to pre-fill from costs one click per joint.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed

@@ -99,9 +99,10 @@ def main() -> None:
                         "count": int(ms.size),
                     }
                 row[f"{mode}_clicks_per_reference"] = round(info["clicks_per_reference"], 3)
-                row[f"{mode}_clicks_per_reference_drag"] = round(
-                    info["clicks_per_reference_drag"], 3
-                )
+                if np.isfinite(info["clicks_per_reference_drag"]):  # one-pass annotator only
+                    row[f"{mode}_clicks_per_reference_drag"] = round(
+                        info["clicks_per_reference_drag"], 3
+                    )
                 row[f"{mode}_clicks"] = [int(c) for c in info["clicks"].values()]
             else:
                 pipeline.annotate_from_gt(s, noise_px=args.noise_px, quiet=True)

@@ -594,7 +594,9 @@ def bench_run_review(
     if prefilled is not None:
         clicks = int(sum(prefilled["clicks"].values()))
         run["clicks_per_reference"] = round(prefilled["clicks_per_reference"], 3)
-        run["clicks_per_reference_drag"] = round(prefilled["clicks_per_reference_drag"], 3)
+        drag = prefilled["clicks_per_reference_drag"]
+        if np.isfinite(drag):  # the one-pass annotator only (simulated_fix)
+            run["clicks_per_reference_drag"] = round(drag, 3)
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)

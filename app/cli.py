@@ -329,7 +329,8 @@ def _add_bench_command(add) -> None:
     p.add_argument(
         "--prefill",
         action="store_true",
-        help="references open pre-filled; the annotator moves only joints > 4 px off",
+        help="references open pre-filled; the annotator moves the guess furthest off (> 4 px), "
+        "the guesses refit as in the app, until none is off, then accepts them",
     )
     p.add_argument("--work-dir", type=Path, help="keep the bench sessions in this folder")
 

@@ -1,10 +1,12 @@
 """Clicks per reference with pre-filled references, and what the accepted guesses cost in lift error.
 
 For each finished bench session given (``handanno bench --work-dir``), a fresh session with the
-same dataset, selection and cached crops is annotated by the simulated annotator twice: every
-joint clicked (``annotate_from_gt``) and pre-filled (:func:`handanno_core.review_loop.
-annotate_prefilled`: joints within 4 px of the truth accepted where the guess put them). Both are
-lifted (bone lengths estimated as the pipeline does) and compared with ground truth.
+same dataset, selection and cached crops is annotated by the simulated annotator once per mode:
+every joint clicked (``annotate_from_gt``), or pre-filled (:func:`handanno_core.review_loop.
+annotate_prefilled`: guesses within 4 px of the truth accepted; ``prefilled``: every joint off the
+pre-fill moved once; ``interactive``: one guess moved at a time, the guesses refitted after each
+click as the app's live lift does). Each is lifted (bone lengths estimated as the pipeline does)
+and compared with ground truth.
 
     python benchmarks/bench_prefill.py SESSION [SESSION ...] --json out.json
 """
@@ -16,6 +18,8 @@ import json
 import os
 import time
 from pathlib import Path
+
+import numpy as np
 
 from handanno_core import pipeline
 from handanno_core.evaluate import error_summary
@@ -46,10 +50,15 @@ def main() -> None:
     ap.add_argument("sessions", nargs="+", type=Path)
     ap.add_argument("--work", type=Path, default=Path("/tmp/handanno-bench-prefill"))
     ap.add_argument("--click-px", type=float, default=4.0, help="joints farther off are moved")
+    ap.add_argument("--noise-px", type=float, default=0.0, help="2D noise of a click (std, px)")
     ap.add_argument(
         "--modes",
-        default="all_clicks,prefilled,prefilled_model",
-        help="comma-separated: all_clicks, prefilled (flow), prefilled_model (flow + hand model)",
+        default="all_clicks,prefilled,interactive",
+        help="comma-separated: all_clicks, prefilled (moves every joint off the flow pre-fill "
+        "once), prefilled_model (flow + hand model), interactive (one guess at a time, refit "
+        "after each click, as in the app, the bones estimated from the references so far; -tips: "
+        "wrist and fingertips first; -template: the template bones, each reference lifted alone; "
+        "-pxN: guesses more than N px off are moved instead of --click-px)",
     )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
@@ -66,17 +75,37 @@ def main() -> None:
         for mode in args.modes.split(","):
             s = fresh_copy(src, args.work / f"{folder.parent.name}-{folder.name}-{mode}")
             t = time.perf_counter()
-            if mode.startswith("prefilled"):
+            if mode.startswith("prefilled") or mode.startswith("interactive"):
+                refit_s: list[float] = []
+                parts = mode.split("-")
+                px = [float(p[2:]) for p in parts if p.startswith("px")]
                 info = annotate_prefilled(
-                    s, click_px=args.click_px, hand_model=mode == "prefilled_model", quiet=True
+                    s,
+                    click_px=px[0] if px else args.click_px,
+                    noise_px=args.noise_px,
+                    hand_model=mode == "prefilled_model",
+                    interactive=parts[0] == "interactive",
+                    order="wrist_tips" if "tips" in parts else "worst",
+                    bones_so_far="template" not in parts and parts[0] == "interactive",
+                    refit_s=refit_s,
+                    quiet=True,
                 )
+                if refit_s:
+                    ms = np.asarray(refit_s) * 1000.0
+                    row[f"{mode}_refit_ms"] = {
+                        "mean": round(float(ms.mean()), 1),
+                        "p90": round(float(np.percentile(ms, 90)), 1),
+                        "max": round(float(ms.max()), 1),
+                        "count": int(ms.size),
+                    }
                 row[f"{mode}_clicks_per_reference"] = round(info["clicks_per_reference"], 3)
-                row[f"{mode}_clicks_per_reference_drag"] = round(
-                    info["clicks_per_reference_drag"], 3
-                )
+                if np.isfinite(info["clicks_per_reference_drag"]):  # one-pass annotator only
+                    row[f"{mode}_clicks_per_reference_drag"] = round(
+                        info["clicks_per_reference_drag"], 3
+                    )
                 row[f"{mode}_clicks"] = [int(c) for c in info["clicks"].values()]
             else:
-                pipeline.annotate_from_gt(s, quiet=True)
+                pipeline.annotate_from_gt(s, noise_px=args.noise_px, quiet=True)
             row[f"{mode}_annotate_s"] = round(time.perf_counter() - t, 2)
             pipeline.lift(s, quiet=True)
             refs = s.reference_frames

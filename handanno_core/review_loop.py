@@ -9,11 +9,16 @@ app would, from ground truth (2D positions, visibility and depth order only):
   ``click_px`` (4 px) from the truth (to the truth plus the bench's Gaussian ``noise_px``), accepts
   the others where they are drawn, and sets visibility and depth order as the truth says. One click
   per moved joint.
+* :func:`interactive_fix` - what a person does in the app with a frame opened with guesses:
+  move the guess furthest off, let the guesses refit to the joints placed so far (the app's live
+  lift, :func:`handanno_core.guesses.refit_guesses`), repeat until every guess is within
+  ``click_px``, accept the guesses. One click per moved joint.
 * :func:`annotate_prefilled` - the references, in time order, each opened pre-filled by
   :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
-  annotated before it (each is lifted right after it is annotated, with the skeleton's template
-  bones, so the next one can be pre-filled from it); a frame with nothing to pre-fill from costs
-  one click per joint.
+  annotated before it and fixed with :func:`interactive_fix` (default) or :func:`simulated_fix`;
+  after each, the references annotated so far are lifted with their bone lengths estimated (as
+  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones; a
+  frame with nothing to pre-fill from costs one click per joint.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
@@ -41,6 +46,7 @@ __all__ = [
     "CLICK_PX",
     "annotate_prefilled",
     "bench_review",
+    "interactive_fix",
     "effort_to_target",
     "review_rounds",
     "simulated_fix",
@@ -106,6 +112,107 @@ def simulated_fix(
     return ann, clicks
 
 
+#: the order the interactive annotator moves guesses in: "worst" = the guess furthest off first;
+#: "wrist_tips" = the wrist, then the fingertips, then the rest, each when more than click_px off
+ORDERS = ("worst", "wrist_tips")
+
+
+def _click_priority(skeleton, order: str) -> np.ndarray:
+    """``(J,)`` rank of each joint in ``order`` (lower first; ties by how far off)."""
+    j = skeleton.num_joints
+    if order == "worst":
+        return np.zeros(j)
+    if order == "wrist_tips":
+        parents = skeleton.parent_array
+        leaf = ~np.isin(np.arange(j), parents)
+        return np.where(parents < 0, 0.0, np.where(leaf, 1.0, 2.0))
+    raise ValueError(f"unknown click order {order!r}; use one of {ORDERS}")
+
+
+def interactive_fix(
+    guess_mm: np.ndarray,
+    gt_mm: np.ndarray,
+    depth: np.ndarray,
+    camera: CameraIntrinsics,
+    skeleton,
+    bone_lengths_mm: np.ndarray,
+    *,
+    eps_mm: float,
+    angle_limits: bool,
+    noise_px: float = 0.0,
+    rng: np.random.Generator | None = None,
+    click_px: float = CLICK_PX,
+    order: str = "worst",
+    refit_s: list[float] | None = None,
+) -> tuple[FrameAnnotation, int, list[int]]:
+    """What a person does in the app with a frame opened with guesses ``guess_mm`` (J, 3) mm: move
+    the guess that is furthest off (more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm;
+    ``order`` may put the wrist and fingertips first), let the guesses refit
+    (:func:`handanno_core.guesses.refit_guesses`, as the app's live lift, warm-started from the
+    previous refit, ``bone_lengths_mm`` (B,) mm, ``eps_mm``/``angle_limits`` the session's), and
+    repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D).
+
+    A moved joint gets the true 2D plus ``noise_px`` Gaussian noise and the truth's visibility and
+    depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the
+    annotation returned, as :func:`simulated_fix` gives them. A guess not drawn (NaN, behind the
+    camera, off the image) counts as off. Returns ``(annotation, clicks, joints in click
+    order)``. ``refit_s``: each refit's duration (s) is appended to it."""
+    from .guesses import refit_guesses
+    from .synth import simulate_annotation
+
+    full = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
+    truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
+    rank = _click_priority(skeleton, order)
+    guess = np.asarray(guess_mm, dtype=np.float64)
+    ann = FrameAnnotation.empty(skeleton.num_joints)
+    shown, previous, slack = guess, None, ()
+    clicked: list[int] = []
+    size = np.array([camera.width - 1.0, camera.height - 1.0])
+    while True:
+        placed = ann.annotated
+        with np.errstate(invalid="ignore"):
+            drawn = camera.project(shown)
+            inside = np.all((drawn >= 0) & (drawn <= size), axis=1) & (shown[:, 2] > 0)
+            off = np.where(inside, np.linalg.norm(drawn - truth, axis=-1), np.inf)
+        off = np.where(np.isnan(off), np.inf, off)
+        todo = ~placed & (off > click_px)
+        if not todo.any():
+            break
+        cand = np.flatnonzero(todo)
+        k = int(cand[np.lexsort((-off[cand], rank[cand]))[0]])
+        ann.uv_px[k] = full.uv_px[k]
+        ann.visible[k] = full.visible[k]
+        ann.depth_order[k] = full.depth_order[k]
+        clicked.append(k)
+        t0 = time.perf_counter()
+        try:
+            fit = refit_guesses(
+                ann,
+                depth,
+                camera,
+                skeleton,
+                bone_lengths_mm,
+                eps_mm=eps_mm,
+                angle_limits=angle_limits,
+                prefill_mm=guess,
+                previous_mm=previous,
+                start_elastic=bool(slack),
+                elastic_joints=slack,
+            )
+        except ValueError:  # the app keeps drawing the last guesses when a refit fails
+            continue
+        finally:
+            if refit_s is not None:
+                refit_s.append(time.perf_counter() - t0)
+        shown, previous, slack = fit.joints_mm, fit.joints_mm, fit.slack_joints
+    placed = ann.annotated
+    uv = camera.project(shown)
+    ann.uv_px[~placed] = uv[~placed]  # "accept guesses"
+    ann.visible[:] = full.visible
+    ann.depth_order[:] = full.depth_order
+    return ann, len(clicked), clicked
+
+
 def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init_mm=None):
     from .lift import lift_frame
 
@@ -129,12 +236,24 @@ def annotate_prefilled(
     seed: int = 0,
     click_px: float = CLICK_PX,
     hand_model: bool = False,
+    interactive: bool = True,
+    order: str = "worst",
+    bones_so_far: bool = True,
+    refit_s: list[float] | None = None,
     quiet: bool = False,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
     personalized from them (:func:`handanno_core.prefill.reference_hand_model`) snaps each further
-    pre-fill to its frame's own depth and silhouette.
+    pre-fill to its frame's own depth and silhouette. ``interactive``: the annotator moves one
+    guess at a time and the guesses refit after each click (:func:`interactive_fix`, click
+    ``order``, each refit's seconds appended to ``refit_s``); False: every joint
+    more than ``click_px`` off the pre-fill is moved once (:func:`simulated_fix`).
+    ``bones_so_far``: after each reference, the references annotated so far are lifted with their
+    bone lengths estimated (:func:`handanno_core.lift.lift_references`, what the app's "Lift all"
+    does), and those bones and lifts feed the next pre-fill and refits (one bone set for the
+    session: the several-hands bones are not estimated here); False: the session's bones (the
+    template in a fresh session) and each reference lifted on its own.
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
@@ -161,6 +280,7 @@ def annotate_prefilled(
     scratch = {k: np.full_like(results[k], np.nan) for k in ("lifted_mm", "init_mm", "final_mm")}
     clicks: dict[int, int] = {}
     clicks_drag: dict[int, int] = {}
+    order_of: dict[int, list[int]] = {}
     prefilled: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
     for f in (int(x) for x in session.reference_frames):
@@ -178,6 +298,24 @@ def annotate_prefilled(
                 gt.joints_mm[f], depth, sequence.camera, skeleton, noise_px, rng
             )
             clicks[f] = skeleton.num_joints
+        elif interactive:
+            settings = session.model.settings
+            ann, clicks[f], order_of[f] = interactive_fix(
+                guess,
+                gt.joints_mm[f],
+                depth,
+                sequence.camera,
+                skeleton,
+                np.asarray(bones if bones_so_far else session.bone_lengths_of(f) or bones),
+                eps_mm=settings.eps_mm,
+                angle_limits=settings.angle_limits,
+                noise_px=noise_px,
+                rng=rng,
+                click_px=click_px,
+                order=order,
+                refit_s=refit_s,
+            )
+            prefilled.append(f)
         else:
             ann, clicks[f] = simulated_fix(
                 guess,
@@ -200,7 +338,22 @@ def annotate_prefilled(
             )[1]
             prefilled.append(f)
         annotations[f] = ann
-        if bones is not None:  # lifted now so that the next reference can be pre-filled from it
+        if bones_so_far and len(annotations) >= 2:  # "lift all" on the references so far
+            from .lift import lift_references
+
+            s = session.model.settings
+            done = lift_references(
+                annotations,
+                sequence.depth,
+                sequence.camera,
+                skeleton,
+                eps_mm=s.eps_mm,
+                angle_limits=s.angle_limits,
+            )
+            bones = np.asarray(done.bone_lengths_mm, dtype=np.float64)
+            for g, joints in done.joints_mm.items():
+                scratch["lifted_mm"][g] = joints
+        elif bones is not None:  # lifted now so that the next reference can be pre-filled from it
             own = session.bone_lengths_of(f) or bones  # the frame's hand's, if lifted
             scratch["lifted_mm"][f] = _lift(session, ann, depth, own, guess).joints_mm
     session.execute(
@@ -213,7 +366,7 @@ def annotate_prefilled(
         client="simulated-annotator",
     )
     per_ref = float(np.mean(list(clicks.values()))) if clicks else float("nan")
-    per_ref_drag = float(np.mean(list(clicks_drag.values()))) if clicks else float("nan")
+    per_ref_drag = float(np.mean(list(clicks_drag.values()))) if clicks_drag else float("nan")
     if not quiet:
         print(
             f"annotated {len(clicks)} references pre-filled: {per_ref:.1f} joints moved per "
@@ -225,6 +378,7 @@ def annotate_prefilled(
         "prefilled": prefilled,
         "clicks_per_reference": per_ref,
         "clicks_per_reference_drag": per_ref_drag,
+        "click_order": order_of,
     }
 
 
@@ -440,7 +594,9 @@ def bench_run_review(
     if prefilled is not None:
         clicks = int(sum(prefilled["clicks"].values()))
         run["clicks_per_reference"] = round(prefilled["clicks_per_reference"], 3)
-        run["clicks_per_reference_drag"] = round(prefilled["clicks_per_reference_drag"], 3)
+        drag = prefilled["clicks_per_reference_drag"]
+        if np.isfinite(drag):  # the one-pass annotator only (simulated_fix)
+            run["clicks_per_reference_drag"] = round(drag, 3)
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)

@@ -89,19 +89,23 @@ def test_nearest_known_stays_in_its_segment():
     assert _nearest_known(3, has2, seg) == 15  # nothing in its segment: across the break
 
 
-def test_bench_annotator_opens_references_prefilled(session):
+@pytest.mark.parametrize("interactive", [True, False])
+def test_bench_annotator_opens_references_prefilled(session, interactive):
     from handanno_core.pipeline import ensure_crops
     from handanno_core.review_loop import annotate_prefilled
 
     ensure_crops(session, quiet=True)
     refs = session.reference_frames.tolist()  # 0, 10, 20
     entries_before = len(session.folder.joinpath("journal.jsonl").read_text().splitlines())
-    info = annotate_prefilled(session, quiet=True)
+    info = annotate_prefilled(session, interactive=interactive, quiet=True)
     assert info["clicks"][refs[0]] == 21 and refs[0] not in info["prefilled"]
     assert info["prefilled"] == refs[1:]
     assert all(info["clicks"][f] < 21 for f in refs[1:])  # the guesses were mostly right
     assert info["clicks_per_reference"] == pytest.approx(np.mean(list(info["clicks"].values())))
-    assert info["clicks_per_reference_drag"] <= 21
+    if interactive:  # one guess moved at a time, in the order recorded
+        assert all(len(info["click_order"][f]) == info["clicks"][f] for f in refs[1:])
+    else:
+        assert info["clicks_per_reference_drag"] <= 21
     gt = session.open_sequence().ground_truth.joints_mm
     for f in refs:
         ann = session.annotation(f)

@@ -1,5 +1,6 @@
 """The app's background jobs (no viser): the live lift worker, the review runner, and the ONE
-adapter from a session to ``lift_frame`` (:func:`lift_for_session`) both use.
+adapter from a session to the guesses' refit (:func:`lift_for_session`, calling
+:func:`handanno_core.guesses.refit_guesses`) both use.
 
 **LiftWorker** re-lifts edited frames.
 
@@ -22,7 +23,6 @@ the journal.
 
 from __future__ import annotations
 
-import functools
 import threading
 import time
 import traceback
@@ -42,22 +42,12 @@ from .live import LiveResults
 LiftFunction = Callable[..., object]
 
 
-#: SLSQP iterations of the live re-lift while a joint is edited (measured on the demo: hard solves
-#: converge in 13-28 iterations at ~0.9 ms each, elastic ones in 16-22 at ~2.5 ms each, since their
-#: slacks add 21 variables and 46 rows). The preview stops at 30 where a solve would take longer
-#: (a frame with only its first joints placed; `handanno lift` re-solves every reference to
-#: convergence), which keeps the slowest elastic preview under 100 ms. A frame whose lift needed
-#: slack (a 2D point off the finger reads the surface behind it) is re-lifted in elastic mode
-#: directly, skipping a hard solve that would fail again, with slacks on the joints that needed
-#: them only (~20 ms instead of ~50 ms).
-LIVE_MAX_ITER = 30
-
-
 def default_lift_function() -> LiftFunction | None:
-    """``handanno_core.lift.lift_frame`` with a bounded iteration count for live previews."""
-    from handanno_core.lift import lift_frame
+    """The live lift: :func:`handanno_core.guesses.live_lift_function` (``lift_frame`` bounded to
+    ``LIVE_MAX_ITER`` iterations)."""
+    from handanno_core.guesses import live_lift_function
 
-    return functools.partial(lift_frame, max_iter=LIVE_MAX_ITER)
+    return live_lift_function()
 
 
 class LiftUnavailable(ValueError):
@@ -66,12 +56,15 @@ class LiftUnavailable(ValueError):
 
 @dataclass(frozen=True)
 class WarmStart:
-    """Where a lift starts: ``init_mm`` (J, 3) mm (None: from the annotation), and whether it
-    starts elastic with slack on ``elastic_joints`` (the joints the previous lift needed it on)."""
+    """Where a lift starts: ``init_mm`` (J, 3) mm, the frame's previous lift (None: first lift),
+    ``prefill_mm`` (J, 3) mm, the frame's pre-fill (the start of a first lift; None: none), and
+    whether it starts elastic with slack on ``elastic_joints`` (the joints the previous lift
+    needed it on)."""
 
     init_mm: np.ndarray | None = None
     start_elastic: bool = False
     elastic_joints: tuple[int, ...] = ()
+    prefill_mm: np.ndarray | None = None
 
 
 def lift_for_session(
@@ -84,12 +77,16 @@ def lift_for_session(
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...], int]:
     """Lift ``frame``'s current annotation on ``depth`` (H, W) mm with the session's bone lengths
     (the skeleton's template ones before ``lift all`` estimated them), eps and angle limits: THE
-    adapter from a session to ``lift_frame`` of the app (live lift worker, review corrections).
+    adapter from a session to :func:`handanno_core.guesses.refit_guesses` (the refit of the
+    guesses the bench's interactive annotator uses too) of the app (live lift worker, review
+    corrections).
 
     Returns ``(joints (J, 3) mm, confidence (J,), slack joints, journal seq the lift saw)``.
     Raises :class:`LiftUnavailable` when nothing is annotated or no bone lengths exist.
     """
-    if lift_fn is None:
+    from handanno_core.guesses import refit_guesses
+
+    if lift_fn is None:  # review corrections: solved to convergence
         from handanno_core.lift import lift_frame as lift_fn
     with session.lock:
         annotation = session.annotation(frame)
@@ -103,10 +100,7 @@ def lift_for_session(
         if skeleton.template_bone_lengths_mm is None:
             raise LiftUnavailable(f"skeleton {skeleton.name} has no template bone lengths")
         bones = skeleton.template_bone_lengths_mm
-    init = warm_start.init_mm
-    if init is None and np.all(np.isfinite(annotation.xyz_mm)):
-        init = np.asarray(annotation.xyz_mm, dtype=np.float64)
-    result = lift_fn(
+    fit = refit_guesses(
         annotation,
         depth,
         session.camera,
@@ -114,14 +108,13 @@ def lift_for_session(
         np.asarray(bones, dtype=np.float64),
         eps_mm=settings.eps_mm,
         angle_limits=settings.angle_limits,
-        init_mm=init,
+        prefill_mm=warm_start.prefill_mm,
+        previous_mm=warm_start.init_mm,
         start_elastic=warm_start.start_elastic,
-        elastic_joints=np.asarray(warm_start.elastic_joints, dtype=np.int64),
+        elastic_joints=warm_start.elastic_joints,
+        lift_fn=lift_fn,
     )
-    joints = np.asarray(result.joints_mm, dtype=np.float64)  # type: ignore[attr-defined]
-    conf = np.asarray(getattr(result, "confidence", np.ones(len(joints))), dtype=np.float64)
-    slack = tuple(int(k) for k in getattr(result, "slack_joints", ()))
-    return joints, conf, slack, seq
+    return fit.joints_mm, fit.confidence, fit.slack_joints, seq
 
 
 @dataclass
@@ -260,8 +253,9 @@ class LiftWorker:
         init = (
             previous.joints_mm if previous is not None and previous.joints_mm is not None else None
         )
+        prefill = None
         if init is None and self.initial_guess is not None:
-            init = self.initial_guess(frame)  # first lift of the frame: start hand-shaped
+            prefill = self.initial_guess(frame)  # first lift of the frame: start hand-shaped
         slack = previous.slack_joints if previous is not None else ()
         try:
             if data.depth is None:
@@ -271,7 +265,7 @@ class LiftWorker:
                 frame,
                 data.depth,
                 lift_fn=self.lift_fn,
-                warm_start=WarmStart(init, bool(slack), tuple(slack)),
+                warm_start=WarmStart(init, bool(slack), tuple(slack), prefill),
             )
         except LiftUnavailable as exc:
             now = time.perf_counter()

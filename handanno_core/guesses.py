@@ -10,18 +10,10 @@ simulated annotator (:func:`handanno_core.review_loop.interactive_fix`) both cal
 
 The unplaced joints of a lift are only held by the bones, the angle ranges and a weak pull
 (``lift.solve._W_FREE``) towards the solve's start pose: the previous refit of the frame, or the
-pre-fill for the first one. The bone lengths matter most: on the suite's tune part (forest 5 %,
-exact 2D; ``benchmarks/bench_prefill.py``) the bench's interactive annotator moved 14.5 joints per
-reference with the skeleton's template bones and 12.2 with the bones estimated from the
-references annotated before (what the app's "Lift all" stores in the session; NYU's hands are
-27 % larger than the template: 17.6 -> 9.1).
-Tried on the tune part and not adopted (template bones, pre-fills cached from fully clicked
-references): starting each refit from the pre-fill carried to the placed joints (Kabsch fit to
-where they were clicked, each finger turned about its base towards its placed joints): 14.3 joints
-per reference against 13.6 for the plain warm start on the seven sequences; on three of them,
-with the Kabsch fit of the palm joints only, or carrying the previous refit: 13.1 and 14.7 against
-12.6. Clicking the wrist and fingertips first instead of the guess furthest off: 13.7 against 13.6
-(fpha-1 with the bones so far: 18.3 against 17.6).
+pre-fill for the first one. The bone lengths matter most: the bench passes the bones estimated from
+the references annotated before (what the app's "Lift all" stores in the session). The variants
+tried and not adopted (other starts, a wrist-and-fingertips-first click order) and their figures
+are in the README ("Third round: pre-filled references").
 No ground truth is read here.
 """
 

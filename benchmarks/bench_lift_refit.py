@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import run_session
+from handanno_core.bench import annotated_session
 from handanno_core.evaluate import error_summary
 from handanno_core.suite import read_suite
 
@@ -49,12 +49,9 @@ def main() -> None:
         gt = base.open_sequence().ground_truth.joints_mm
         pipeline.ensure_crops(base, quiet=True)
         for noise in noises:
-            session = run_session(base, tmp / "run")
-            pipeline.select(
-                session, strategy=args.strategy, ref_fraction=args.ref_fraction, figures=False,
-                quiet=True,
-            )  # fmt: skip
-            pipeline.annotate_from_gt(session, noise_px=noise, quiet=True)
+            session = annotated_session(
+                base, tmp / "run", args.strategy, args.ref_fraction, noise_px=noise
+            )
             refs = session.reference_frames
             row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
             for refit in (False, True):

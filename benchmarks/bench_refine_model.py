@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import run_session
+from handanno_core.bench import annotated_session
 from handanno_core.evaluate import error_summary
 from handanno_core.refine import RefineWeights, refine
 from handanno_core.suite import read_suite
@@ -46,12 +46,7 @@ def main() -> None:
         base = pipeline.new_session(tmp / "base", path, overwrite=True)
         gt = base.open_sequence().ground_truth.joints_mm
         pipeline.ensure_crops(base, quiet=True)
-        session = run_session(base, tmp / "run")
-        pipeline.select(
-            session, strategy=args.strategy, ref_fraction=args.ref_fraction, figures=False,
-            quiet=True,
-        )  # fmt: skip
-        pipeline.annotate_from_gt(session, quiet=True)
+        session = annotated_session(base, tmp / "run", args.strategy, args.ref_fraction)
         pipeline.lift(session, quiet=True)
         pipeline.propagate(session, quiet=True, use_model=True)
         init, problem = pipeline.refine_inputs(session, True)

@@ -58,6 +58,18 @@ def run_session(base: Session, folder: Path) -> Session:
     return session
 
 
+def annotated_session(
+    base: Session, folder: Path, strategy: str, fraction: float, noise_px: float = 0.0
+) -> Session:
+    """A :func:`run_session` of ``base`` in ``folder`` with its references selected
+    (``strategy``, ``fraction``) and annotated by the simulated annotator (``noise_px``): the start
+    of the stage benchmarks in ``benchmarks/``."""
+    session = run_session(base, folder)
+    pipeline.select(session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True)
+    pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
+    return session
+
+
 def copy_session(folder: Path, to: Path) -> None:
     """Copy a closed session folder to ``to`` (replaced if it exists); symlinks (the shared crop
     cache) stay symlinks."""

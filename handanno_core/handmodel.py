@@ -1065,3 +1065,32 @@ def personalize(
         dv = x[fin][:, model.palm_pairs[:, 0]] - x[fin][:, model.palm_pairs[:, 1]]
         model = replace(model, palm_dist_mm=np.median(np.linalg.norm(dv, axis=-1), axis=0))
     return replace(model, radii=estimate_radii(model, x, obs))
+
+
+def personalize_from_crops(
+    skeleton: Skeleton,
+    bone_lengths_mm: np.ndarray,
+    reference_joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+) -> tuple[HandModel, FrameObservations]:
+    """:func:`personalize` from the references' crops ``(K, S, S)``, boxes ``(K, 4)`` and centres
+    ``(K, 3)`` mm (observed with :func:`observe`); returns the model and the observations."""
+    obs = observe(
+        np.asarray(crops, dtype=np.float32),
+        np.asarray(boxes, dtype=np.float64),
+        np.asarray(centres_mm, dtype=np.float64),
+        camera,
+        cube_mm=cube_mm,
+    )
+    model = personalize(
+        skeleton,
+        np.asarray(bone_lengths_mm, dtype=np.float64),
+        np.asarray(reference_joints_mm, dtype=np.float64),
+        obs,
+    )
+    return model, obs

@@ -387,10 +387,9 @@ def _one_hand_model(init, refs, crops, boxes, centres, camera, skeleton, bones, 
     ok = refs[np.all(np.isfinite(init[refs]), axis=(1, 2))]
     if not len(ok):
         return False
-    obs = hmod.observe(
-        np.asarray(crops[ok], dtype=np.float32), boxes[ok], centres[ok], camera, cube_mm=cube_mm
-    )
-    return hmod.personalize(skeleton, bones, init[ok], obs)
+    return hmod.personalize_from_crops(
+        skeleton, bones, init[ok], crops[ok], boxes[ok], centres[ok], camera, cube_mm=cube_mm
+    )[0]
 
 
 def _shared_crops(crops: np.ndarray, remote: bool) -> tuple[_Crops, str | None]:

@@ -476,10 +476,11 @@ def lift(
         sets: dict[bytes, list[int]] = {}
         for f in sorted(joints_mm):
             sets.setdefault(bones[names[hand[f]]].tobytes(), []).append(f)
+        crop_data = ensure_crops(session, quiet=quiet, workers=workers)
         for frames in sets.values():
             _refit_with_model(
-                session, frames, annotations, joints_mm, bones[names[hand[frames[0]]]], quiet,
-                workers, click_noise_px,
+                session, crop_data, frames, annotations, joints_mm, bones[names[hand[frames[0]]]],
+                quiet, click_noise_px,
             )  # fmt: skip
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
@@ -509,15 +510,17 @@ def lift(
 
 
 def _refit_with_model(
-    session: Session, frames: list[int], annotations: dict, joints_mm: dict[int, np.ndarray],
-    bone_lengths_mm: np.ndarray, quiet: bool, workers: int, click_noise_px: float | None,
+    session: Session, crop_data: tuple, frames: list[int], annotations: dict,
+    joints_mm: dict[int, np.ndarray], bone_lengths_mm: np.ndarray, quiet: bool,
+    click_noise_px: float | None,
 ) -> None:  # fmt: skip
     """Replace ``joints_mm[f]`` of the lifted references ``frames`` (one set of bones) by their
-    refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`)."""
+    refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`);
+    ``crop_data`` = :func:`ensure_crops`' ``(crops, centres, boxes)``."""
     from .lift.model_refit import refit_references
 
     index = np.asarray(frames, dtype=np.int64)
-    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
+    crops, centres, boxes = crop_data
     s = session.model.settings
     noise = s.click_noise_px if click_noise_px is None else click_noise_px
     refit = refit_references(

@@ -217,19 +217,16 @@ def reference_hand_model(session: Session, joints_mm: np.ndarray, frames, bone_l
     if crop_data is None or frames.size == 0:
         return None
     crops, centres, boxes = crop_data
-    obs = hm.observe(
-        np.asarray(crops[frames], dtype=np.float32),
-        np.asarray(boxes, dtype=np.float64)[frames],
-        np.asarray(centres, dtype=np.float64)[frames],
+    return hm.personalize_from_crops(
+        session.skeleton,
+        bone_lengths_mm,
+        np.asarray(joints_mm)[frames],
+        crops[frames],
+        np.asarray(boxes)[frames],
+        np.asarray(centres)[frames],
         session.camera,
         cube_mm=session.model.settings.cube_mm,
-    )
-    return hm.personalize(
-        session.skeleton,
-        np.asarray(bone_lengths_mm, dtype=np.float64),
-        np.asarray(joints_mm, dtype=np.float64)[frames],
-        obs,
-    )
+    )[0]
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

@@ -136,9 +136,9 @@ class RefineWeights:
     patch_size: int = 7
     patch_spacing_px: float = 2.0
     #: with the model on, multiplies the hand-model energy of each frame (handmodel.frame_energy)
-    #: inside the LM (0: the model only in propagation and the never-worse check, where ~90 % of
-    #: the frames kept their initialization); 3 chosen on the suite's tune part over 0, 0.3, 1, 3
-    #: (``benchmarks/bench_refine_model.py``, figures in the README)
+    #: inside the LM (0: the model only in propagation and the never-worse check); 3 chosen on the
+    #: suite's tune part over 0, 1, 3 (and 0, 0.3, 1, 3 with the earlier keep check;
+    #: ``benchmarks/bench_refine_model.py``, figures in the README)
     model: float = 3.0
     #: with the model on, the temporal weight of a frame pair is divided by 1 + (v / this)², v the
     #: pair's median joint displacement in the initialization (mm/frame): fast motion is not

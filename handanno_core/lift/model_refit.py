@@ -142,14 +142,10 @@ def refit_references(
     if len(ok) == 0:
         return RefitResult(out, kept, float(noise_px or 0.0), 0.0)
     base = replace(fit_weights or hm.FitWeights(), pose=st.pose)
-    obs = hm.observe(
-        np.asarray(crops[ok], dtype=np.float32),
-        np.asarray(boxes, dtype=np.float64)[ok],
-        np.asarray(centres_mm, dtype=np.float64)[ok],
-        camera,
-        cube_mm=cube_mm,
-    )
-    model = hm.personalize(skeleton, np.asarray(bone_lengths_mm, dtype=np.float64), x0[ok], obs)
+    model, obs = hm.personalize_from_crops(
+        skeleton, bone_lengths_mm, x0[ok], crops[ok], np.asarray(boxes)[ok],
+        np.asarray(centres_mm)[ok], camera, cube_mm=cube_mm,
+    )  # fmt: skip
     anns = [annotations[i] for i in ok]
     priors = _priors(x0[ok], anns, st, base.pose)
 

@@ -110,6 +110,13 @@ class PropagationSettings:
     angle_trigger: float = 1.5  #: refit when a limit is exceeded by this many sigma
     angle_iterations: int = 4
     carry_band_mm: float = 10.0  #: carried depth-below-surface stays this close to the skeleton's
+    #: joints hidden in the source move rigidly with the joints seen on their surface (the flow at a
+    #: hidden joint's pixel is its occluder's motion); needs this many seen joints, else translation
+    carry_hidden_min_seen: int = 4
+    carry_hidden: bool = True
+    #: the hand model also starts from the parent's pose moved on at its own velocity (parent minus
+    #: grandparent) when grandparent, parent and frame are consecutive frames
+    velocity_start: bool = True
     fit_iterations: int = 10
     fb_scale_px: float = 1.5  #: confidence scale of the forward-backward error (crop px)
     appearance_scale_mm: float = 25.0
@@ -409,6 +416,7 @@ def _step(
     joints_s: np.ndarray,
     conf_s: np.ndarray,
     delta_s: np.ndarray,
+    joints_gs: np.ndarray | None = None,
 ):
     """Propagate ``joints_s`` of frame ``src`` to ``frame``. ``delta_s`` (J,) mm: each joint's
     depth below the observed surface in the source (NaN = not on its surface). Returns
@@ -455,6 +463,12 @@ def _step(
         & (z_obs > z_pred - st.occlusion_mm)
         & (z_obs < z_pred + st.behind_mm)
     )
+    if st.carry_hidden and np.any(~vis_s) and np.any(visible):
+        # the flow at a hidden joint's pixel is its occluder's motion: move hidden joints with the
+        # joints seen on their surface instead
+        carried = _carry_rigidly(joints_s, cam.backproject(uv_f, z_obs), visible, st)
+        uv_f, z_pred = _replace_hidden(vis_s, uv_f, z_pred, carried, cam)
+        xy_f = image_to_crop(uv_f, box_f)
     z_t = np.where(visible, z_obs, z_pred)
     x0 = cam.backproject(uv_f, z_t)
     bones = sk.bones
@@ -475,7 +489,7 @@ def _step(
 
     model_conf = None
     if ctx.hand_models is not None:
-        x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f)
+        x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f, joints_gs)
 
     # confidence
     half = 0.5 * st.cube_mm
@@ -499,7 +513,31 @@ def _step(
     return x, conf, np.where(vis_f, below, np.nan)
 
 
-def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, crop_f):
+def _carry_rigidly(joints_s, seen_f, seen, st) -> np.ndarray:
+    """``joints_s`` (J,3) mm moved by the rigid motion taking the ``seen`` (J,) source joints to
+    their positions ``seen_f`` (J,3) mm in the frame (Kabsch), or by their mean displacement when
+    fewer than ``st.carry_hidden_min_seen`` are seen or they are nearly collinear."""
+    a, b = joints_s[seen], seen_f[seen]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    if len(a) < st.carry_hidden_min_seen:
+        return joints_s + (cb - ca)
+    u, sv, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    if sv[1] < 1e-3 * max(sv[0], 1e-9):
+        return joints_s + (cb - ca)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return (joints_s - ca) @ rot.T + cb
+
+
+def _replace_hidden(seen, uv, z, carried, camera):
+    """``uv`` (J,2) px and ``z`` (J,) mm with the joints not ``seen`` (J,) taken from ``carried``
+    (J,3) mm."""
+    return np.where(seen[:, None], uv, camera.project(carried)), np.where(seen, z, carried[:, 2])
+
+
+def _model_fit(
+    ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, crop_f, joints_gs=None
+):
     """Fit the hand model to ``frame``'s own depth from several starts; keep the lowest energy.
 
     Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s`` and the lifted poses
@@ -519,6 +557,8 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     c_f = ctx.centres_mm[frame]
     j = len(x_flow)
     starts = [x_flow, joints_s + (c_f - ctx.centres_mm[src])]
+    if joints_gs is not None and st.velocity_start:
+        starts.append(2.0 * joints_s - joints_gs)
     refs = ctx.model_refs
     if refs is not None and len(refs):
         i = int(np.searchsorted(refs, frame))
@@ -619,6 +659,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
     skipped: dict[int, str] = {}
     state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     alias: dict[int, int] = {}  # skipped frame -> nearest valid ancestor
+    came_from: dict[int, int] = {}  # computed frame -> the frame it was propagated from
     for f, (jj, cc, vv) in task.seeds.items():
         if vv is None:
             vv = _surface_offsets_at_source(ctx, f, jj)
@@ -634,8 +675,14 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 emit(f, None, None)
             continue
         jj, cc, vv = state[s]
+        g = came_from.get(s)
+        gs = (
+            state[g][0]
+            if g is not None and g in state and f - s == s - g and abs(f - s) == 1
+            else None
+        )
         try:
-            x, conf, vis = _step(ctx, s, f, jj, cc, vv)
+            x, conf, vis = _step(ctx, s, f, jj, cc, vv, gs)
         except _Skip as err:
             skipped[f] = str(err)
             alias[f] = s
@@ -643,6 +690,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 emit(f, None, None)
             continue
         state[f] = (x, conf, vis)
+        came_from[f] = s
         out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
         if emit is not None:
             emit(f, x, conf)

@@ -221,3 +221,61 @@ def test_implausible_reference_is_reported_not_propagated(data):
     )  # fmt: skip
     assert res.skipped == [1, 2]
     assert "implausible" in res.reasons[1]
+
+
+def test_hidden_joints_move_rigidly_with_the_seen_ones():
+    from handanno_core.propagate import PropagationSettings, _carry_rigidly
+
+    rng = np.random.default_rng(4)
+    joints = rng.normal(0.0, 40.0, (21, 3)) + [0.0, 0.0, 400.0]
+    angle = np.radians(20.0)
+    rot = np.array(
+        [[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0, 0, 1]]
+    )
+    moved = (joints - joints.mean(0)) @ rot.T + joints.mean(0) + [12.0, -5.0, 8.0]
+    seen = np.zeros(21, dtype=bool)
+    seen[[0, 1, 5, 9, 13]] = True
+    st = PropagationSettings()
+    # only the seen joints' new positions are known; the hidden ones follow the same motion
+    observed = np.where(seen[:, None], moved, np.nan)
+    np.testing.assert_allclose(_carry_rigidly(joints, observed, seen, st), moved, atol=1e-6)
+    # too few seen joints for a rotation: the mean displacement of the seen ones
+    few = np.zeros(21, dtype=bool)
+    few[[0, 1]] = True
+    shift = (moved[few] - joints[few]).mean(0)
+    np.testing.assert_allclose(_carry_rigidly(joints, observed, few, st), joints + shift)
+
+
+def test_model_start_at_the_parents_velocity_follows_fast_motion(tmp_path):
+    """At the suite's fast-motion speed (>= 10 mm joint steps), a chain whose hand-model fit may
+    start from the parent moved on at its own velocity stays on the hand; from the flowed pose
+    and the parent's pose alone it loses it within a few frames."""
+    from handanno_core import suite, synth
+    from handanno_core.propagate import PropagationSettings
+
+    n = 16
+    motion = synth.synthesize_motion(
+        n, 3, speed_mm=suite.FAST_SPEED_MM, hold_frames=suite.FAST_HOLD_FRAMES
+    )
+    path = synth.write_sequence(
+        tmp_path / "fast", motion.model, motion.joints_mm, motion.rotation, seed=3,
+        progress=False, workers=1,
+    )  # fmt: skip
+    seq = open_sequence(path)
+    gt = seq.ground_truth.joints_mm
+    assert np.linalg.norm(np.diff(gt, axis=0), axis=-1).mean() >= 10.0
+    centres = locate_hands(seq)
+    data = dict(
+        seq=seq, gt=gt, crops=compute_crops(seq, centres, None), centres=centres,
+        boxes=crop_boxes(centres, seq.camera), bones=seq.skeleton.estimate_bone_lengths(gt),
+    )  # fmt: skip
+    chain = np.arange(-1, n - 1)
+    mean_error = {
+        v: errors(
+            run(data, chain, [0], hand_model=True, settings=PropagationSettings(velocity_start=v)),
+            gt,
+            np.arange(1, n),
+        ).mean()
+        for v in (False, True)
+    }
+    assert mean_error[True] < 10.0 < mean_error[False]

@@ -399,6 +399,11 @@ def build_model(
     pose geometry are unknown, so ``palm_dist_mm`` NaN means "no palm term" until
     :func:`personalize` measures them."""
     sk = skeleton
+    if not sk.has_finger_segments:
+        raise ValueError(
+            f"the hand model needs fingers of three bones; layout {sk.name} has none "
+            "(Skeleton.has_finger_segments): run without the model"
+        )
     lengths = np.asarray(bone_lengths_mm, dtype=np.float64)
     bones = sk.bones
     mcps = _palm_chain(sk)

@@ -209,12 +209,13 @@ def prefill_reference(
 def reference_hand_model(session: Session, joints_mm: np.ndarray, frames, bone_lengths_mm):
     """The personalized hand model (:func:`handanno_core.handmodel.personalize`) of the lifted
     references ``frames`` with joints ``joints_mm`` (N, J, 3) mm (rows of those frames used) and
-    ``bone_lengths_mm`` (B,), from the session's cached crops; None without crops or frames."""
+    ``bone_lengths_mm`` (B,), from the session's cached crops; None without crops or frames, or for
+    a layout the model does not describe (``Skeleton.has_finger_segments``)."""
     from . import handmodel as hm
 
     crop_data = cached_crops(session)
     frames = np.asarray(list(frames), dtype=np.int64)
-    if crop_data is None or frames.size == 0:
+    if crop_data is None or frames.size == 0 or not session.skeleton.has_finger_segments:
         return None
     crops, centres, boxes = crop_data
     return hm.personalize_from_crops(

@@ -268,3 +268,12 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
     assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
     assert fit(ball_crop, 5.0)[0] == 0.0  # failed: the flowed pose, unchanged
     assert fit(ball_crop, 0.0)[0] > 20.0  # without the guard the fit leaves it
+
+
+def test_a_layout_without_three_bone_fingers_has_no_hand_model():
+    from handanno_core.skeleton import NYU14
+
+    assert not NYU14.has_finger_segments
+    with pytest.raises(ValueError, match="nyu14"):
+        hm.build_model(NYU14, np.full(len(NYU14.bones), 30.0))
+    hm.build_model(MSRA21, np.full(len(MSRA21.bones), 30.0))  # the default layout has one

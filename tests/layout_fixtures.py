@@ -15,6 +15,10 @@ the dataset's joints:
   angles fall inside the ranges learned on the real ICVL labels: 5 deg mean excess at the thumb
   root against 20 deg with root = MCP).
 
+``motion="fpha"``: the hand follows a real recorded trajectory instead (the first FPHA
+``Subject_1`` sequence in ``../shared/data/real-motion``, the tune side; the hand model fitted to
+its joints, :func:`handanno_core.real_motion.model_of_joints`), rendered and written the same way.
+
 Used by tests/test_layouts.py (into tmp_path) and benchmarks/bench_lift.py ``--layouts``.
 """
 
@@ -25,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handanno_core import real_motion as rm
 from handanno_core.camera import NYU_CAMERA
 from handanno_core.datasets.icvl import ICVL_CAMERA
 from handanno_core.datasets.nyu import NYU_JOINTS, encode_nyu_png
@@ -67,18 +72,38 @@ def icvl_joints(msra: np.ndarray) -> np.ndarray:
     return np.concatenate([palm[:, None], msra[:, idx]], axis=1)
 
 
-def write_nyu_fixture(out: str | Path, frames: int = 40, seed: int = 3) -> Path:
-    """Render ``frames`` synthetic frames into an NYU-format folder ``out``; returns it."""
+def has_real_motion() -> bool:
+    """Whether the FPHA trajectories of ``motion="fpha"`` are available."""
+    return bool(rm.fpha_sequences(rm.DEFAULT_REAL_MOTION, "Subject_1"))
+
+
+def _motion(frames: int, seed: int, motion: str):
+    """Hand model, MSRA-21 joints ``(frames, 21, 3)`` mm and rotations ``(frames, 3, 3)`` of a
+    synthetic (``"synthetic"``) or real recorded (``"fpha"``) motion."""
+    if motion == "synthetic":
+        m = synthesize_motion(frames, seed)
+        return m.model, m.joints_mm, m.rotation
+    if motion == "fpha":
+        first = rm.fpha_sequences(rm.DEFAULT_REAL_MOTION, "Subject_1")[0]
+        joints = rm.load_fpha(first)[:frames]
+        if len(joints) < frames:
+            raise ValueError(f"{first}: {len(joints)} frames, {frames} asked")
+        return rm.model_of_joints(joints), joints, rm.rotation_of_joints(joints)
+    raise ValueError(f"unknown motion {motion!r}")
+
+
+def write_nyu_fixture(
+    out: str | Path, frames: int = 40, seed: int = 3, motion: str = "synthetic"
+) -> Path:
+    """Render ``frames`` frames of ``motion`` into an NYU-format folder ``out``; returns it."""
     import scipy.io
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    motion = synthesize_motion(frames, seed)
-    joints = motion.joints_mm + NYU_SHIFT_MM
+    model, joints, rotation = _motion(frames, seed, motion)
+    joints = joints + NYU_SHIFT_MM
     for f in range(frames):
-        depth = render_frame(
-            motion.model, joints[f], motion.rotation[f], NYU_CAMERA, noise_seed=(seed, f)
-        )
+        depth = render_frame(model, joints[f], rotation[f], NYU_CAMERA, noise_seed=(seed, f))
         cv2.imwrite(str(out / f"depth_1_{f + 1:07d}.png"), encode_nyu_png(depth))
     xyz = np.zeros((1, frames, 36, 3))
     nyu = nyu_joints(joints)
@@ -88,18 +113,18 @@ def write_nyu_fixture(out: str | Path, frames: int = 40, seed: int = 3) -> Path:
     return out
 
 
-def write_icvl_fixture(out: str | Path, frames: int = 40, seed: int = 3) -> Path:
-    """Render ``frames`` synthetic frames into an ICVL-format folder ``out``; returns it."""
+def write_icvl_fixture(
+    out: str | Path, frames: int = 40, seed: int = 3, motion: str = "synthetic"
+) -> Path:
+    """Render ``frames`` frames of ``motion`` into an ICVL-format folder ``out``; returns it."""
     out = Path(out)
     (out / "Depth" / "seq").mkdir(parents=True, exist_ok=True)
-    motion = synthesize_motion(frames, seed)
-    joints = icvl_joints(motion.joints_mm)
+    model, msra, rotation = _motion(frames, seed, motion)
+    joints = icvl_joints(msra)
     uv = ICVL_CAMERA.project(joints)
     lines = []
     for f in range(frames):
-        depth = render_frame(
-            motion.model, motion.joints_mm[f], motion.rotation[f], ICVL_CAMERA, noise_seed=(seed, f)
-        )
+        depth = render_frame(model, msra[f], rotation[f], ICVL_CAMERA, noise_seed=(seed, f))
         name = f"seq/image_{f:04d}.png"
         cv2.imwrite(str(out / "Depth" / name), np.rint(depth).astype(np.uint16))
         uvd = np.concatenate([uv[f], joints[f, :, 2:]], axis=1)

@@ -12,7 +12,7 @@ from app.cli import main
 from handanno_core.datasets import open_sequence
 from handanno_core.session import Session
 from handanno_core.skeleton import get_skeleton
-from tests.layout_fixtures import write_icvl_fixture, write_nyu_fixture
+from tests.layout_fixtures import has_real_motion, write_icvl_fixture, write_nyu_fixture
 
 WRITERS = {"nyu14": write_nyu_fixture, "icvl16": write_icvl_fixture}
 
@@ -40,9 +40,22 @@ def test_fixture_ground_truth_measures_as_a_right_hand_inside_the_ranges(layout,
     assert np.mean(v > 0) < 0.2, v
 
 
-@pytest.mark.parametrize("layout", ["nyu14", "icvl16"])
-def test_pipeline_end_to_end_on_layout(layout, tmp_path, capsys):
-    data = WRITERS[layout](tmp_path / "data", frames=30)
+REAL = pytest.mark.skipif(not has_real_motion(), reason="../shared/data/real-motion is absent")
+
+
+@pytest.mark.parametrize(
+    "layout, motion",
+    [
+        ("nyu14", "synthetic"),
+        ("icvl16", "synthetic"),
+        pytest.param("nyu14", "fpha", marks=REAL),
+        pytest.param("icvl16", "fpha", marks=REAL),
+    ],
+)
+def test_pipeline_end_to_end_on_layout(layout, motion, tmp_path, capsys):
+    """new/select/annotate-from-gt/lift/propagate/refine/export on a fixture of the layout, the
+    hand following synthetic motion or a real recorded trajectory (FPHA, tune side)."""
+    data = WRITERS[layout](tmp_path / "data", frames=30, motion=motion)
     sessions = tmp_path / "sessions"
     base = ["--sessions-dir", str(sessions)]
     assert main(base + ["new", "s", str(data)]) == 0
@@ -60,15 +73,21 @@ def test_pipeline_end_to_end_on_layout(layout, tmp_path, capsys):
     lifted = session.load_results()["lifted_mm"][refs]
     err = np.linalg.norm(lifted - gt[refs], axis=-1)
     with capsys.disabled():
-        print(f"\n{layout}: lift error on {len(refs)} references {err.mean():.2f} mm mean")
-    # measured: nyu14 1.86, icvl16 1.73 mm (exact 2D, bones estimated, 6 references; icvl16
-    # with the hand-model refit, 2.06 without; nyu14 has none)
-    assert err.mean() < 6.0
+        print(f"\n{layout} {motion}: lift error on {len(refs)} references {err.mean():.2f} mm mean")
     final = np.linalg.norm(session.load_results()["final_mm"] - gt, axis=-1)
     with capsys.disabled():
-        print(f"{layout}: final error {final.mean():.2f} mm mean")
-    # the hand model is on by default but not for nyu14 (fingers of two bones), where it made the
-    # final error 2.0 -> 18.4 mm on a 60-frame fixture
-    assert final.mean() < 6.0
+        print(f"{layout} {motion}: final error {final.mean():.2f} mm mean")
+    assert np.all(np.isfinite(lifted)) and np.all(np.isfinite(final))
+    if motion == "synthetic":
+        # measured: nyu14 1.86, icvl16 1.73 mm (exact 2D, bones estimated, 6 references;
+        # icvl16 with the hand-model refit, 2.06 without; nyu14 has none)
+        assert err.mean() < 6.0
+        # the hand model is on by default but not for nyu14 (fingers of two bones), where it
+        # made the final error 2.0 -> 18.4 mm on a 60-frame fixture
+        assert final.mean() < 6.0
+    # on the real trajectory (FPHA Subject_1, first sequence, 30 frames) the pipeline runs end to
+    # end but the lift is far off: 9.2 mm (nyu14, the wrist joints 16-36 mm) and 22.8 mm
+    # (icvl16, bones estimated up to 2x too long) on the references: reported in the README,
+    # not asserted
     doc = json.loads(out.read_text())
     assert len(doc["frames"]) == len(gt)

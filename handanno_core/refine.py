@@ -213,8 +213,9 @@ class _Evaluation:
 
     ``terms``: energy per term; ``x``: joints (N, J, 3) mm; ``hd`` (N, J, 3, 3) / ``gx`` (N, J, 3):
     per-joint Hessian blocks and gradient of the per-frame terms; ``wt`` (N-1, J) / ``wa``
-    (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations, dθ-Jacobian)`` of the frames
-    outside their angle limits (None if none); ``mod``: θ-space hand-model blocks (None if off)."""
+    (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations)`` of the frames
+    outside their angle limits (None if none; their θ-Jacobian is taken in the normal equations
+    only, not at trial points the LM rejects); ``mod``: θ-space hand-model blocks (None if off)."""
 
     root: np.ndarray
     u: np.ndarray
@@ -365,7 +366,7 @@ class _Problem:
         terms["init"] = self._init_prior(x, hd, gx)
         terms["temporal"], wt = self._temporal(x, hd, gx)
         terms["acceleration"], wa = self._acceleration(x, hd, gx)
-        terms["angle"], ang = self._angles(x, root, u)
+        terms["angle"], ang = self._angles(x)
         return _Evaluation(root, u, terms, x, hd, gx, wt, wa, ang, mod)
 
     def _depth_band(self, xc, fr, xy, hd, gx) -> float:
@@ -493,24 +494,25 @@ class _Problem:
         gx[2:] += wa[..., None] * acc
         return w.acceleration * float(np.sum(cost * scale)), wa
 
-    def _angles(self, x, root, u) -> tuple[float, tuple | None]:
-        """Joint-angle limits: energy and ``(frames, violations, dθ-Jacobian)`` of the frames
-        outside them (None if none)."""
+    def _angles(self, x) -> tuple[float, tuple | None]:
+        """Joint-angle limits: energy and ``(frames, violations)`` of the frames outside them
+        (None if none)."""
         w = self.w
         if w.angle <= 0 or self.skel.flexion_limits_deg is None:
             return 0.0, None
         viol = self._angle_violation(x)
         active = np.flatnonzero(np.any(viol > 0, axis=1))
-        ang = (active, *self._angle_jacobian(root[active], u[active])) if len(active) else None
+        ang = (active, viol[active]) if len(active) else None
         return w.angle * 0.5 * float(np.sum(viol**2)), ang
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
         return angle_violation(self.skel, x)
 
-    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray):
-        """Violations (m,2A) and d(violation)/dθ (m,2A,P) (forward differences, see handmodel)."""
-        return angle_jacobian(self.skel, self.kin, root, u)
+    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, v0: np.ndarray):
+        """d(violation)/dθ (m,2A,P) at violations ``v0`` (m,2A) (forward differences, see
+        handmodel)."""
+        return angle_jacobian(self.skel, self.kin, root, u, v0=v0)[1]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -535,7 +537,8 @@ def _assemble(problem: _Problem, m: np.ndarray, ev: _Evaluation, fixed: np.ndarr
     diag = np.matmul(m.transpose(0, 2, 1), hm.reshape(n, j * 3, p))
     grad = np.einsum("nrp,nr->np", m, gx.reshape(n, j * 3))
     if ang is not None:
-        frames, v0, jm = ang  # jm: (a, 2A, P) in θ-space
+        frames, v0 = ang
+        jm = problem._angle_jacobian(ev.root[frames], ev.u[frames], v0)  # (a, 2A, P) in θ
         wa = problem.w.angle
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)

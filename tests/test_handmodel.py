@@ -259,12 +259,21 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
         model_refs=np.array([0]), model_ref_joints=x[None],
     )  # fmt: skip
 
+    def item(crop):
+        return prop._ModelInput(0, 1, x, x, CAM.project(x), np.zeros(21), crop)
+
     def fit(crop, ratio):
         c = replace(ctx, settings=prop.PropagationSettings(model_fail_ratio=ratio))
-        out, conf = prop._model_fit(c, 0, 1, x, x, CAM.project(x), np.zeros(21), crop)
+        out, conf = prop._model_fits(c, [item(crop)])[0]
         return np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
 
     to_flow, to_truth = fit(hand_crop, 5.0)
     assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
     assert fit(ball_crop, 5.0)[0] == 0.0  # failed: the flowed pose, unchanged
     assert fit(ball_crop, 0.0)[0] > 20.0  # without the guard the fit leaves it
+    # frames fitted in one batch (as propagation does) get exactly their results when alone
+    batch = prop._model_fits(ctx, [item(hand_crop), item(ball_crop), item(hand_crop)])
+    for got, crop in zip(batch, [hand_crop, ball_crop, hand_crop], strict=True):
+        alone = prop._model_fits(ctx, [item(crop)])[0]
+        np.testing.assert_array_equal(got[0], alone[0])
+        np.testing.assert_array_equal(got[1], alone[1])

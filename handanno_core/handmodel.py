@@ -631,16 +631,30 @@ class _Accumulator:
     """Residual rows of the Gauss-Newton normal equations, each depending on (at most) two joints,
     collected per frame; :func:`_assemble` sums them in joint space and maps them to θ."""
 
-    def __init__(self, n: int, j: int):
+    def __init__(self, n: int, j: int, compact: bool = False):
         self.n = n
+        self.compact = compact
         self.rows: list[tuple] = []
         self.joint_h = np.zeros((n, j, 3, 3))
         self.joint_g = np.zeros((n, j, 3))
 
     def add_points(self, ja, jb, ca, cb, grad, w, r):
         """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
-        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R)."""
+        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R).
+        With ``compact`` (the rows are assembled at once, not kept row-wise by the batched LM)
+        rows unused in every frame (most collision and free-space samples) are dropped here;
+        :func:`_assemble` skips the unused rows of a frame anyway, in the same order."""
         shape = w.shape
+        used = np.any(w != 0, axis=0) if self.compact else None
+        if used is not None and not used.all():
+            if not used.any():
+                return
+            cols = np.flatnonzero(used)
+            ja, jb, ca, cb, w, r = (
+                np.broadcast_to(v, shape)[:, cols] for v in (ja, jb, ca, cb, w, r)
+            )
+            grad = np.broadcast_to(grad, shape + (3,))[:, cols]
+            shape = w.shape
         ja, jb = np.broadcast_to(ja, shape), np.broadcast_to(jb, shape)
         ca, cb = np.broadcast_to(ca, shape), np.broadcast_to(cb, shape)
         j6 = np.concatenate([grad * ca[..., None], grad * cb[..., None]], axis=-1)  # (n,R,6)
@@ -725,17 +739,20 @@ def frame_energy(
     nearest capsule it is}`` (an empty dict without ``diagnostics``).
     """
     e, terms, x, extra = _energy(
-        model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics
+        model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics, compact=True
     )
     if want_jac:
         extra = _normal_equations(model, kin, root, u, weights, *extra)
     return e, terms, x, extra
 
 
-def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics):
+def _energy(
+    model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics, compact=False
+):
     """:func:`frame_energy` with, under ``want_jac``, the residual rows (an
     :meth:`_Accumulator.state`) and the angle violations (n,2A) (None: no angle term) in place
-    of the normal equations, which :func:`_normal_equations` builds from them."""
+    of the normal equations, which :func:`_normal_equations` builds from them (``compact``: rows
+    unused in every frame left out, see :meth:`_Accumulator.add_points`)."""
     w = weights
     x = kin.joints(root, u)
     n, j = x.shape[:2]
@@ -744,7 +761,7 @@ def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnos
     pa, pb = model.pairs[:, 0], model.pairs[:, 1]
     c_count = len(model.pairs)
     terms = {}
-    acc = _Accumulator(n, j) if want_jac else None
+    acc = _Accumulator(n, j, compact) if want_jac else None
 
     # ---------------- data: observed point -> nearest capsule surface
     pts = obs.points

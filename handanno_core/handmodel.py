@@ -246,41 +246,60 @@ def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
 
 
 def angle_jacobian(
-    skeleton: Skeleton, kin: Kinematics, root, u, h: float = 1e-4, v0=None, own_bones: bool = False
+    skeleton: Skeleton,
+    kin: Kinematics,
+    root,
+    u,
+    h: float = 1e-4,
+    v0=None,
+    own_bones: bool = False,
+    bones: np.ndarray | None = None,
 ):
     """Violations (m,2A) and d(violation)/dθ (m,2A,P) at the frames' parameters (root, u).
 
     Forward differences over the tangent parameters of the bones the violated angles depend on
     (angles do not depend on the root; an angle depends on the bones from the root to its child
     joint and to the palm joints): at most 2B extra pose evaluations per frame, typically a
-    finger's, perturbed in all frames (the union over the frames). ``v0``: the violations (m,2A)
-    when the caller has them. ``own_bones``: each frame's Jacobian keeps only the columns of its
-    own violated angles' bones (else a non-violated angle within ``h`` of its limit can get a
-    row from another frame's bones), so a frame's result does not depend on the frames evaluated
-    with it: the hand-model fit (:func:`fit_frames`) batches independent frames.
+    finger's, perturbed in all frames (the union over the frames, or ``bones`` when given: a
+    caller splitting frames into chunks passes the union of all of them). A perturbed bone moves
+    only the joints below it, by ``L·Δu``. ``v0``: the violations (m,2A) when the caller has
+    them. ``own_bones``: each frame's Jacobian keeps only the columns of its own violated angles'
+    bones (else a non-violated angle within ``h`` of its limit can get a row from another
+    frame's bones), so a frame's result does not depend on the frames evaluated with it: the
+    hand-model fit (:func:`fit_frames`) batches independent frames.
     """
-    m, b = u.shape[:2]
+    x0 = kin.joints(root, u)
     if v0 is None:
-        v0 = angle_violation(skeleton, kin.joints(root, u))
-    jac = np.zeros((m, v0.shape[1], kin.num_params))
-    deps = _angle_bones(skeleton)
-    own = (v0 > 0).astype(np.float64) @ deps > 0  # (m,B) bones each frame's violations depend on
-    bones = np.flatnonzero(np.any(own, axis=0))
+        v0 = angle_violation(skeleton, x0)
+    jac = np.zeros((len(u), v0.shape[1], kin.num_params))
+    own = _own_bones(skeleton, v0)
+    if bones is None:
+        bones = np.flatnonzero(np.any(own, axis=0))
     if len(bones) == 0:
         return v0, jac
     cols = np.stack([2 * bones, 2 * bones + 1], axis=1).ravel()  # tangent parameters
     t = kin.tangents(u[:, bones])  # (m,nb,3,2)
-    pert = np.repeat(u[:, None], len(cols), axis=1)  # (m, 2nb, B, 3)
     idx = np.arange(len(cols))
-    moved = pert[:, idx, cols // 2] + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
-    pert[:, idx, cols // 2] = _unit(moved)
-    xs = kin.joints(np.repeat(root, len(cols), axis=0), pert.reshape(m * len(cols), b, 3))
-    v1 = angle_violation(skeleton, xs).reshape(m, len(cols), -1)
+    ub = u[:, cols // 2]  # (m, 2nb, 3)
+    du = _unit(ub + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)) - ub
+    xs = x0[:, None] + kin.ancestor_lengths[:, cols // 2].T[None, :, :, None] * du[:, :, None]
+    v1 = angle_violation(skeleton, xs.reshape((-1,) + x0.shape[1:])).reshape(len(u), len(cols), -1)
     d = (v1 - v0[:, None, :]) / h
     if own_bones:
         d = np.where(own[:, cols // 2, None], d, 0.0)
     jac[:, :, 3 + cols] = d.transpose(0, 2, 1)
     return v0, jac
+
+
+def violated_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:
+    """Bones (indices) the violated angles of any frame of ``v0`` (m,2A) depend on: the bones
+    :func:`angle_jacobian` perturbs."""
+    return np.flatnonzero(np.any(_own_bones(skeleton, v0), axis=0))
+
+
+def _own_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:
+    """(m,B) bool: the bones each frame's violated angles (``v0`` (m,2A) > 0) depend on."""
+    return (v0 > 0).astype(np.float64) @ _angle_bones(skeleton) > 0
 
 
 _ANGLE_BONES: dict[int, tuple[Skeleton, np.ndarray]] = {}
@@ -455,6 +474,16 @@ class FrameObservations:
         return FrameObservations(
             self.points[idx], self.valid[idx], self.depth[idx], self.nearest[idx], self.boxes[idx]
         )
+
+    @staticmethod
+    def concatenate(parts: list[FrameObservations]) -> FrameObservations:
+        """The frames of ``parts`` (non-empty), in order."""
+        return FrameObservations(
+            *(np.concatenate([getattr(o, f) for o in parts]) for f in _OBS_FIELDS)
+        )
+
+
+_OBS_FIELDS = ("points", "valid", "depth", "nearest", "boxes")
 
 
 def observe(

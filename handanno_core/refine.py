@@ -533,8 +533,13 @@ class _Problem:
 
     def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, v0: np.ndarray):
         """d(violation)/dθ (m,2A,P) at violations ``v0`` (m,2A) (forward differences, see
-        handmodel)."""
-        return angle_jacobian(self.skel, self.kin, root, u, v0=v0)[1]
+        handmodel), in chunks of frames that perturb the bones of all of them."""
+        bones = hmod.violated_bones(self.skel, v0)
+
+        def chunk(fr):
+            return angle_jacobian(self.skel, self.kin, root[fr], u[fr], v0=v0[fr], bones=bones)[1]
+
+        return np.concatenate(self.map_chunks(chunk, len(v0), 256))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -632,7 +637,12 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
     """Switch the hand-model term on: observations of every frame, the personalized model and the
     motion-adaptive temporal weights."""
     refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
-    obs = hmod.observe(crops, boxes, centres, problem.cam, cube_mm=cube_mm)
+
+    def observe(fr):
+        view = slice(fr[0], fr[-1] + 1)
+        return hmod.observe(crops[view], boxes[view], centres[view], problem.cam, cube_mm=cube_mm)
+
+    obs = hmod.FrameObservations.concatenate(problem.map_chunks(observe, problem.n, 128))
     if isinstance(hand_model, hmod.HandModel):
         model = hand_model
     elif len(refs):

@@ -584,9 +584,11 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     starts = np.stack(starts)
     owner = np.asarray(owner, dtype=np.int64)
     j = starts.shape[1]
+    w = ctx.fit_weights or hm.FitWeights()
     obs_f = hm.observe(
-        np.stack([it.crop_f for it in items]), ctx.boxes[frames], c_f, cam, cube_mm=st.cube_mm
-    )
+        np.stack([it.crop_f for it in items]), ctx.boxes[frames], c_f, cam, cube_mm=st.cube_mm,
+        max_points=w.points,
+    )  # fmt: skip
     x_flow = np.stack([it.x_flow for it in items])
     fb_w = np.exp(
         -0.5 * (np.nan_to_num(np.stack([it.fb for it in items]), nan=1e3) / st.fb_scale_px) ** 2
@@ -598,7 +600,6 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         uv_w=fb_w,
     )
     kin = hm.Kinematics(ctx.skeleton, model.bone_lengths_mm)
-    w = ctx.fit_weights or hm.FitWeights()
     e0 = hm.frame_energy(
         model, kin, *kin.fit(starts), obs_f.take(owner), cam, w, pri_f.take(owner),
         diagnostics=False,

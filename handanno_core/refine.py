@@ -637,22 +637,28 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
     """Switch the hand-model term on: observations of every frame, the personalized model and the
     motion-adaptive temporal weights."""
     refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
+    # the refinement has its own angle prior; the model term brings data, free space, collisions
+    # and the palm shape
+    fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
 
-    def observe(fr):
-        view = slice(fr[0], fr[-1] + 1)
-        return hmod.observe(crops[view], boxes[view], centres[view], problem.cam, cube_mm=cube_mm)
+    def observe(frames, points=fit_w.points):
+        return hmod.observe(
+            crops[frames], np.asarray(boxes)[frames], np.asarray(centres)[frames], problem.cam,
+            cube_mm=cube_mm, max_points=points,
+        )  # fmt: skip
 
-    obs = hmod.FrameObservations.concatenate(problem.map_chunks(observe, problem.n, 128))
+    obs = hmod.FrameObservations.concatenate(
+        problem.map_chunks(lambda fr: observe(slice(fr[0], fr[-1] + 1)), problem.n, 128)
+    )
     if isinstance(hand_model, hmod.HandModel):
         model = hand_model
     elif len(refs):
-        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], obs.take(refs))
+        same = fit_w.points == hmod.OBSERVED_POINTS  # else the references observed as always
+        ref_obs = obs.take(refs) if same else observe(refs, hmod.OBSERVED_POINTS)
+        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], ref_obs)
     else:
         return
-    problem.model, problem.obs = model, obs
-    # the refinement has its own angle prior; the model term brings data, free space, collisions
-    # and the palm shape
-    problem.fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
+    problem.model, problem.obs, problem.fit_w = model, obs, fit_w
     if problem.n > 1 and problem.w.temporal_motion_mm > 0:
         v = np.median(np.linalg.norm(np.diff(init, axis=0), axis=-1), axis=1)
         problem.pair_scale = 1.0 / (1.0 + (v / problem.w.temporal_motion_mm) ** 2)

@@ -165,6 +165,18 @@ def test_fit_recovers_pose_from_15_degree_perturbation(scene):
     assert np.allclose(MSRA21.bone_lengths(res.joints_mm[0]), model.bone_lengths_mm, atol=1e-6)
 
 
+def test_fit_recovers_pose_from_fewer_observed_points(scene):
+    """The per-frame fit in propagation and refinement observes ``FitWeights.points`` points: a
+    sparser sample of the same depth still recovers the pose."""
+    x, model, _ = scene
+    obs = _observe(model, [x], max_points=hm.FitWeights(points=256).points)
+    assert obs.valid.sum() == 256
+    signs = np.where(np.arange(len(MSRA21.angle_joints)) % 2 == 0, 1.0, -1.0)
+    res = hm.fit_frames(model, _perturb_joints(x, 15.0, signs)[None], obs, CAM, iterations=60)
+    err = np.linalg.norm(res.joints_mm[0] - x, axis=1)
+    assert err.max() <= 1.0, np.round(err, 2)
+
+
 def test_angle_meter_matches_skeleton_joint_angles():
     rng = np.random.default_rng(0)
     poses = np.stack([_pose(g, (rng.uniform(-90, 90), 0.0, 0.0)) for g in ("open", "fist")])

@@ -35,7 +35,8 @@ block-banded in time (blocks of ``3 + 2B`` parameters per frame; only the tempor
 couple frames: a frame with its neighbours and, through the acceleration, with the frames two
 apart), are assembled with batched numpy products (no Python loops over
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
-lowers the true robust energy, so ``energy_history`` never increases.
+lowers the true robust energy, so ``energy_history`` never increases. The per-frame terms are
+evaluated in chunks of frames, on ``threads`` threads if asked (the same result bit for bit).
 
 **Hand model** (``hand_model=True``; this function's default is off, a session's
 ``settings.hand_model`` is on): the velocity term's weight (itself off by

@@ -249,7 +249,9 @@ def _propagate_and_refine(
     pipeline.propagate(session, workers=workers, aligner=aligner, quiet=True)
     timings["propagate"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
-    refined = pipeline.refine(session, quiet=True)
+    # one system, as a session of this size is refined by default; its per-frame terms on the
+    # ``workers`` cores (threads: the same result as one thread)
+    refined = pipeline.refine(session, quiet=True, threads=workers)
     timings["refine"] = round(time.perf_counter() - t, 3)
     run = {
         **fields,

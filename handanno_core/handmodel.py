@@ -141,20 +141,22 @@ class Kinematics:
         return root + step[:, :3], v
 
     def fit(self, target: np.ndarray, iterations: int = 8):
-        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN)."""
-        n = target.shape[0]
+        """Least-squares fit of (root, u) to joints (N,J,3) with fixed bone lengths (per frame GN;
+        a frame stops after a step below 1e-7, so its result does not depend on the others)."""
         root = target[:, self.root].copy()
         bv = target[:, self.bones[:, 1]] - target[:, self.bones[:, 0]]
         norm = np.linalg.norm(bv, axis=-1, keepdims=True)
         u = np.where(norm > 1e-9, bv / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
+        rows = np.arange(target.shape[0])
         for _ in range(iterations):
-            r = (self.joints(root, u) - target).reshape(n, -1)
-            m = self.jacobian(u)
+            r = (self.joints(root[rows], u[rows]) - target[rows]).reshape(len(rows), -1)
+            m = self.jacobian(u[rows])
             h = np.matmul(m.transpose(0, 2, 1), m) + 1e-6 * np.eye(self.num_params)
             g = np.einsum("nrp,nr->np", m, r)
             step = -np.linalg.solve(h, g[..., None])[..., 0]
-            root, u = self.retract(root, u, step)
-            if np.max(np.abs(step)) < 1e-7:
+            root[rows], u[rows] = self.retract(root[rows], u[rows], step)
+            rows = rows[np.max(np.abs(step), axis=1) >= 1e-7]
+            if len(rows) == 0:
                 break
         return root, u
 
@@ -243,31 +245,61 @@ def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
     return np.nan_to_num(v)
 
 
-def angle_jacobian(skeleton: Skeleton, kin: Kinematics, root, u, h: float = 1e-4, v0=None):
+def angle_jacobian(
+    skeleton: Skeleton,
+    kin: Kinematics,
+    root,
+    u,
+    h: float = 1e-4,
+    v0=None,
+    own_bones: bool = False,
+    bones: np.ndarray | None = None,
+):
     """Violations (m,2A) and d(violation)/dθ (m,2A,P) at the frames' parameters (root, u).
 
     Forward differences over the tangent parameters of the bones the violated angles depend on
     (angles do not depend on the root; an angle depends on the bones from the root to its child
     joint and to the palm joints): at most 2B extra pose evaluations per frame, typically a
-    finger's. ``v0``: the violations (m,2A) when the caller has them.
+    finger's, perturbed in all frames (the union over the frames, or ``bones`` when given: a
+    caller splitting frames into chunks passes the union of all of them). A perturbed bone moves
+    only the joints below it, by ``L·Δu``. ``v0``: the violations (m,2A) when the caller has
+    them. ``own_bones``: each frame's Jacobian keeps only the columns of its own violated angles'
+    bones (else a non-violated angle within ``h`` of its limit can get a row from another
+    frame's bones), so a frame's result does not depend on the frames evaluated with it: the
+    hand-model fit (:func:`fit_frames`) batches independent frames.
     """
-    m, b = u.shape[:2]
+    x0 = kin.joints(root, u)
     if v0 is None:
-        v0 = angle_violation(skeleton, kin.joints(root, u))
-    jac = np.zeros((m, v0.shape[1], kin.num_params))
-    bones = np.flatnonzero(np.any(_angle_bones(skeleton)[np.any(v0 > 0, axis=0)], axis=0))
+        v0 = angle_violation(skeleton, x0)
+    jac = np.zeros((len(u), v0.shape[1], kin.num_params))
+    own = _own_bones(skeleton, v0)
+    if bones is None:
+        bones = np.flatnonzero(np.any(own, axis=0))
     if len(bones) == 0:
         return v0, jac
     cols = np.stack([2 * bones, 2 * bones + 1], axis=1).ravel()  # tangent parameters
     t = kin.tangents(u[:, bones])  # (m,nb,3,2)
-    pert = np.repeat(u[:, None], len(cols), axis=1)  # (m, 2nb, B, 3)
     idx = np.arange(len(cols))
-    moved = pert[:, idx, cols // 2] + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)
-    pert[:, idx, cols // 2] = _unit(moved)
-    xs = kin.joints(np.repeat(root, len(cols), axis=0), pert.reshape(m * len(cols), b, 3))
-    v1 = angle_violation(skeleton, xs).reshape(m, len(cols), -1)
-    jac[:, :, 3 + cols] = ((v1 - v0[:, None, :]) / h).transpose(0, 2, 1)
+    ub = u[:, cols // 2]  # (m, 2nb, 3)
+    du = _unit(ub + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)) - ub
+    xs = x0[:, None] + kin.ancestor_lengths[:, cols // 2].T[None, :, :, None] * du[:, :, None]
+    v1 = angle_violation(skeleton, xs.reshape((-1,) + x0.shape[1:])).reshape(len(u), len(cols), -1)
+    d = (v1 - v0[:, None, :]) / h
+    if own_bones:
+        d = np.where(own[:, cols // 2, None], d, 0.0)
+    jac[:, :, 3 + cols] = d.transpose(0, 2, 1)
     return v0, jac
+
+
+def violated_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:
+    """Bones (indices) the violated angles of any frame of ``v0`` (m,2A) depend on: the bones
+    :func:`angle_jacobian` perturbs."""
+    return np.flatnonzero(np.any(_own_bones(skeleton, v0), axis=0))
+
+
+def _own_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:
+    """(m,B) bool: the bones each frame's violated angles (``v0`` (m,2A) > 0) depend on."""
+    return (v0 > 0).astype(np.float64) @ _angle_bones(skeleton) > 0
 
 
 _ANGLE_BONES: dict[int, tuple[Skeleton, np.ndarray]] = {}
@@ -448,6 +480,21 @@ class FrameObservations:
             self.points[idx], self.valid[idx], self.depth[idx], self.nearest[idx], self.boxes[idx]
         )
 
+    @staticmethod
+    def concatenate(parts: list[FrameObservations]) -> FrameObservations:
+        """The frames of ``parts`` (non-empty), in order."""
+        return FrameObservations(
+            *(np.concatenate([getattr(o, f) for o in parts]) for f in _OBS_FIELDS)
+        )
+
+
+_OBS_FIELDS = ("points", "valid", "depth", "nearest", "boxes")
+
+
+#: observed hand points per frame (:func:`observe`), for personalization and, by default
+#: (``FitWeights.points``), for the per-frame fit
+OBSERVED_POINTS = 512
+
 
 def observe(
     crops: np.ndarray,
@@ -456,13 +503,15 @@ def observe(
     camera: CameraIntrinsics,
     *,
     cube_mm: float = DEFAULT_CROP.cube_mm,
-    max_points: int = 512,
+    max_points: int | None = None,
 ) -> FrameObservations:
     """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1).
 
     Hand pixels are the crop values strictly inside (-1, 1); up to ``max_points`` of them, evenly
-    spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``.
+    spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``
+    (None: :data:`OBSERVED_POINTS`).
     """
+    max_points = OBSERVED_POINTS if max_points is None else int(max_points)
     n, s = crops.shape[0], crops.shape[-1]
     boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
     zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
@@ -531,6 +580,12 @@ class FitWeights:
     uv: float = 0.002  #: per px² per joint to the prior 2D positions
     iterations: int = 12
     max_rejects: int = 3  #: a frame stops after this many rejected LM steps in a row
+    #: observed points per frame of the per-frame fit in propagation and refinement (the nearest
+    #: capsule of every point is most of the fit's cost); personalization and the references'
+    #: level always observe :data:`OBSERVED_POINTS`. 256 saved ~8 % of a bench's CPU but cost
+    #: accuracy on the tune part (5 % forest, final mean: smooth 1.59 -> 1.66 mm, shape-fast
+    #: 11.50 -> 12.86, fpha-1 11.71 -> 12.24), so 512 stays
+    points: int = OBSERVED_POINTS
 
 
 @dataclass
@@ -585,27 +640,35 @@ def _forearm(model: HandModel, x, points, cidx, t, w: FitWeights) -> np.ndarray:
 
 def _nearest_capsule(points, a, b, radii):
     """For points (n,M,3) and capsules A, B (n,C,3): index (n,M), t (n,M), distance to the axis
-    segment (n,M) mm, signed surface distance (n,M) of the nearest capsule surface."""
+    segment (n,M) mm, signed surface distance (n,M) of the nearest capsule surface.
+
+    The nearest capsule is chosen in float32 (coordinates relative to the frame's mean capsule
+    end, where float32 resolves distances to ~1e-4 mm; 2-3x faster than float64 over all M·C
+    pairs); t and the distances of the chosen capsule are then computed in float64."""
+    c_count = a.shape[1]
+    origin = a.mean(axis=1, keepdims=True)
+    p32 = (points - origin).astype(np.float32)
+    a32 = (a - origin).astype(np.float32)
     d = b - a
-    dd = np.maximum(np.einsum("ncx,ncx->nc", d, d), 1e-9)
-    pd = np.einsum("nmx,ncx->nmc", points, d) - np.einsum("ncx,ncx->nc", a, d)[:, None, :]
-    t = np.clip(pd / dd[:, None, :], 0.0, 1.0)
+    d32 = d.astype(np.float32)
+    dd = np.maximum(np.einsum("ncx,ncx->nc", d32, d32), np.float32(1e-9))[:, None, :]
+    prod = np.matmul(p32, np.concatenate([d32, a32], axis=1).transpose(0, 2, 1))  # (n,M,2C)
+    pd = prod[..., :c_count] - np.einsum("ncx,ncx->nc", a32, d32)[:, None, :]
+    t = np.clip(pd / dd, 0.0, 1.0)
     pa2 = (
-        np.einsum("nmx,nmx->nm", points, points)[..., None]
-        - 2.0 * np.einsum("nmx,ncx->nmc", points, a)
-        + np.einsum("ncx,ncx->nc", a, a)[:, None, :]
+        np.einsum("nmx,nmx->nm", p32, p32)[..., None]
+        - 2.0 * prod[..., c_count:]
+        + np.einsum("ncx,ncx->nc", a32, a32)[:, None, :]
     )
-    dist2 = np.maximum(pa2 - 2.0 * t * pd + t * t * dd[:, None, :], 0.0)
-    dist = np.sqrt(dist2)
-    sd = dist - radii
-    c = np.argmin(sd, axis=-1)
-    take = c[..., None]
-    return (
-        c,
-        np.take_along_axis(t, take, -1)[..., 0],
-        np.take_along_axis(dist, take, -1)[..., 0],
-        np.take_along_axis(sd, take, -1)[..., 0],
-    )
+    dist2 = np.maximum(pa2 - t * (2.0 * pd - t * dd), 0.0)
+    c = np.argmin(np.sqrt(dist2) - radii.astype(np.float32), axis=-1)
+    ai = np.take_along_axis(a, c[..., None], 1)
+    di = np.take_along_axis(d, c[..., None], 1)
+    pa = points - ai
+    ti = np.einsum("nmx,nmx->nm", pa, di) / np.maximum(np.einsum("nmx,nmx->nm", di, di), 1e-9)
+    ti = np.clip(ti, 0.0, 1.0)
+    dist = np.linalg.norm(pa - ti[..., None] * di, axis=-1)
+    return c, ti, dist, dist - radii[c]
 
 
 _XYZ = np.arange(3)
@@ -615,16 +678,30 @@ class _Accumulator:
     """Residual rows of the Gauss-Newton normal equations, each depending on (at most) two joints,
     collected per frame; :func:`_assemble` sums them in joint space and maps them to θ."""
 
-    def __init__(self, n: int, j: int):
+    def __init__(self, n: int, j: int, compact: bool = False):
         self.n = n
+        self.compact = compact
         self.rows: list[tuple] = []
         self.joint_h = np.zeros((n, j, 3, 3))
         self.joint_g = np.zeros((n, j, 3))
 
     def add_points(self, ja, jb, ca, cb, grad, w, r):
         """Residuals ``r`` (n,R) at points ``s = ca·X_ja + cb·X_jb + const`` with ∂r/∂s ``grad``
-        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R)."""
+        (n,R,3) and IRLS weights ``w`` (n,R) (0 = unused); ja, jb, ca, cb broadcast to (n,R).
+        With ``compact`` (the rows are assembled at once, not kept row-wise by the batched LM)
+        rows unused in every frame (most collision and free-space samples) are dropped here;
+        :func:`_assemble` skips the unused rows of a frame anyway, in the same order."""
         shape = w.shape
+        used = np.any(w != 0, axis=0) if self.compact else None
+        if used is not None and not used.all():
+            if not used.any():
+                return
+            cols = np.flatnonzero(used)
+            ja, jb, ca, cb, w, r = (
+                np.broadcast_to(v, shape)[:, cols] for v in (ja, jb, ca, cb, w, r)
+            )
+            grad = np.broadcast_to(grad, shape + (3,))[:, cols]
+            shape = w.shape
         ja, jb = np.broadcast_to(ja, shape), np.broadcast_to(jb, shape)
         ca, cb = np.broadcast_to(ca, shape), np.broadcast_to(cb, shape)
         j6 = np.concatenate([grad * ca[..., None], grad * cb[..., None]], axis=-1)  # (n,R,6)
@@ -680,7 +757,9 @@ def _normal_equations(model, kin, root, u, weights, state, v0):
     if v0 is not None and v0.size:
         hit = np.flatnonzero(np.any(v0 > 0, axis=1))
         if len(hit):
-            _, jac_a = angle_jacobian(model.skeleton, kin, root[hit], u[hit], v0=v0[hit])
+            _, jac_a = angle_jacobian(
+                model.skeleton, kin, root[hit], u[hit], v0=v0[hit], own_bones=True
+            )
             h[hit] += weights.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
             g[hit] += weights.angle * np.einsum("nap,na->np", jac_a, v0[hit])
     return h, g
@@ -707,17 +786,20 @@ def frame_energy(
     nearest capsule it is}`` (an empty dict without ``diagnostics``).
     """
     e, terms, x, extra = _energy(
-        model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics
+        model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics, compact=True
     )
     if want_jac:
         extra = _normal_equations(model, kin, root, u, weights, *extra)
     return e, terms, x, extra
 
 
-def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics):
+def _energy(
+    model, kin, root, u, obs, camera, weights, priors, want_jac, diagnostics, compact=False
+):
     """:func:`frame_energy` with, under ``want_jac``, the residual rows (an
     :meth:`_Accumulator.state`) and the angle violations (n,2A) (None: no angle term) in place
-    of the normal equations, which :func:`_normal_equations` builds from them."""
+    of the normal equations, which :func:`_normal_equations` builds from them (``compact``: rows
+    unused in every frame left out, see :meth:`_Accumulator.add_points`)."""
     w = weights
     x = kin.joints(root, u)
     n, j = x.shape[:2]
@@ -726,7 +808,7 @@ def _energy(model, kin, root, u, obs, camera, weights, priors, want_jac, diagnos
     pa, pb = model.pairs[:, 0], model.pairs[:, 1]
     c_count = len(model.pairs)
     terms = {}
-    acc = _Accumulator(n, j) if want_jac else None
+    acc = _Accumulator(n, j, compact) if want_jac else None
 
     # ---------------- data: observed point -> nearest capsule surface
     pts = obs.points

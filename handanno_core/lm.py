@@ -67,10 +67,14 @@ def solve_dense(system: NormalEquations, lam: float) -> np.ndarray:
 def solve_banded(system: NormalEquations, lam: float) -> np.ndarray:
     """Damped step from a symmetric banded ``JᵀJ`` in ``scipy.linalg.solveh_banded``'s upper form
     (last row = diagonal)."""
-    ab = system.matrix.copy()
+    ab = system.matrix
+    diagonal = ab[-1].copy()  # damped in place and restored: one copy of the band, not two
     ab[-1] += lam * system.scale
-    with single_blas_thread():
-        return solveh_banded(ab, -system.gradient, lower=False, check_finite=False)
+    try:
+        with single_blas_thread():
+            return solveh_banded(ab, -system.gradient, lower=False, check_finite=False)
+    finally:
+        ab[-1] = diagonal
 
 
 class _HasCost(Protocol):

@@ -652,6 +652,7 @@ def refine(
     scheduler: str | None = None,
     resume: bool = True,
     whole: bool = False,
+    threads: int = 1,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
 
@@ -664,7 +665,7 @@ def refine(
     in parallel; returns a ``PiecesResult``), checkpointed per piece in the session's
     ``refine-pieces/`` folder so that a killed run resumes (``resume=False`` ignores them).
     ``use_model``: the hand-model checks of :func:`handanno_core.refine.refine` (None: the
-    session's ``settings.hand_model``).
+    session's ``settings.hand_model``). ``threads``: threads of a whole solve (same result).
     """
     use_model = _hand_model_on(session, use_model, "refine", quiet)
     if whole and (window is not None or workers > 1 or scheduler is not None):
@@ -687,7 +688,7 @@ def refine(
     from .refine import refine as run_refine
 
     init, problem = refine_inputs(session, quiet)
-    result = run_refine(init, progress=progress, hand_model=use_model, **problem)
+    result = run_refine(init, progress=progress, hand_model=use_model, threads=threads, **problem)
     if save:
         session.save_results(final_mm=result.joints_mm)
     return result

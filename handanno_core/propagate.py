@@ -26,7 +26,7 @@ reference), parents always before children:
    ``settings.hand_model`` is on; about 3x the CPU per frame; :mod:`handanno_core.handmodel`),
    the personalized capsule model is fitted to the frame's own depth from the candidate start of
    lowest energy (the flowed pose, the parent's pose, the nearest references before and after the
-   frame in time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fit`)
+   frame in time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fits`)
    unless its own evidence says it failed: its data + free-space energy above
    ``model_fail_ratio`` times the references' level (the model does not explain the frame's
    depth: a wrong start, the hand fitted to another surface); the frame then keeps its flowed
@@ -48,8 +48,11 @@ Parallelism: subtrees hanging off frames with known joints are independent. They
 few large tasks (``_Task``); ``workers=N`` runs the tasks in a process pool, ``scheduler`` on a
 Dask cluster. Crops travel as a memory-map path (an in-memory array is written to a temporary
 ``.npy`` once), not pickled per task. Each frame's computation depends only on its parent's result,
-so every mode gives bit-identical results. Memory: results are ``(N, J)``-sized; flows and crops
-live only while their frame is processed.
+so every mode gives bit-identical results. A task runs generation by generation (a frame's
+parent in an earlier one); the hand model is fitted to up to ``_MODEL_BATCH`` frames of a
+generation at once, each frame's fit independent of its batch (:func:`_model_fits`), which
+halves the model's CPU (one frame's arrays are too small for numpy to pay off). Memory: results
+are ``(N, J)``-sized; flows live only while their frame is processed, crops while their batch is.
 """
 
 from __future__ import annotations
@@ -379,15 +382,12 @@ def _fit(
 
 
 def _angle_hinge(sk: Skeleton, sigma_deg: float) -> Callable[[np.ndarray], np.ndarray]:
-    """Residuals ``(..., 2A)``: flexion/abduction outside the skeleton's limits, in sigma units."""
-    (fl, ab) = sk.angle_limits()
-    lo = np.concatenate([fl[:, 0], ab[:, 0]])
-    hi = np.concatenate([fl[:, 1], ab[:, 1]])
+    """Residuals ``(..., 2A)``: flexion/abduction outside the skeleton's limits, in sigma units
+    (:func:`handmodel.angle_violation`: :meth:`Skeleton.joint_angles` vectorized over the chain
+    levels, the fit calls it 3J+1 times per refit)."""
 
     def hinge(poses: np.ndarray) -> np.ndarray:
-        flex, abd = sk.joint_angles(poses)
-        a = np.concatenate([flex, abd], axis=-1)
-        return (np.maximum(lo - a, 0.0) + np.maximum(a - hi, 0.0)) / sigma_deg
+        return hm.angle_violation(sk, poses) / sigma_deg
 
     return hinge
 
@@ -409,7 +409,36 @@ def _surface_offsets_at_source(ctx: _Context, frame: int, joints: np.ndarray) ->
     return np.where(near, delta, np.nan)
 
 
-def _step(
+class _ModelInput(NamedTuple):
+    """One frame's hand-model fit input (:func:`_model_fits`): its parent ``src``, the flowed
+    pose ``x_flow`` (J,3) mm, the parent's pose ``joints_s`` (J,3) mm, the flowed 2D ``uv_f``
+    (J,2) px, the forward-backward flow error ``fb`` (J,) crop px and the frame's crop (S,S)."""
+
+    src: int
+    frame: int
+    x_flow: np.ndarray
+    joints_s: np.ndarray
+    uv_f: np.ndarray
+    fb: np.ndarray
+    crop_f: np.ndarray
+    joints_gs: np.ndarray | None = None  #: the parent's own source, for the velocity start
+
+
+class _Flowed(NamedTuple):
+    """A frame after the flow and the bone fit (:func:`_flow_step`), before the hand model: the
+    hand model's input and what the confidence needs (all per joint, ``(J,)`` unless stated)."""
+
+    model_in: _ModelInput
+    conf_s: np.ndarray
+    visible: np.ndarray
+    z_t: np.ndarray
+    z_obs: np.ndarray
+    below: np.ndarray
+    app_res: np.ndarray  #: appearance residual at the matched points, mm
+    bone_viol: np.ndarray  #: relative bone-length violation of the flowed pose before the fit
+
+
+def _flow_step(
     ctx: _Context,
     src: int,
     frame: int,
@@ -417,10 +446,11 @@ def _step(
     conf_s: np.ndarray,
     delta_s: np.ndarray,
     joints_gs: np.ndarray | None = None,
-):
-    """Propagate ``joints_s`` of frame ``src`` to ``frame``. ``delta_s`` (J,) mm: each joint's
-    depth below the observed surface in the source (NaN = not on its surface). Returns
-    ``(joints, conf, delta)`` or raises ``_Skip``."""
+) -> _Flowed:
+    """Steps 1-4 for ``joints_s`` of frame ``src`` to ``frame``. ``delta_s`` (J,) mm: each
+    joint's depth below the observed surface in the source (NaN = not on its surface);
+    ``joints_gs`` (J,3) mm the source's own source when the three frames are consecutive (the
+    hand model's velocity start) or None. Raises ``_Skip``."""
     st = ctx.settings
     cam = ctx.camera
     sk = ctx.skeleton
@@ -486,31 +516,35 @@ def _step(
                 x, uv_f, sigma_uv, z_t, sigma_z, cam, bones, lengths, st.sigma_bone_mm,
                 st.angle_iterations, angles=hinge,
             )  # fmt: skip
-
-    model_conf = None
-    if ctx.hand_models is not None:
-        x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f, joints_gs)
-
-    # confidence
-    half = 0.5 * st.cube_mm
     # matched points should show the same centre-relative depth in both crops
     app_s = bilinear(crop_s, xy_s[:, 0], xy_s[:, 1])
-    app_res = np.abs(app_s - bilinear(crop_f, xy_f[:, 0], xy_f[:, 1])) * half
+    app_res = np.abs(app_s - bilinear(crop_f, xy_f[:, 0], xy_f[:, 1])) * (0.5 * st.cube_mm)
     bone_viol = np.zeros(len(x))
     bone_viol[bones[:, 1]] = np.abs(len0 - lengths) / np.maximum(lengths, 1e-6)
-    depth_res = np.where(visible, np.abs(x[:, 2] - z_t), st.depth_scale_mm * 0.6)
+    return _Flowed(
+        _ModelInput(src, frame, x, joints_s, uv_f, fb, crop_f, joints_gs),
+        conf_s, visible, z_t, z_obs, below, app_res, bone_viol,
+    )  # fmt: skip
+
+
+def _finish(ctx: _Context, fl: _Flowed, x: np.ndarray, model_conf: np.ndarray | None):
+    """The frame's result ``(joints (J,3), confidence (J,), depth below the surface (J,))`` from
+    its final pose ``x`` (the flowed one, or the hand model's) and the model's confidence factor
+    (None without the model)."""
+    st = ctx.settings
+    depth_res = np.where(fl.visible, np.abs(x[:, 2] - fl.z_t), st.depth_scale_mm * 0.6)
     local = (
-        np.exp(-0.5 * (fb / st.fb_scale_px) ** 2)
-        * np.exp(-0.5 * (app_res / st.appearance_scale_mm) ** 2)
+        np.exp(-0.5 * (fl.model_in.fb / st.fb_scale_px) ** 2)
+        * np.exp(-0.5 * (fl.app_res / st.appearance_scale_mm) ** 2)
         * np.exp(-0.5 * (depth_res / st.depth_scale_mm) ** 2)
-        * np.exp(-0.5 * (bone_viol / st.bone_scale) ** 2)
+        * np.exp(-0.5 * (fl.bone_viol / st.bone_scale) ** 2)
     )
     if model_conf is not None:
         local = local * model_conf
-    conf = np.clip(conf_s * local, 0.0, 1.0)
+    conf = np.clip(fl.conf_s * local, 0.0, 1.0)
     # a joint is "on its surface" in this frame if the fit kept it there
-    vis_f = visible & (np.abs(x[:, 2] - z_obs) < st.near_surface_mm)
-    return x, conf, np.where(vis_f, below, np.nan)
+    vis_f = fl.visible & (np.abs(x[:, 2] - fl.z_obs) < st.near_surface_mm)
+    return x, conf, np.where(vis_f, fl.below, np.nan)
 
 
 def _carry_rigidly(joints_s, seen_f, seen, st) -> np.ndarray:
@@ -535,86 +569,125 @@ def _replace_hidden(seen, uv, z, carried, camera):
     return np.where(seen[:, None], uv, camera.project(carried)), np.where(seen, z, carried[:, 2])
 
 
-def _model_fit(
-    ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, crop_f, joints_gs=None
-):
-    """Fit the hand model to ``frame``'s own depth from several starts; keep the lowest energy.
+def _model_fits(ctx: _Context, items: list[_ModelInput]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Fit the hand model to each frame's own depth from several starts; keep the lowest energy.
 
-    Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s`` and the lifted poses
-    of the nearest references before and after ``frame`` in time, each moved by the difference of
-    the hand centres. All share one energy (priors: closeness to the flowed pose, the flowed 2D
+    Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s``, the parent moved on
+    at its own velocity (``2 joints_s - joints_gs``, where the grandparent, parent and frame are
+    consecutive frames) and the lifted poses of the nearest references before and after the frame
+    in time, each (but the velocity start) moved by the difference of the hand centres. All share one energy (priors: closeness to the flowed pose, the flowed 2D
     ``uv_f`` weighted by the flow's forward-backward consistency ``fb``), so the energies compare;
-    the ``model_fits`` starts of lowest energy are fitted (batched) and the best fit is kept.
+    the ``model_fits`` starts of lowest energy are fitted and the best fit is kept.
     Guard: a fit whose data + free-space energy exceeds ``model_fail_ratio`` times the
     references' (``ctx.model_levels``) failed, and the frame keeps ``x_flow``.
-    Returns the joints (J,3) and a per-joint confidence factor (J,) from the fit residuals of the
-    capsules touching each joint at the returned pose (mean point-to-surface mm, fraction of
-    free-space violations).
+    Returns per item the joints (J,3) and a per-joint confidence factor (J,) from the fit
+    residuals of the capsules touching each joint at the returned pose (mean point-to-surface mm,
+    fraction of free-space violations).
+
+    The frames are independent and fitted together, one batch per hand model (the batched LM
+    treats every row on its own, so a frame's result does not depend on the others in its batch:
+    bit-identical to fitting it alone, whatever the grouping; about half the CPU of one-by-one
+    fits, whose cost is mostly numpy's per-call overhead on one frame's arrays).
     """
+    hands = np.array(
+        [0 if ctx.bones.hand is None else int(ctx.bones.hand[it.frame]) for it in items], int
+    )
+    out: list = [None] * len(items)
+    for h in np.unique(hands):
+        idx = np.flatnonzero(hands == h)
+        for k, res in zip(
+            idx, _model_fits_one_hand(ctx, int(h), [items[i] for i in idx]), strict=True
+        ):
+            out[k] = res
+    return out
+
+
+def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
+    """:func:`_model_fits` for frames of one hand model ``ctx.hand_models[h]``."""
     st = ctx.settings
-    h = 0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])
     model = ctx.hand_models[h]
-    c_f = ctx.centres_mm[frame]
-    j = len(x_flow)
-    starts = [x_flow, joints_s + (c_f - ctx.centres_mm[src])]
-    if joints_gs is not None and st.velocity_start:
-        starts.append(2.0 * joints_s - joints_gs)
+    cam = ctx.camera
+    frames = np.array([it.frame for it in items], dtype=np.int64)
+    c_f = ctx.centres_mm[frames]
+    starts, owner = [], []
     refs = ctx.model_refs
-    if refs is not None and len(refs):
-        i = int(np.searchsorted(refs, frame))
-        for k in {max(i - 1, 0), min(i, len(refs) - 1)}:
-            if int(refs[k]) != src:
-                starts.append(ctx.model_ref_joints[k] + (c_f - ctx.centres_mm[refs[k]]))
+    for i, it in enumerate(items):
+        own = [it.x_flow, it.joints_s + (c_f[i] - ctx.centres_mm[it.src])]
+        if it.joints_gs is not None and st.velocity_start:
+            own.append(2.0 * it.joints_s - it.joints_gs)
+        if refs is not None and len(refs):
+            pos = int(np.searchsorted(refs, it.frame))
+            for k in {max(pos - 1, 0), min(pos, len(refs) - 1)}:
+                if int(refs[k]) != it.src:
+                    own.append(ctx.model_ref_joints[k] + (c_f[i] - ctx.centres_mm[refs[k]]))
+        starts += own
+        owner += [i] * len(own)
     starts = np.stack(starts)
-    n = len(starts)
-    obs = hm.observe(
-        crop_f[None], ctx.boxes[frame][None], c_f[None], ctx.camera, cube_mm=st.cube_mm
-    ).take(np.zeros(n, dtype=np.int64))
-    fb_w = np.exp(-0.5 * (np.nan_to_num(fb, nan=1e3) / st.fb_scale_px) ** 2)
-    priors = hm.Priors(
-        pose=np.repeat(x_flow[None], n, axis=0),
-        pose_w=np.ones((n, j)),
-        uv=np.repeat(uv_f[None], n, axis=0),
-        uv_w=np.repeat(fb_w[None], n, axis=0),
+    owner = np.asarray(owner, dtype=np.int64)
+    j = starts.shape[1]
+    w = ctx.fit_weights or hm.FitWeights()
+    obs_f = hm.observe(
+        np.stack([it.crop_f for it in items]), ctx.boxes[frames], c_f, cam, cube_mm=st.cube_mm,
+        max_points=w.points,
+    )  # fmt: skip
+    x_flow = np.stack([it.x_flow for it in items])
+    fb_w = np.exp(
+        -0.5 * (np.nan_to_num(np.stack([it.fb for it in items]), nan=1e3) / st.fb_scale_px) ** 2
+    )
+    pri_f = hm.Priors(
+        pose=x_flow,
+        pose_w=np.ones((len(items), j)),
+        uv=np.stack([it.uv_f for it in items]),
+        uv_w=fb_w,
     )
     kin = hm.Kinematics(ctx.skeleton, model.bone_lengths_mm)
-    w = ctx.fit_weights or hm.FitWeights()
     e0 = hm.frame_energy(
-        model, kin, *kin.fit(starts), obs, ctx.camera, w, priors, diagnostics=False
-    )[0]
-    best = np.argsort(e0)[: max(1, st.model_fits)]
+        model, kin, *kin.fit(starts), obs_f.take(owner), cam, w, pri_f.take(owner),
+        diagnostics=False,
+    )[0]  # fmt: skip
+    best = np.concatenate(
+        [
+            np.flatnonzero(owner == i)[np.argsort(e0[owner == i])[: max(1, st.model_fits)]]
+            for i in range(len(items))
+        ]
+    )
     fit = hm.fit_frames(
         model,
         starts[best],
-        obs.take(best),
-        ctx.camera,
+        obs_f.take(owner[best]),
+        cam,
         weights=w,
-        priors=priors.take(best),
+        priors=pri_f.take(owner[best]),
         kin=kin,
     )
-    k = int(np.argmin(fit.energy))
-    x = fit.joints_mm[k]
-    pose = fit.root[k : k + 1], fit.u[k : k + 1]
-    level = fit.terms["data"][k] + fit.terms["free_space"][k]
-    if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
-        x = x_flow  # the fit does not explain the frame's depth: keep the flowed pose
-        pose = kin.fit(x_flow[None])
-    _, _, _, diag = hm.frame_energy(
-        model, kin, *pose, obs.take([0]), ctx.camera, w, priors.take([0])
-    )
-    res = diag["capsule_data_mm"][0]
-    free = diag["capsule_free"][0]
+    x = np.empty((len(items), j, 3))
+    root = np.empty((len(items), 3))
+    u = np.empty((len(items),) + fit.u.shape[1:])
+    for i in range(len(items)):
+        rows = np.flatnonzero(owner[best] == i)
+        k = rows[int(np.argmin(fit.energy[rows]))]
+        x[i], root[i], u[i] = fit.joints_mm[k], fit.root[k], fit.u[k]
+        level = fit.terms["data"][k] + fit.terms["free_space"][k]
+        if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
+            # the fit does not explain the frame's depth: keep the flowed pose
+            x[i] = x_flow[i]
+            r1, u1 = kin.fit(x_flow[i][None])
+            root[i], u[i] = r1[0], u1[0]
+    _, _, _, diag = hm.frame_energy(model, kin, root, u, obs_f, cam, w, pri_f)
     touch = np.zeros((j, len(model.pairs)), dtype=bool)
     touch[model.pairs[:, 0], np.arange(len(model.pairs))] = True
     touch[model.pairs[:, 1], np.arange(len(model.pairs))] = True
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        res_j = np.nan_to_num(np.nanmax(np.where(touch, res, np.nan), axis=1), nan=0.0)
-    free_j = np.max(np.where(touch, free, 0.0), axis=1)
+        res_j = np.nan_to_num(
+            np.nanmax(np.where(touch, diag["capsule_data_mm"][:, None, :], np.nan), axis=2),
+            nan=0.0,
+        )
+    free_j = np.max(np.where(touch, diag["capsule_free"][:, None, :], 0.0), axis=2)
     conf = np.exp(-0.5 * (res_j / st.model_scale_mm) ** 2) * np.clip(
         1.0 - st.model_free_scale * free_j, 0.0, 1.0
     )
-    return x, conf
+    return list(zip(x, conf, strict=True))
 
 
 class _Skip(Exception):
@@ -650,6 +723,9 @@ def _run_task(ctx: _Context, task: _Task, emit: Callable | None = None):
 
 
 def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
+    """The task's frames generation by generation (a frame's parent is in an earlier one), each
+    generation in chunks of :data:`_MODEL_BATCH` frames: flow and bone fit per frame, the hand
+    model fitted to the chunk's frames at once (:func:`_model_fits`), then each frame's result."""
     j = ctx.skeleton.num_joints
     m = len(task.frames)
     out_j = np.full((m, j, 3), np.nan)
@@ -664,37 +740,71 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
         if vv is None:
             vv = _surface_offsets_at_source(ctx, f, jj)
         state[f] = (jj, cc, vv)
-    for k in range(m):
-        f = int(task.frames[k])
-        s = int(task.sources[k])
-        s = alias.get(s, s)
-        if s not in state:
-            skipped[f] = f"no valid ancestor (parent {int(task.sources[k])} has no joints)"
-            alias[f] = s
-            if emit is not None:
-                emit(f, None, None)
-            continue
-        jj, cc, vv = state[s]
-        g = came_from.get(s)
-        gs = (
-            state[g][0]
-            if g is not None and g in state and f - s == s - g and abs(f - s) == 1
-            else None
-        )
-        try:
-            x, conf, vis = _step(ctx, s, f, jj, cc, vv, gs)
-        except _Skip as err:
-            skipped[f] = str(err)
-            alias[f] = s
-            if emit is not None:
-                emit(f, None, None)
-            continue
-        state[f] = (x, conf, vis)
-        came_from[f] = s
-        out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
+
+    def skip(f: int, s: int, reason: str) -> None:
+        skipped[f] = reason
+        alias[f] = s
         if emit is not None:
-            emit(f, x, conf)
+            emit(f, None, None)
+
+    gen = _generations(task)
+    for g in np.unique(gen):
+        wave = np.flatnonzero(gen == g)
+        for a in range(0, len(wave), _MODEL_BATCH):
+            flowed: list[tuple[int, int, _Flowed]] = []
+            for k in wave[a : a + _MODEL_BATCH]:
+                f = int(task.frames[k])
+                s = int(task.sources[k])
+                s = alias.get(s, s)
+                if s not in state:
+                    skip(f, s, f"no valid ancestor (parent {int(task.sources[k])} has no joints)")
+                    continue
+                try:
+                    flowed.append(
+                        (
+                            int(k),
+                            s,
+                            _flow_step(ctx, s, f, *state[s], _grandparent(state, came_from, f, s)),
+                        )
+                    )
+                except _Skip as err:
+                    skip(f, s, str(err))
+            if ctx.hand_models is not None and flowed:
+                fits = _model_fits(ctx, [fl.model_in for _, _, fl in flowed])
+            else:
+                fits = [(fl.model_in.x_flow, None) for _, _, fl in flowed]
+            for (k, s, fl), (x, model_conf) in zip(flowed, fits, strict=True):
+                x, conf, vis = _finish(ctx, fl, x, model_conf)
+                f = fl.model_in.frame
+                state[f] = (x, conf, vis)
+                came_from[f] = s
+                out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
+                if emit is not None:
+                    emit(f, x, conf)
     return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped)
+
+
+def _grandparent(state: dict, came_from: dict[int, int], f: int, s: int) -> np.ndarray | None:
+    """The joints (J,3) of ``s``'s own source when it, ``s`` and ``f`` are consecutive frames in
+    one direction (the velocity start of :func:`_model_fits`), else None."""
+    g = came_from.get(s)
+    if g is None or g not in state or abs(f - s) != 1 or f - s != s - g:
+        return None
+    return state[g][0]
+
+
+#: frames of one generation whose hand-model fits run as one batch (memory: a few MB per frame)
+_MODEL_BATCH = 64
+
+
+def _generations(task: _Task) -> np.ndarray:
+    """``(M,)`` each task frame's distance from the seeds (1 below a seed); ``task.frames`` are in
+    topological order."""
+    level: dict[int, int] = {}
+    gen = np.zeros(len(task.frames), dtype=np.int64)
+    for k, (f, s) in enumerate(zip(task.frames, task.sources, strict=True)):
+        gen[k] = level[int(f)] = level.get(int(s), 0) + 1
+    return gen
 
 
 # ---------------------------------------------------------------------------------------------
@@ -809,7 +919,7 @@ def propagate(
     hand_model : ``True`` personalizes a :class:`handmodel.HandModel` from the references
         (bone lengths, radii from their crops; one per bone-length set, from its own frames'
         references) and fits it to every propagated frame's own depth
-        (see :func:`_model_fit`); a ``HandModel`` is used as given; ``False`` turns it off.
+        (see :func:`_model_fits`); a ``HandModel`` is used as given; ``False`` turns it off.
 
     Returns a :class:`PropagationResult`; rows outside ``frames`` are NaN.
     """

@@ -35,7 +35,8 @@ block-banded in time (blocks of ``3 + 2B`` parameters per frame; only the tempor
 couple frames: a frame with its neighbours and, through the acceleration, with the frames two
 apart), are assembled with batched numpy products (no Python loops over
 frames or joints) and solved with ``scipy.linalg.solveh_banded``. A step is accepted only if it
-lowers the true robust energy, so ``energy_history`` never increases.
+lowers the true robust energy, so ``energy_history`` never increases. The per-frame terms are
+evaluated in chunks of frames, on ``threads`` threads if asked (the same result bit for bit).
 
 **Hand model** (``hand_model=True``; this function's default is off, a session's
 ``settings.hand_model`` is on): the velocity term's weight (itself off by
@@ -57,6 +58,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -213,8 +216,10 @@ class _Evaluation:
 
     ``terms``: energy per term; ``x``: joints (N, J, 3) mm; ``hd`` (N, J, 3, 3) / ``gx`` (N, J, 3):
     per-joint Hessian blocks and gradient of the per-frame terms; ``wt`` (N-1, J) / ``wa``
-    (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations, dθ-Jacobian)`` of the frames
-    outside their angle limits (None if none); ``mod``: θ-space hand-model blocks (None if off)."""
+    (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations)`` of the frames
+    outside their angle limits (None if none; their θ-Jacobian is taken in the normal equations
+    only, not at trial points the LM rejects); ``mod``: θ-space hand-model blocks and each
+    frame's model energy (unweighted) (None if off)."""
 
     root: np.ndarray
     u: np.ndarray
@@ -304,6 +309,16 @@ class _Problem:
         self.fit_w = hmod.FitWeights()
         self.model_chunk = 32
         self.pair_scale = np.ones(max(n - 1, 0))
+        self.pool: ThreadPoolExecutor | None = None  #: set by refine() with threads > 1
+
+    def map_chunks(self, fn: Callable, n: int, chunk: int) -> list:
+        """``[fn(frames) for frames in chunks of range(n)]`` in order, on the thread pool if there
+        is one (numpy releases the GIL in its array loops; each chunk writes only its own rows, and
+        the caller sums the results in chunk order, so threads change no bit of the result)."""
+        chunks = [np.arange(a, min(n, a + chunk)) for a in range(0, n, chunk)]
+        if self.pool is None or len(chunks) < 2:
+            return [fn(fr) for fr in chunks]
+        return list(self.pool.map(fn, chunks))
 
     # -------------------------------------------------------------------- geometry
     def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
@@ -355,17 +370,21 @@ class _Problem:
         hd = np.zeros((n, j, 3, 3))
         gx = np.zeros((n, j, 3))
         # per-frame terms, chunked over frames (memory ~ chunk·J·G)
-        for a in range(0, n, self.chunk):
-            fr = np.arange(a, min(n, a + self.chunk))
+
+        def per_frame(fr):
             xy, dxy, _, _ = self._crop_xy(x[fr], fr)
-            terms["depth_band"] += self._depth_band(x[fr], fr, xy, hd, gx)
-            terms["appearance"] += self._appearance(x[fr], fr, xy, dxy, hd, gx)
+            band = self._depth_band(x[fr], fr, xy, hd, gx)
+            return band, self._appearance(x[fr], fr, xy, dxy, hd, gx)
+
+        for band, app in self.map_chunks(per_frame, n, self.chunk):
+            terms["depth_band"] += band
+            terms["appearance"] += app
         mod = self._model_blocks(root, u, terms)
         terms["reprojection"] = self._reprojection(x, hd, gx)
         terms["init"] = self._init_prior(x, hd, gx)
         terms["temporal"], wt = self._temporal(x, hd, gx)
         terms["acceleration"], wa = self._acceleration(x, hd, gx)
-        terms["angle"], ang = self._angles(x, root, u)
+        terms["angle"], ang = self._angles(x)
         return _Evaluation(root, u, terms, x, hd, gx, wt, wa, ang, mod)
 
     def _depth_band(self, xc, fr, xy, hd, gx) -> float:
@@ -415,7 +434,8 @@ class _Problem:
         return w.appearance * float(np.sum(cost, dtype=np.float64))
 
     def _model_blocks(self, root, u, terms: dict[str, float]):
-        """Hand model fitted to each frame's own depth: θ-space blocks ``((N,P,P), (N,P))`` (None
+        """Hand model fitted to each frame's own depth: θ-space blocks ``((N,P,P), (N,P))`` and
+        the per-frame energy ``(N,)`` (:func:`handmodel.frame_energy`, without the weight) (None
         when off); sets ``terms["model"]``."""
         w = self.w
         if self.model is None or w.model <= 0:
@@ -423,16 +443,20 @@ class _Problem:
         n = self.n
         terms["model"] = 0.0
         p = self.kin.num_params
-        mod = (np.zeros((n, p, p)), np.zeros((n, p)))
-        for a in range(0, n, self.model_chunk):
-            fr = np.arange(a, min(n, a + self.model_chunk))
+        mod = (np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n))
+
+        def blocks(fr):
+            obs = self.obs.take(slice(fr[0], fr[-1] + 1))  # a view: chunks are ranges
             e, _, _, extra = hmod.frame_energy(
-                self.model, self.kin, root[fr], u[fr], self.obs.take(fr), self.cam,
-                self.fit_w, None, True,
-            )  # fmt: skip
+                self.model, self.kin, root[fr], u[fr], obs, self.cam, self.fit_w, None, True
+            )
+            return fr, e, extra
+
+        for fr, e, extra in self.map_chunks(blocks, n, self.model_chunk):
             terms["model"] += w.model * float(np.sum(e))
             mod[0][fr] = w.model * extra[0]
             mod[1][fr] = w.model * extra[1]
+            mod[2][fr] = e
         return mod
 
     def _reprojection(self, x, hd, gx) -> float:
@@ -493,24 +517,30 @@ class _Problem:
         gx[2:] += wa[..., None] * acc
         return w.acceleration * float(np.sum(cost * scale)), wa
 
-    def _angles(self, x, root, u) -> tuple[float, tuple | None]:
-        """Joint-angle limits: energy and ``(frames, violations, dθ-Jacobian)`` of the frames
-        outside them (None if none)."""
+    def _angles(self, x) -> tuple[float, tuple | None]:
+        """Joint-angle limits: energy and ``(frames, violations)`` of the frames outside them
+        (None if none)."""
         w = self.w
         if w.angle <= 0 or self.skel.flexion_limits_deg is None:
             return 0.0, None
         viol = self._angle_violation(x)
         active = np.flatnonzero(np.any(viol > 0, axis=1))
-        ang = (active, *self._angle_jacobian(root[active], u[active])) if len(active) else None
+        ang = (active, viol[active]) if len(active) else None
         return w.angle * 0.5 * float(np.sum(viol**2)), ang
 
     def _angle_violation(self, x: np.ndarray) -> np.ndarray:
         """(n, 2A) degrees outside the flexion/abduction limits (0 inside)."""
         return angle_violation(self.skel, x)
 
-    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray):
-        """Violations (m,2A) and d(violation)/dθ (m,2A,P) (forward differences, see handmodel)."""
-        return angle_jacobian(self.skel, self.kin, root, u)
+    def _angle_jacobian(self, root: np.ndarray, u: np.ndarray, v0: np.ndarray):
+        """d(violation)/dθ (m,2A,P) at violations ``v0`` (m,2A) (forward differences, see
+        handmodel), in chunks of frames that perturb the bones of all of them."""
+        bones = hmod.violated_bones(self.skel, v0)
+
+        def chunk(fr):
+            return angle_jacobian(self.skel, self.kin, root[fr], u[fr], v0=v0[fr], bones=bones)[1]
+
+        return np.concatenate(self.map_chunks(chunk, len(v0), 256))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -535,7 +565,8 @@ def _assemble(problem: _Problem, m: np.ndarray, ev: _Evaluation, fixed: np.ndarr
     diag = np.matmul(m.transpose(0, 2, 1), hm.reshape(n, j * 3, p))
     grad = np.einsum("nrp,nr->np", m, gx.reshape(n, j * 3))
     if ang is not None:
-        frames, v0, jm = ang  # jm: (a, 2A, P) in θ-space
+        frames, v0 = ang
+        jm = problem._angle_jacobian(ev.root[frames], ev.u[frames], v0)  # (a, 2A, P) in θ
         wa = problem.w.angle
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
@@ -607,17 +638,28 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
     """Switch the hand-model term on: observations of every frame, the personalized model and the
     motion-adaptive temporal weights."""
     refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
-    obs = hmod.observe(crops, boxes, centres, problem.cam, cube_mm=cube_mm)
+    # the refinement has its own angle prior; the model term brings data, free space, collisions
+    # and the palm shape
+    fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
+
+    def observe(frames, points=fit_w.points):
+        return hmod.observe(
+            crops[frames], np.asarray(boxes)[frames], np.asarray(centres)[frames], problem.cam,
+            cube_mm=cube_mm, max_points=points,
+        )  # fmt: skip
+
+    obs = hmod.FrameObservations.concatenate(
+        problem.map_chunks(lambda fr: observe(slice(fr[0], fr[-1] + 1)), problem.n, 128)
+    )
     if isinstance(hand_model, hmod.HandModel):
         model = hand_model
     elif len(refs):
-        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], obs.take(refs))
+        same = fit_w.points == hmod.OBSERVED_POINTS  # else the references observed as always
+        ref_obs = obs.take(refs) if same else observe(refs, hmod.OBSERVED_POINTS)
+        model = hmod.personalize(problem.skel, problem.kin.lengths, init[refs], ref_obs)
     else:
         return
-    problem.model, problem.obs = model, obs
-    # the refinement has its own angle prior; the model term brings data, free space, collisions
-    # and the palm shape
-    problem.fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
+    problem.model, problem.obs, problem.fit_w = model, obs, fit_w
     if problem.n > 1 and problem.w.temporal_motion_mm > 0:
         v = np.median(np.linalg.norm(np.diff(init, axis=0), axis=-1), axis=1)
         problem.pair_scale = 1.0 / (1.0 + (v / problem.w.temporal_motion_mm) ** 2)
@@ -625,14 +667,17 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
 
 def _model_energy(problem: _Problem, root, u) -> np.ndarray:
     """(N,) hand-model energy of every frame at (root, u)."""
-    out = np.zeros(problem.n)
-    for a in range(0, problem.n, 4 * problem.model_chunk):
-        fr = np.arange(a, min(problem.n, a + 4 * problem.model_chunk))
-        out[fr] = hmod.frame_energy(
-            problem.model, problem.kin, root[fr], u[fr], problem.obs.take(fr), problem.cam,
-            problem.fit_w, diagnostics=False,
+
+    def energy(fr):
+        obs = problem.obs.take(slice(fr[0], fr[-1] + 1))  # a view: chunks are ranges
+        return hmod.frame_energy(
+            problem.model, problem.kin, root[fr], u[fr], obs, problem.cam, problem.fit_w,
+            diagnostics=False,
         )[0]  # fmt: skip
-    return out
+
+    return np.concatenate(
+        [np.zeros(0), *problem.map_chunks(energy, problem.n, 4 * problem.model_chunk)]
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -660,6 +705,7 @@ def refine(
     chunk_frames: int = 256,
     hand_model: bool | hmod.HandModel = False,
     fit_weights: hmod.FitWeights | None = None,
+    threads: int = 1,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
 
@@ -688,6 +734,8 @@ def refine(
         lift), scales the temporal weight down where the initialization moves fast, and keeps a
         frame's initialization where refinement raised its model energy; a
         :class:`handmodel.HandModel` is used as given; ``False`` is the model-free energy.
+    threads : threads evaluating the per-frame terms (the hand model's above all) in chunks of
+        frames; the result does not depend on it (:meth:`_Problem.map_chunks`).
 
     Returns
     -------
@@ -728,7 +776,7 @@ def refine(
             reference_annotations=reference_annotations, closest_reference=closest,
             sequence_breaks=sequence_breaks, weights=w, iterations=iterations, progress=progress,
             cube_mm=cube_mm, tol=tol, chunk_frames=chunk_frames, hand_model=hand_model,
-            fit_weights=fit_weights,
+            fit_weights=fit_weights, threads=threads,
         )  # fmt: skip
 
     kin = _Kinematics(skeleton, table.lengths[0])
@@ -750,40 +798,17 @@ def refine(
         cube_mm,
         chunk_frames,
     )
-    p = kin.num_params
-    if hand_model is not False and hand_model is not None:
-        _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
-
-    def normal_equations(_x, ev: _Evaluation) -> NormalEquations:
-        diag, off, off2, grad = _assemble(problem, kin.jacobian(ev.u), ev, fixed)
-        scale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
-        return NormalEquations(_banded(diag, off, off2), grad.reshape(-1), scale)
-
-    fit = levenberg_marquardt(
-        lambda pose: problem.evaluate(*pose),
-        (root, u),
-        normal_equations=normal_equations,
-        solve=partial(_solve_fixed, frozen=np.repeat(fixed, p)),
-        damping=Nielsen(lam=1e-4, nu=2.0, floor=1e-9),
-        max_iter=iterations,
-        max_tries=12,
-        rtol=tol,
-        retract=lambda pose, step: kin.retract(*pose, step.reshape(n, p)),
-        progress=progress,
-    )
+    with _thread_pool(problem, threads):
+        if hand_model is not False and hand_model is not None:
+            _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
+        fit, e0 = _solve(problem, root, u, fixed, iterations, tol, progress)
+        kept = _keep_check(problem, fit, e0, (root, u), fixed)
     root, u = fit.x
     terms = fit.evaluation.terms
     joints = kin.joints(root, u)
     viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
     joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
-    kept = np.zeros(0, dtype=np.int64)
-    if problem.model is not None:
-        # never worse than the start: a frame whose own model energy rose keeps its initialization
-        e0 = _model_energy(problem, *kin.fit(init))
-        e1 = _model_energy(problem, root, u)
-        rise = np.maximum(problem.w.model_keep_ratio * e0, 1.0)
-        kept = np.flatnonzero((e1 > e0 + rise) & ~fixed)
-        joints[kept] = init[kept]
+    joints[kept] = init[kept]
     return RefineResult(
         joints_mm=joints,
         energy_history=fit.history,
@@ -794,6 +819,63 @@ def refine(
         time_s=time.perf_counter() - t0,
         info={"lambda": fit.lam, "log": fit.log, "kept_initialization": kept.tolist()},
     )
+
+
+@contextmanager
+def _thread_pool(problem: _Problem, threads: int):
+    """``problem.pool`` = a pool of ``threads`` threads while inside (none for ``threads`` <= 1
+    or fewer than two chunks of frames)."""
+    if threads <= 1 or problem.n <= problem.model_chunk:
+        yield
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        problem.pool = pool
+        try:
+            yield
+        finally:
+            problem.pool = None
+
+
+def _solve(problem: _Problem, root, u, fixed: np.ndarray, iterations: int, tol: float, progress):
+    """The LM from (root, u) (``fixed`` frames kept); returns its result and the per-frame model
+    energy at the start (None without the model term)."""
+    kin, n = problem.kin, problem.n
+    p = kin.num_params
+
+    def normal_equations(_x, ev: _Evaluation) -> NormalEquations:
+        diag, off, off2, grad = _assemble(problem, kin.jacobian(ev.u), ev, fixed)
+        scale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
+        return NormalEquations(_banded(diag, off, off2), grad.reshape(-1), scale)
+
+    start = [problem.evaluate(root, u)]
+    e0 = None if start[0].mod is None else start[0].mod[2]
+    fit = levenberg_marquardt(
+        lambda pose: problem.evaluate(*pose),
+        (root, u),
+        first=start.pop(),  # the LM holds the first evaluation only until its first step
+        normal_equations=normal_equations,
+        solve=partial(_solve_fixed, frozen=np.repeat(fixed, p)),
+        damping=Nielsen(lam=1e-4, nu=2.0, floor=1e-9),
+        max_iter=iterations,
+        max_tries=12,
+        rtol=tol,
+        retract=lambda pose, step: kin.retract(*pose, step.reshape(n, p)),
+        progress=progress,
+    )
+    return fit, e0
+
+
+def _keep_check(problem: _Problem, fit, e0, start: tuple, fixed: np.ndarray) -> np.ndarray:
+    """Frames that keep their initialization: never worse than the start, a frame whose own model
+    energy rose (by more than ``model_keep_ratio``) keeps it; the energies of the first and the
+    last evaluation where the LM has them (``e0``, ``fit.evaluation.mod``)."""
+    if problem.model is None:
+        return np.zeros(0, dtype=np.int64)
+    mod = fit.evaluation.mod
+    e0 = _model_energy(problem, *start) if e0 is None else e0
+    e1 = _model_energy(problem, *fit.x) if mod is None else mod[2]
+    rise = np.maximum(problem.w.model_keep_ratio * e0, 1.0)
+    return np.flatnonzero((e1 > e0 + rise) & ~fixed)
 
 
 @dataclass

@@ -165,6 +165,18 @@ def test_fit_recovers_pose_from_15_degree_perturbation(scene):
     assert np.allclose(MSRA21.bone_lengths(res.joints_mm[0]), model.bone_lengths_mm, atol=1e-6)
 
 
+def test_fit_recovers_pose_from_fewer_observed_points(scene):
+    """The per-frame fit in propagation and refinement observes ``FitWeights.points`` points: a
+    sparser sample of the same depth still recovers the pose."""
+    x, model, _ = scene
+    obs = _observe(model, [x], max_points=hm.FitWeights(points=256).points)
+    assert obs.valid.sum() == 256
+    signs = np.where(np.arange(len(MSRA21.angle_joints)) % 2 == 0, 1.0, -1.0)
+    res = hm.fit_frames(model, _perturb_joints(x, 15.0, signs)[None], obs, CAM, iterations=60)
+    err = np.linalg.norm(res.joints_mm[0] - x, axis=1)
+    assert err.max() <= 1.0, np.round(err, 2)
+
+
 def test_angle_meter_matches_skeleton_joint_angles():
     rng = np.random.default_rng(0)
     poses = np.stack([_pose(g, (rng.uniform(-90, 90), 0.0, 0.0)) for g in ("open", "fist")])
@@ -259,15 +271,24 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
         model_refs=np.array([0]), model_ref_joints=x[None],
     )  # fmt: skip
 
+    def item(crop):
+        return prop._ModelInput(0, 1, x, x, CAM.project(x), np.zeros(21), crop)
+
     def fit(crop, ratio):
         c = replace(ctx, settings=prop.PropagationSettings(model_fail_ratio=ratio))
-        out, conf = prop._model_fit(c, 0, 1, x, x, CAM.project(x), np.zeros(21), crop)
+        out, conf = prop._model_fits(c, [item(crop)])[0]
         return np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
 
     to_flow, to_truth = fit(hand_crop, 5.0)
     assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
     assert fit(ball_crop, 5.0)[0] == 0.0  # failed: the flowed pose, unchanged
     assert fit(ball_crop, 0.0)[0] > 20.0  # without the guard the fit leaves it
+    # frames fitted in one batch (as propagation does) get exactly their results when alone
+    batch = prop._model_fits(ctx, [item(hand_crop), item(ball_crop), item(hand_crop)])
+    for got, crop in zip(batch, [hand_crop, ball_crop, hand_crop], strict=True):
+        alone = prop._model_fits(ctx, [item(crop)])[0]
+        np.testing.assert_array_equal(got[0], alone[0])
+        np.testing.assert_array_equal(got[1], alone[1])
 
 
 def test_a_layout_without_three_bone_fingers_has_no_hand_model():

@@ -42,6 +42,8 @@ __all__ = [
 STRIDE = 0
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
+#: how :func:`prefill_reference` picks among its propagations
+CHOICES = ("confidence", "model")
 
 
 def _finite_rows(x: np.ndarray) -> np.ndarray:
@@ -89,6 +91,13 @@ def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | No
     return int(cand[np.lexsort((cand, d))[0]])
 
 
+def _neighbours_known(frame: int, has: np.ndarray, segment: np.ndarray) -> list[int]:
+    """The nearest frames with joints before and after ``frame`` in time in its segment (0-2)."""
+    cand = np.flatnonzero(has & (segment == segment[frame]))
+    before, after = cand[cand < frame], cand[cand > frame]
+    return ([int(before[-1])] if before.size else []) + ([int(after[0])] if after.size else [])
+
+
 def _most_similar_known(frame: int, has: np.ndarray, descriptors: np.ndarray) -> int | None:
     """The frame with joints whose hand crop looks most like ``frame``'s (cosine distance of the
     L2-normalized ``descriptors`` (N, D) of :mod:`handanno_core.descriptors`)."""
@@ -123,7 +132,9 @@ def _propagate_path(
     hand_model=False,
 ):
     """Propagate ``source -> frame`` through the frames between them in time, every ``stride``-th
-    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence)`` or None if it was skipped.
+    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence, model residual mm)`` or None if it
+    was skipped (the residual: mean |point-to-surface| of the frame's observed points at the
+    returned pose, ``data_mm`` of ``PropagationResult.model_fit``; NaN without the model).
     ``hand_model``: a :class:`handanno_core.handmodel.HandModel` fitted to ``frame``'s own depth
     after the flow (see :func:`handanno_core.propagate.propagate`), or False."""
     from .propagate import propagate
@@ -155,7 +166,8 @@ def _propagate_path(
     out = result.joints_mm[frame]
     if not np.all(np.isfinite(out)):
         return None
-    return out, float(np.nanmean(result.confidence[frame]))
+    residual = np.nan if result.model_fit is None else float(result.model_fit[frame, 1])
+    return out, float(np.nanmean(result.confidence[frame])), residual
 
 
 def prefill_reference(
@@ -166,13 +178,22 @@ def prefill_reference(
     stride: int = STRIDE,
     descriptors: np.ndarray | None = None,
     hand_model=False,
+    both_sides: bool = False,
+    choose: str = "confidence",
 ) -> np.ndarray | None:
     """``(J, 3)`` mm best current estimate of ``frame``'s joints (see the module docstring), or
     None when nothing in the session has joints. ``results`` are the session's result arrays
     (:meth:`Session.load_results`; read from the session when None); they are not modified.
     ``hand_model``: a personalized :class:`handanno_core.handmodel.HandModel`
     (:func:`reference_hand_model`) fitted to the frame's own depth after the flow: the guess
-    snapped to the frame's surface and silhouette (False: flow only)."""
+    snapped to the frame's surface and silhouette (False: flow only). ``both_sides``: also
+    propagate from the nearest frame with joints before and the nearest after ``frame`` in time
+    (same segment). ``choose``: which propagation wins, ``"confidence"`` (highest mean
+    confidence) or ``"model"`` (lowest model residual: the fitted pose explains the frame's own
+    points best; needs ``hand_model``, else as "confidence").
+    """
+    if choose not in CHOICES:
+        raise ValueError(f"unknown pre-fill choice {choose!r}; use one of {CHOICES}")
     frame = int(frame)
     n = session.num_frames
     if not 0 <= frame < n:
@@ -182,22 +203,29 @@ def prefill_reference(
     joints, has = known_joints(results)
     if has[frame]:
         return joints[frame].copy()
-    source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
+    segment = _segment_ids(n, session.model.sequence_breaks)
+    source = _nearest_known(frame, has, segment)
     if source is None:
         return None
     crop_data = cached_crops(session)
     if crop_data is not None:
         tries = [(source, stride)]
+        if both_sides:
+            for side in _neighbours_known(frame, has, segment):
+                if side not in {t[0] for t in tries}:
+                    tries.append((side, stride))
         if descriptors is not None:
             similar = _most_similar_known(frame, has, descriptors)
-            if similar is not None and similar != source:
+            if similar is not None and similar not in {t[0] for t in tries}:
                 tries.append((similar, 0))
         found = [
             _propagate_path(session, s, frame, joints[s], crop_data, k, hand_model)
             for s, k in tries
         ]
         found = [f for f in found if f is not None]
-        if found:  # the most confident propagation (no ground truth)
+        if found:  # no ground truth: the most confident propagation, or the best model fit
+            if choose == "model" and all(np.isfinite(f[2]) for f in found):
+                return min(found, key=lambda f: f[2])[0].copy()
             return max(found, key=lambda f: f[1])[0].copy()
         centres = crop_data[1]
         shift = np.asarray(centres[frame] - centres[source], dtype=np.float64)

@@ -75,6 +75,7 @@ from .forest import descendants, propagation_order
 from .hands import BoneTable, bone_table
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .parallel import Runner
+from .results import MODEL_FIT_TERMS
 from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
@@ -150,6 +151,9 @@ class PropagationResult:
     order: list[int] = field(default_factory=list)
     #: ``(N, J)`` mm each joint's depth below the observed surface where it was placed on it
     below_surface_mm: np.ndarray | None = None
+    #: ``(N, T)`` the hand-model fit's own evidence per frame (NaN without the model or where
+    #: not computed), columns :data:`handanno_core.results.MODEL_FIT_TERMS`
+    model_fit: np.ndarray | None = None
 
     @property
     def frame_score(self) -> np.ndarray:
@@ -474,8 +478,9 @@ def _step(
             )  # fmt: skip
 
     model_conf = None
+    model_ev = np.full(len(MODEL_FIT_TERMS), np.nan)
     if ctx.hand_models is not None:
-        x, model_conf = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f)
+        x, model_conf, model_ev = _model_fit(ctx, src, frame, x, joints_s, uv_f, fb, crop_f)
 
     # confidence
     half = 0.5 * st.cube_mm
@@ -496,7 +501,7 @@ def _step(
     conf = np.clip(conf_s * local, 0.0, 1.0)
     # a joint is "on its surface" in this frame if the fit kept it there
     vis_f = visible & (np.abs(x[:, 2] - z_obs) < st.near_surface_mm)
-    return x, conf, np.where(vis_f, below, np.nan)
+    return x, conf, np.where(vis_f, below, np.nan), model_ev
 
 
 def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, crop_f):
@@ -509,9 +514,9 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     the ``model_fits`` starts of lowest energy are fitted (batched) and the best fit is kept.
     Guard: a fit whose data + free-space energy exceeds ``model_fail_ratio`` times the
     references' (``ctx.model_levels``) failed, and the frame keeps ``x_flow``.
-    Returns the joints (J,3) and a per-joint confidence factor (J,) from the fit residuals of the
+    Returns the joints (J,3), a per-joint confidence factor (J,) from the fit residuals of the
     capsules touching each joint at the returned pose (mean point-to-surface mm, fraction of
-    free-space violations).
+    free-space violations) and the frame's evidence ``(T,)`` (:data:`handanno_core.results.MODEL_FIT_TERMS`).
     """
     st = ctx.settings
     h = 0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])
@@ -556,7 +561,8 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     x = fit.joints_mm[k]
     pose = fit.root[k : k + 1], fit.u[k : k + 1]
     level = fit.terms["data"][k] + fit.terms["free_space"][k]
-    if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
+    rejected = st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]
+    if rejected:
         x = x_flow  # the fit does not explain the frame's depth: keep the flowed pose
         pose = kin.fit(x_flow[None])
     _, _, _, diag = hm.frame_energy(
@@ -574,7 +580,12 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     conf = np.exp(-0.5 * (res_j / st.model_scale_mm) ** 2) * np.clip(
         1.0 - st.model_free_scale * free_j, 0.0, 1.0
     )
-    return x, conf
+    points = diag["capsule_points"][0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        data_mm = np.nansum(res * points) / points.sum()
+        ratio = level / ctx.model_levels[h]
+    evidence = np.array([ratio, data_mm, float(np.mean(free)), float(rejected)])
+    return x, conf, evidence
 
 
 class _Skip(Exception):
@@ -585,7 +596,8 @@ class _Skip(Exception):
 class _TaskResult:
     """One task's rows: ``frames`` (M,), the frame each was propagated from ``sources`` (M,) (-1
     where skipped), ``joints`` (M, J, 3) mm, ``confidence`` (M, J), ``below`` (M, J) mm depth
-    below the surface (NaN off it) and ``skipped`` ``{frame: reason}``."""
+    below the surface (NaN off it), ``skipped`` ``{frame: reason}`` and ``model_fit`` (M, T)
+    (:data:`MODEL_FIT_TERMS`)."""
 
     frames: np.ndarray
     sources: np.ndarray
@@ -593,6 +605,7 @@ class _TaskResult:
     confidence: np.ndarray
     below: np.ndarray
     skipped: dict[int, str]
+    model_fit: np.ndarray
 
 
 def _run_task(ctx: _Context, task: _Task, emit: Callable | None = None):
@@ -615,6 +628,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
     out_j = np.full((m, j, 3), np.nan)
     out_c = np.full((m, j), np.nan)
     out_b = np.full((m, j), np.nan)
+    out_m = np.full((m, len(MODEL_FIT_TERMS)), np.nan)
     used_src = np.full(m, -1, dtype=np.int64)
     skipped: dict[int, str] = {}
     state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -635,7 +649,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
             continue
         jj, cc, vv = state[s]
         try:
-            x, conf, vis = _step(ctx, s, f, jj, cc, vv)
+            x, conf, vis, out_m[k] = _step(ctx, s, f, jj, cc, vv)
         except _Skip as err:
             skipped[f] = str(err)
             alias[f] = s
@@ -646,7 +660,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
         out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
         if emit is not None:
             emit(f, x, conf)
-    return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped)
+    return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped, out_m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -983,6 +997,7 @@ class _Collector:
     joints: np.ndarray
     confidence: np.ndarray
     below: np.ndarray
+    model_fit: np.ndarray
     source: np.ndarray
     reasons: dict[int, str]
     total: int
@@ -997,6 +1012,7 @@ class _Collector:
             joints=np.full((n, j, 3), np.nan),
             confidence=np.full((n, j), np.nan),
             below=np.full((n, j), np.nan),
+            model_fit=np.full((n, len(MODEL_FIT_TERMS)), np.nan),
             source=np.full(n, -1, dtype=np.int64),
             reasons=dict(problems),
             total=sum(len(t.frames) for t in tasks),
@@ -1009,6 +1025,7 @@ class _Collector:
         fr = r.frames
         self.joints[fr], self.confidence[fr], self.below[fr] = r.joints, r.confidence, r.below
         self.source[fr] = r.sources
+        self.model_fit[fr] = r.model_fit
         self.reasons.update(r.skipped)
 
     def add_remote(self, r: _TaskResult) -> None:
@@ -1043,6 +1060,7 @@ class _Collector:
             reasons={f: self.reasons[f] for f in skipped},
             source=self.source,
             below_surface_mm=self.below,
+            model_fit=self.model_fit,
             seconds=seconds,
             order=self.order,
         )

@@ -37,6 +37,7 @@ import numpy as np
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP
+from .results import MODEL_FIT_TERMS
 from .sampling import VISIBILITY_MARGIN_MM, visible_by_depth
 from .session import (
     Batch,
@@ -552,7 +553,12 @@ def review_evidence(
     refinement moved a joint from its propagated position; ``angle_deg`` joint-angle limit
     violation (:func:`angle_violation`, also catches mirrored hands); ``swap_mm`` finger order
     (:func:`finger_order_violation`); ``bone`` bone-length anomaly of the propagated pose;
-    ``hops`` propagation steps from the reference; ``gap`` frames (in time) to the reference.
+    ``hops`` propagation steps from the reference; ``gap`` frames (in time) to the reference;
+    with the hand model, the propagation's own fit evidence (``results["model_fit"]``, not
+    recomputed): ``model_level`` (the fit's data + free-space energy over the references'),
+    ``model_data_mm`` (mean point-to-surface mm at the kept pose), ``model_free`` (share of
+    free-space samples violated), ``model_rejected`` (1: the guard kept the flowed pose), see
+    :data:`handanno_core.results.MODEL_FIT_TERMS`.
     ``extra``: further terms ``{name: (N,)}`` (e.g. a model-fit residual) passed through.
     ``crop_data`` = ``(crops, centres_mm, boxes)`` (:func:`handanno_core.prefill.cached_crops`).
     ``unexplained``: :func:`unexplained_foreground` of these joints (N,) when the caller keeps it
@@ -606,6 +612,11 @@ def review_evidence(
     parent = session.parent
     ev["hops"] = hops_to_reference(parent).astype(np.float64)
     ev["gap"] = np.abs(np.arange(n) - root_reference(parent)).astype(np.float64)
+    model_fit = results.get("model_fit")
+    if model_fit is not None:
+        model_fit = np.asarray(model_fit, dtype=np.float64)
+        for k, name in enumerate(MODEL_FIT_TERMS):
+            ev[f"model_{name}"] = model_fit[:, k]
     for name, value in (extra or {}).items():
         ev[name] = np.asarray(value, dtype=np.float64)
     return ev

@@ -229,6 +229,89 @@ def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init
     )
 
 
+#: the orders :func:`annotate_prefilled` can annotate the references in
+REFERENCE_ORDERS = ("time", "bisect", "similar")
+
+
+def order_references(
+    frames, order: str = "time", descriptors: np.ndarray | None = None
+) -> list[int]:
+    """The reference ``frames`` in the order they are annotated: ``"time"``; ``"bisect"`` (the
+    first and the last, then each time the one in the middle of the widest gap between annotated
+    ones, so most references have an annotated neighbour on both sides); ``"similar"`` (the first,
+    then each time the one whose crop descriptor (``descriptors`` (N, D), L2-normalized) is
+    closest to an annotated one's: every next reference has a similar-looking annotated one)."""
+    f = sorted(int(x) for x in frames)
+    if order == "time" or len(f) < 3:
+        return f
+    if order == "bisect":
+        out, todo = [f[0], f[-1]], [(0, len(f) - 1)]
+        while todo:
+            todo.sort(key=lambda ab: (f[ab[0]] - f[ab[1]], ab[0]))  # widest gap first
+            a, b = todo.pop(0)
+            if b - a < 2:
+                continue
+            m = (a + b) // 2
+            out.append(f[m])
+            todo += [(a, m), (m, b)]
+        return out
+    if order == "similar":
+        if descriptors is None:
+            raise ValueError("the 'similar' reference order needs crop descriptors")
+        d = np.asarray(descriptors, dtype=np.float64)[f]
+        dist = 1.0 - d @ d.T  # (K, K) cosine distance
+        done = np.zeros(len(f), dtype=bool)
+        done[0] = True
+        best = dist[0].copy()
+        out = [f[0]]
+        for _ in range(len(f) - 1):
+            k = int(np.argmin(np.where(done, np.inf, best)))
+            done[k] = True
+            best = np.minimum(best, dist[k])
+            out.append(f[k])
+        return out
+    raise ValueError(f"unknown reference order {order!r}; use one of {REFERENCE_ORDERS}")
+
+
+def _offsets_px(camera: CameraIntrinsics, a_mm: np.ndarray, b_mm: np.ndarray) -> list[float]:
+    """``(J,)`` px between the projections of two skeletons (J, 3) mm, rounded, as a list."""
+    off = np.linalg.norm(camera.project(a_mm) - camera.project(b_mm), axis=-1)
+    return [round(float(v), 2) for v in off]
+
+
+def _crop_descriptors(session: Session, crop_data) -> np.ndarray | None:
+    """The session's crop descriptors (N, D), None without cached crops."""
+    if crop_data is None:
+        return None
+    from .descriptors import compute_descriptors
+
+    return compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
+
+
+def _lift_all(
+    session: Session, sequence, annotations: dict, lifted_mm: np.ndarray, start_bones=None
+) -> np.ndarray:
+    """The app's "Lift all" on the references annotated so far: their lifts written into
+    ``lifted_mm`` (N, J, 3) mm; returns the bone lengths (B,) mm estimated with them, starting
+    from ``start_bones`` (B,) mm (the previous estimate: fewer re-estimation rounds; None: from
+    the annotations)."""
+    from .lift import lift_references
+
+    s = session.model.settings
+    done = lift_references(
+        annotations,
+        sequence.depth,
+        sequence.camera,
+        session.skeleton,
+        bone_lengths_mm=start_bones,
+        eps_mm=s.eps_mm,
+        angle_limits=s.angle_limits,
+    )
+    for g, joints in done.joints_mm.items():
+        lifted_mm[g] = joints
+    return np.asarray(done.bone_lengths_mm, dtype=np.float64)
+
+
 def annotate_prefilled(
     session: Session,
     *,
@@ -241,6 +324,8 @@ def annotate_prefilled(
     bones_so_far: bool = True,
     refit_s: list[float] | None = None,
     quiet: bool = False,
+    reference_order: str = "time",
+    prefill_kw: dict | None = None,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
@@ -254,21 +339,21 @@ def annotate_prefilled(
     does), and those bones and lifts feed the next pre-fill and refits (one bone set for the
     session: the several-hands bones are not estimated here); False: the session's bones (the
     template in a fresh session) and each reference lifted on its own.
+    ``reference_order``: the order the references are annotated in (:func:`order_references`).
+    ``prefill_kw``: further options of :func:`handanno_core.prefill.prefill_reference`
+    (``both_sides``, ``choose``).
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
     the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
-    plain one)}``. Needs the session's crops on disk for propagated pre-fills.
+    plain one), "click_order": {frame: joints in click order}, "guess_off_px": {frame: (J,) px
+    of the pre-fill from the truth (evaluation)}, "gap": {frame: frames in time to the nearest
+    reference annotated before it}, "order": the frames in annotation order}``. Needs the session's crops on disk for propagated pre-fills.
     """
     from .prefill import cached_crops, prefill_reference, reference_hand_model
 
     sequence = session.open_sequence()
-    crop_data = cached_crops(session)
-    descriptors = None
-    if crop_data is not None:
-        from .descriptors import compute_descriptors
-
-        descriptors = compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
+    descriptors = _crop_descriptors(session, cached_crops(session))
     gt = sequence.ground_truth
     if gt is None:
         raise ValueError(f"{sequence.path}: the simulated annotator needs ground truth")
@@ -283,14 +368,24 @@ def annotate_prefilled(
     order_of: dict[int, list[int]] = {}
     prefilled: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
-    for f in (int(x) for x in session.reference_frames):
+    guess_off: dict[int, list[float]] = {}
+    gaps: dict[int, int] = {}
+    refs = order_references(session.reference_frames, reference_order, descriptors)
+    estimated = None  # the bones of the last "lift all"
+    for f in refs:
         rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
         depth = sequence.depth(f)
         model = False
         lifted = np.flatnonzero(np.all(np.isfinite(scratch["lifted_mm"]), axis=(1, 2)))
         if hand_model and bones is not None and lifted.size >= MODEL_MIN_REFERENCES:
             model = reference_hand_model(session, scratch["lifted_mm"], lifted, bones) or False
-        guess = prefill_reference(session, f, scratch, descriptors=descriptors, hand_model=model)
+        guess = prefill_reference(
+            session, f, scratch, descriptors=descriptors, hand_model=model, **(prefill_kw or {})
+        )
+        if annotations:
+            gaps[f] = int(min(abs(f - g) for g in annotations))
+        if guess is not None:  # evaluation only: how far each guess is drawn from the truth
+            guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])
         if guess is None:
             from .synth import simulate_annotation
 
@@ -339,20 +434,8 @@ def annotate_prefilled(
             prefilled.append(f)
         annotations[f] = ann
         if bones_so_far and len(annotations) >= 2:  # "lift all" on the references so far
-            from .lift import lift_references
-
-            s = session.model.settings
-            done = lift_references(
-                annotations,
-                sequence.depth,
-                sequence.camera,
-                skeleton,
-                eps_mm=s.eps_mm,
-                angle_limits=s.angle_limits,
-            )
-            bones = np.asarray(done.bone_lengths_mm, dtype=np.float64)
-            for g, joints in done.joints_mm.items():
-                scratch["lifted_mm"][g] = joints
+            bones = _lift_all(session, sequence, annotations, scratch["lifted_mm"], estimated)
+            estimated = bones
         elif bones is not None:  # lifted now so that the next reference can be pre-filled from it
             own = session.bone_lengths_of(f) or bones  # the frame's hand's, if lifted
             scratch["lifted_mm"][f] = _lift(session, ann, depth, own, guess).joints_mm
@@ -379,6 +462,9 @@ def annotate_prefilled(
         "clicks_per_reference": per_ref,
         "clicks_per_reference_drag": per_ref_drag,
         "click_order": order_of,
+        "guess_off_px": guess_off,
+        "gap": gaps,
+        "order": refs,
     }
 
 

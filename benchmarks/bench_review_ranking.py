@@ -31,7 +31,7 @@ from handanno_core.session import Session
 def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
     """One finished bench session: its evidence, the old ranking, ground-truth frame errors. With
     ``cache`` (a folder) the arrays are stored there and read back on the next run."""
-    name = f"{folder.parent.name}/{folder.name}"
+    name = f"{folder.parent.parent.name}/{folder.parent.name}/{folder.name}"
     hit = None if cache is None else cache / (name.replace("/", "__") + ".npz")
     if hit is not None and hit.exists():
         with np.load(hit) as z:
@@ -186,23 +186,56 @@ def spearman(priority: np.ndarray, err: np.ndarray, refs: np.ndarray) -> float:
     return float(spearmanr(priority[m], err[m]).statistic)
 
 
-def leave_one_out(tune: list[dict], names: list[str], start: dict, bad_mm: float) -> list[dict]:
-    """For each tune session: weights searched (:func:`coordinate_search` from ``start``) on the
-    other tune sessions, the held-out one's :func:`tune_objective` with ``start`` and with them."""
+def family(d: dict) -> str:
+    """The sequence a session runs on, whatever suite replica (seed) it comes from: the name of
+    its dataset folder (``tune-fpha-1``)."""
+    return d["name"].split("/")[-2]
+
+
+def leave_one_out(tune: list[dict], choose, start: dict, bad_mm: float) -> list[dict]:
+    """For each sequence of the tune part (all its replicas held out together): weights chosen
+    by ``choose(sessions) -> weights`` on the other sequences; each held-out session's
+    :func:`tune_objective` and rank correlation with ``start`` and with them."""
     out = []
-    for i, held in enumerate(tune):
-        rest = tune[:i] + tune[i + 1 :]
-        w = coordinate_search(rest, names, start, bad_mm, quiet=True)
+    for held in tune:
+        rest = [d for d in tune if family(d) != family(held)]
+        w = choose(rest)
+        p0 = review.evidence_priority(held["evidence"], start)
+        p1 = review.evidence_priority(held["evidence"], w)
         out.append(
             {
                 "session": held["name"],
                 "start": round(tune_objective([held], start, bad_mm), 3),
-                "searched": round(tune_objective([held], w, bad_mm), 3),
+                "chosen": round(tune_objective([held], w, bad_mm), 3),
+                "spearman_start": round(spearman(p0, held["err"], held["refs"]), 3),
+                "spearman_chosen": round(spearman(p1, held["err"], held["refs"]), 3),
                 "informative": bool(_informative(held, bad_mm)),
             }
         )
         print("leave-one-out", out[-1], flush=True)
     return out
+
+
+def logistic_weights(sessions: list[dict], names: list[str], fit_mm: float) -> dict:
+    """``{term: (scale, weight)}`` of a non-negative logistic regression (:func:`fit_logistic`)
+    of "a joint more than ``fit_mm`` off" on ``log1p(x / scale)`` over the non-reference frames
+    of ``sessions``, each term's scale its median there; terms of weight 0 left out."""
+
+    def candidates(d):
+        m = np.isfinite(d["err"])
+        m[d["refs"]] = False
+        return m
+
+    ev_all = {k: np.concatenate([d["evidence"][k][candidates(d)] for d in sessions]) for k in names}
+    scales = {}
+    for k in names:
+        v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
+        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
+    x = features(ev_all, names, scales)
+    y = np.concatenate([d["err"][candidates(d)] > fit_mm for d in sessions]).astype(np.float64)
+    w = fit_logistic(x, y)
+    out = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
+    return {k: v for k, v in out.items() if v[1] > 0}
 
 
 def _informative(d: dict, bad_mm: float) -> bool:
@@ -289,6 +322,9 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, help="folder to keep each session's evidence in")
     ap.add_argument("--loso", action="store_true", help="leave-one-sequence-out inside --tune")
     ap.add_argument(
+        "--smoothing", action="store_true", help="search temporal smoothing and suppression too"
+    )
+    ap.add_argument(
         "--objective-mm",
         type=lambda t: [float(x) for x in t.split(",")],
         default=[],
@@ -302,33 +338,21 @@ def main() -> None:
     report = [load(f, args.bad_mm, args.cache) for f in args.report]
     names = [k for k in tune[0]["evidence"] if all(k in d["evidence"] for d in tune + report)]
 
-    def candidates(d):
-        m = np.isfinite(d["err"])
-        m[d["refs"]] = False
-        return m
-
-    stack = np.concatenate
-    ev_all = {k: stack([d["evidence"][k][candidates(d)] for d in tune]) for k in names}
-    scales = {}
-    for k in names:
-        v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
-        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
-    x = features(ev_all, names, scales)
-    y = stack([d["err"][candidates(d)] > args.fit_mm for d in tune]).astype(np.float64)
-    w = fit_logistic(x, y)
-    weights = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
-    loso = []
+    weights = logistic_weights(tune, names, args.fit_mm)
+    start = dict(BEFORE_WEIGHTS)
+    choose = lambda sessions: logistic_weights(sessions, names, args.fit_mm)  # noqa: E731
     if args.search:  # from the weights before (new terms: weight 0), scales as fitted
-        start = {k: (BEFORE_WEIGHTS.get(k, weights[k])[0], 0.0) for k in names}
+        start = {k: (BEFORE_WEIGHTS.get(k, weights.get(k, (1.0, 0.0)))[0], 0.0) for k in names}
         start.update({k: v for k, v in BEFORE_WEIGHTS.items() if k in names})
         weights = coordinate_search(tune, names, start, args.bad_mm)
-        if args.loso:
-            loso = leave_one_out(tune, names, start, args.bad_mm)
+        choose = lambda sessions: coordinate_search(sessions, names, start, args.bad_mm, True)  # noqa: E731
+    loso = leave_one_out(tune, choose, BEFORE_WEIGHTS, args.bad_mm) if args.loso else []
     weights = {k: v for k, v in weights.items() if v[1] > 0}
-    smooth, radius = search_smoothing(tune, weights, args.bad_mm)
+    smooth, radius = review.SMOOTH, review.SUPPRESS_RADIUS
+    if args.smoothing:
+        smooth, radius = search_smoothing(tune, weights, args.bad_mm)
     if args.fixed:  # report the committed constants (handanno_core.review)
         weights = dict(review.EVIDENCE_WEIGHTS)
-        smooth, radius = review.SMOOTH, review.SUPPRESS_RADIUS
     print("EVIDENCE_WEIGHTS =", json.dumps(weights))
     print("SMOOTH =", smooth, "SUPPRESS_RADIUS =", radius)
 

@@ -135,3 +135,22 @@ def test_hand_model_snaps_the_prefill_to_the_frames_depth(session):
     # still a usable guess, its bones the session's
     assert errors(snapped, gt[frame]).mean() < 15.0
     np.testing.assert_allclose(session.skeleton.bone_lengths(snapped), bones, rtol=0.02)
+
+
+def test_reference_orders():
+    from handanno_core.review_loop import order_references
+
+    refs = [40, 0, 10, 20, 30]
+    assert order_references(refs) == [0, 10, 20, 30, 40]
+    # bisect: the ends, then the middle of the widest gap between annotated ones
+    assert order_references(refs, "bisect") == [0, 40, 20, 10, 30]
+    # similar: each next reference is the one most alike an annotated one (not the next in time)
+    desc = np.zeros((41, 2))
+    angles = {0: 0.0, 10: 1.2, 20: 0.1, 30: 1.3, 40: 0.2}  # 0, 20, 40 look alike; 10, 30 too
+    for f, a in angles.items():
+        desc[f] = [np.cos(a), np.sin(a)]
+    assert order_references(refs, "similar", desc) == [0, 20, 40, 10, 30]
+    with pytest.raises(ValueError, match="descriptors"):
+        order_references(refs, "similar")
+    with pytest.raises(ValueError, match="unknown"):
+        order_references(refs, "random")

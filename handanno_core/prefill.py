@@ -33,6 +33,7 @@ __all__ = [
     "prefill_reference",
     "prefill_uv",
     "reference_hand_model",
+    "session_hand_model",
 ]
 
 #: the pre-fill propagates through every STRIDE-th frame between the source and the frame (0: one
@@ -44,6 +45,8 @@ STRIDE = 0
 STAGES = ("final_mm", "init_mm", "lifted_mm")
 #: how :func:`prefill_reference` picks among its propagations
 CHOICES = ("confidence", "model")
+#: lifted references needed before pre-fills are fitted with the hand model personalized from them
+MODEL_MIN_REFERENCES = 2
 
 
 def _finite_rows(x: np.ndarray) -> np.ndarray:
@@ -255,6 +258,20 @@ def reference_hand_model(session: Session, joints_mm: np.ndarray, frames, bone_l
         session.camera,
         cube_mm=session.model.settings.cube_mm,
     )[0]
+
+
+def session_hand_model(session: Session, frame: int, results: dict[str, np.ndarray]):
+    """The hand model the app's pre-fill of ``frame`` is fitted with: personalized
+    (:func:`reference_hand_model`) from the session's lifted references with the bones of
+    ``frame``'s hand, as the bench's simulated annotator does with the references annotated so
+    far. False (flow only) before "Lift all" (no bone lengths), with fewer than
+    :data:`MODEL_MIN_REFERENCES` lifted references, or without the crop cache."""
+    bones = session.bone_lengths_of(int(frame))
+    lifted = np.asarray(results["lifted_mm"], dtype=np.float64)
+    refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
+    if bones is None or len(refs) < MODEL_MIN_REFERENCES:
+        return False
+    return reference_hand_model(session, lifted, refs, np.asarray(bones, dtype=np.float64)) or False
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

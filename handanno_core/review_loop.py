@@ -39,6 +39,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .prefill import MODEL_MIN_REFERENCES
 from .session import Batch, Session, SetFrameAnnotation, SetReference
 
 __all__ = [
@@ -56,8 +57,6 @@ __all__ = [
 CLICK_PX = 4.0
 #: a frame is "bad" when a joint is more than this (mm) off
 BAD_MM = 20.0
-#: references lifted before the pre-fills are snapped with the hand model personalized from them
-MODEL_MIN_REFERENCES = 2
 
 
 def simulated_fix(

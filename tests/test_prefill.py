@@ -154,3 +154,19 @@ def test_reference_orders():
         order_references(refs, "similar")
     with pytest.raises(ValueError, match="unknown"):
         order_references(refs, "random")
+
+
+def test_session_hand_model_needs_two_lifted_references_and_bones(session):
+    from handanno_core import handmodel as hm
+    from handanno_core.pipeline import ensure_crops
+    from handanno_core.prefill import session_hand_model
+
+    results = session.load_results()
+    assert session_hand_model(session, 26, results) is False  # no crop cache yet
+    ensure_crops(session, quiet=True)
+    refs = session.reference_frames  # 0, 10, 20: lifted
+    model = session_hand_model(session, 26, results)
+    assert isinstance(model, hm.HandModel)
+    np.testing.assert_allclose(model.bone_lengths_mm, session.model.bone_lengths_mm)
+    results["lifted_mm"][refs[1:]] = np.nan  # one lifted reference: flow only
+    assert session_hand_model(session, 26, results) is False

@@ -75,13 +75,17 @@ class AppContext:
     def prefill(self, frame: int) -> np.ndarray | None:
         """``(J, 3)`` mm first guess of ``frame``'s joints, always hand-shaped:
         :func:`handanno_core.prefill.prefill_reference` (the frame's own results, else one
-        propagation step from the nearest frame with joints), else, when nothing in the session
+        propagation step from the nearest frame with joints, fitted to the frame's own depth with
+        the hand model personalized from the lifted references once there are two,
+        :func:`handanno_core.prefill.session_hand_model`), else, when nothing in the session
         has joints yet, :func:`~app.control.annotate.template_hand` at the frame's hand centre.
         None where neither exists. Never raises: a failed pre-fill only means no first guess."""
-        from handanno_core.prefill import prefill_reference
+        from handanno_core.prefill import prefill_reference, session_hand_model
 
         try:
-            joints = prefill_reference(self.session, frame, None)
+            results = self.session.load_results()
+            model = session_hand_model(self.session, frame, results)
+            joints = prefill_reference(self.session, frame, results, hand_model=model)
             if joints is None:
                 data = self.frames.get(frame)
                 if data.depth is not None:

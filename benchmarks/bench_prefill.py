@@ -62,7 +62,8 @@ def main() -> None:
         "fitted with the hand model personalized from the references so far; -both: pre-filled "
         "from the annotated references before and after in time too; -pickmodel: the "
         "propagation whose model fit explains the frame's points best wins; -bisect / -similar: "
-        "the references annotated in that order, handanno_core.review_loop.order_references)",
+        "the references annotated in that order, handanno_core.review_loop.order_references; "
+        "-refit: each refit also fits the unplaced joints with that hand model)",
     )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
@@ -93,6 +94,7 @@ def main() -> None:
                     bones_so_far="template" not in parts and parts[0] == "interactive",
                     refit_s=refit_s,
                     quiet=True,
+                    model_refit="refit" in parts,
                     reference_order=next(
                         (p for p in parts if p in REFERENCE_ORDERS and p != "time"), "time"
                     ),

@@ -143,6 +143,8 @@ def interactive_fix(
     click_px: float = CLICK_PX,
     order: str = "worst",
     refit_s: list[float] | None = None,
+    hand_model=None,
+    observation=None,
 ) -> tuple[FrameAnnotation, int, list[int]]:
     """What a person does in the app with a frame opened with guesses ``guess_mm`` (J, 3) mm: move
     the guess that is furthest off (more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm;
@@ -155,7 +157,9 @@ def interactive_fix(
     depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the
     annotation returned, as :func:`simulated_fix` gives them. A guess not drawn (NaN, behind the
     camera, off the image) counts as off. Returns ``(annotation, clicks, joints in click
-    order)``. ``refit_s``: each refit's duration (s) is appended to it."""
+    order)``. ``refit_s``: each refit's duration (s) is appended to it. ``hand_model`` /
+    ``observation``: the refit also fits the unplaced joints to the frame's own points
+    (:func:`handanno_core.guesses.model_guesses`)."""
     from .guesses import refit_guesses
     from .synth import simulate_annotation
 
@@ -197,6 +201,8 @@ def interactive_fix(
                 previous_mm=previous,
                 start_elastic=bool(slack),
                 elastic_joints=slack,
+                hand_model=hand_model,
+                observation=observation,
             )
         except ValueError:  # the app keeps drawing the last guesses when a refit fails
             continue
@@ -287,6 +293,26 @@ def _crop_descriptors(session: Session, crop_data) -> np.ndarray | None:
     return compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
 
 
+def _model_refit_inputs(session: Session, frame: int, model) -> dict:
+    """``{"hand_model", "observation"}`` of :func:`interactive_fix` for ``frame`` (empty without
+    a model or the crop cache)."""
+    from . import handmodel as hm
+    from .prefill import cached_crops
+
+    crop_data = cached_crops(session) if model else None
+    if crop_data is None:
+        return {}
+    crops, centres, boxes = crop_data
+    obs = hm.observe(
+        np.asarray(crops[frame : frame + 1], dtype=np.float32),
+        np.asarray(boxes[frame : frame + 1], dtype=np.float64),
+        np.asarray(centres[frame : frame + 1], dtype=np.float64),
+        session.camera,
+        cube_mm=session.model.settings.cube_mm,
+    )
+    return {"hand_model": model, "observation": obs}
+
+
 def _lift_all(
     session: Session, sequence, annotations: dict, lifted_mm: np.ndarray, start_bones=None
 ) -> np.ndarray:
@@ -325,6 +351,7 @@ def annotate_prefilled(
     quiet: bool = False,
     reference_order: str = "time",
     prefill_kw: dict | None = None,
+    model_refit: bool = False,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
@@ -340,7 +367,9 @@ def annotate_prefilled(
     template in a fresh session) and each reference lifted on its own.
     ``reference_order``: the order the references are annotated in (:func:`order_references`).
     ``prefill_kw``: further options of :func:`handanno_core.prefill.prefill_reference`
-    (``both_sides``, ``choose``).
+    (``both_sides``, ``choose``). ``model_refit`` (with ``hand_model`` and ``interactive``): each
+    refit also fits the unplaced joints to the frame's own points with that hand model
+    (:func:`handanno_core.guesses.model_guesses`).
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
@@ -408,6 +437,7 @@ def annotate_prefilled(
                 click_px=click_px,
                 order=order,
                 refit_s=refit_s,
+                **_model_refit_inputs(session, f, model if model_refit else False),
             )
             prefilled.append(f)
         else:

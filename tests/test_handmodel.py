@@ -276,3 +276,30 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
     assert on_hand["rejected"] == 0.0 and on_ball["rejected"] == 1.0
     assert on_hand["level"] < 5.0 < on_ball["level"]
     assert on_hand["data_mm"] < 3.0 < on_ball["data_mm"]
+
+
+def test_model_guesses_fit_unplaced_joints_to_the_frames_points():
+    """The interactive annotator's refit with the hand model: the frame shows the hand bent 15
+    degrees at every joint away from the guessed pose; with the wrist and the five fingertips
+    clicked, the unplaced guesses move towards the frame's true pose, and the clicked joints keep
+    the lift's position."""
+    from handanno_core.annotation import FrameAnnotation
+    from handanno_core.guesses import model_guesses
+
+    rng = np.random.default_rng(1)
+    x = _pose("open")
+    model = _model(x)
+    signs = [(-1) ** i for i in range(len(MSRA21.angle_joints))]
+    moved = _perturb_joints(x, 15.0, signs)
+    c1 = moved.mean(axis=0)
+    crop = _noisy_crop(_render(model, moved), c1, rng)
+    obs = hm.observe(crop[None], crop_boxes(c1, CAM)[None], c1[None], CAM)
+    ann = FrameAnnotation.empty(21)
+    clicked = [0, 4, 8, 12, 16, 20]
+    ann.uv_px[clicked] = CAM.project(moved[clicked])
+    out = model_guesses(x, ann, model, obs, CAM)
+    free = np.setdiff1d(np.arange(21), clicked)
+    before = np.linalg.norm(x[free] - moved[free], axis=-1).mean()
+    after = np.linalg.norm(out[free] - moved[free], axis=-1).mean()
+    assert after < 0.5 * before, (before, after)
+    np.testing.assert_array_equal(out[clicked], x[clicked])

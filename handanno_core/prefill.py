@@ -32,6 +32,8 @@ __all__ = [
     "known_joints",
     "prefill_reference",
     "prefill_uv",
+    "frame_observation",
+    "guess_model",
     "reference_hand_model",
     "session_hand_model",
 ]
@@ -47,6 +49,9 @@ STAGES = ("final_mm", "init_mm", "lifted_mm")
 CHOICES = ("confidence", "model")
 #: lifted references needed before pre-fills are fitted with the hand model personalized from them
 MODEL_MIN_REFERENCES = 2
+#: :func:`session_hand_model` personalizes from at most this many lifted references, the nearest
+#: in time to the frame (bounds its cost in long sessions; the bench's sequences have <= 18)
+MODEL_MAX_REFERENCES = 32
 
 
 def _finite_rows(x: np.ndarray) -> np.ndarray:
@@ -264,14 +269,48 @@ def session_hand_model(session: Session, frame: int, results: dict[str, np.ndarr
     """The hand model the app's pre-fill of ``frame`` is fitted with: personalized
     (:func:`reference_hand_model`) from the session's lifted references with the bones of
     ``frame``'s hand, as the bench's simulated annotator does with the references annotated so
-    far. False (flow only) before "Lift all" (no bone lengths), with fewer than
-    :data:`MODEL_MIN_REFERENCES` lifted references, or without the crop cache."""
+    far (at most :data:`MODEL_MAX_REFERENCES`, the nearest in time). False (flow only) before
+    "Lift all" (no bone lengths), with fewer than :data:`MODEL_MIN_REFERENCES` lifted
+    references, or without the crop cache."""
     bones = session.bone_lengths_of(int(frame))
     lifted = np.asarray(results["lifted_mm"], dtype=np.float64)
     refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
     if bones is None or len(refs) < MODEL_MIN_REFERENCES:
         return False
+    if len(refs) > MODEL_MAX_REFERENCES:
+        near = np.argsort(np.abs(np.asarray(refs) - int(frame)), kind="stable")
+        refs = sorted(refs[int(k)] for k in near[:MODEL_MAX_REFERENCES])
     return reference_hand_model(session, lifted, refs, np.asarray(bones, dtype=np.float64)) or False
+
+
+def frame_observation(session: Session, frame: int):
+    """``frame``'s :class:`handanno_core.handmodel.FrameObservations` (its hand points) from the
+    session's crop cache; None without it."""
+    from . import handmodel as hm
+
+    crop_data = cached_crops(session)
+    if crop_data is None:
+        return None
+    crops, centres, boxes = crop_data
+    f = slice(int(frame), int(frame) + 1)
+    return hm.observe(
+        np.asarray(crops[f], dtype=np.float32),
+        np.asarray(boxes[f], dtype=np.float64),
+        np.asarray(centres[f], dtype=np.float64),
+        session.camera,
+        cube_mm=session.model.settings.cube_mm,
+    )
+
+
+def guess_model(session: Session, frame: int, results: dict[str, np.ndarray] | None = None):
+    """``{"hand_model", "observation"}`` for :func:`handanno_core.guesses.refit_guesses` of
+    ``frame`` (the refit then fits the unplaced joints to the frame's points): the model of
+    :func:`session_hand_model` and :func:`frame_observation`; ``{}`` where either is missing."""
+    if results is None:
+        results = session.load_results()
+    model = session_hand_model(session, frame, results)
+    obs = frame_observation(session, frame) if model else None
+    return {} if obs is None else {"hand_model": model, "observation": obs}
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

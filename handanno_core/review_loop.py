@@ -296,21 +296,10 @@ def _crop_descriptors(session: Session, crop_data) -> np.ndarray | None:
 def _model_refit_inputs(session: Session, frame: int, model) -> dict:
     """``{"hand_model", "observation"}`` of :func:`interactive_fix` for ``frame`` (empty without
     a model or the crop cache)."""
-    from . import handmodel as hm
-    from .prefill import cached_crops
+    from .prefill import frame_observation
 
-    crop_data = cached_crops(session) if model else None
-    if crop_data is None:
-        return {}
-    crops, centres, boxes = crop_data
-    obs = hm.observe(
-        np.asarray(crops[frame : frame + 1], dtype=np.float32),
-        np.asarray(boxes[frame : frame + 1], dtype=np.float64),
-        np.asarray(centres[frame : frame + 1], dtype=np.float64),
-        session.camera,
-        cube_mm=session.model.settings.cube_mm,
-    )
-    return {"hand_model": model, "observation": obs}
+    obs = frame_observation(session, frame) if model else None
+    return {} if obs is None else {"hand_model": model, "observation": obs}
 
 
 def _lift_all(

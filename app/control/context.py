@@ -51,6 +51,7 @@ class AppContext:
             lift_fn=lift_fn,
             on_result=self._on_lift,
             initial_guess=self.prefill,
+            guess_model=self.guess_model,
         )
         self.live = LiveResults(session, on_ranked=self._on_ranked)
         self.live.start_ranking()  # ranked in the background from the start (seconds at 76k frames)
@@ -71,6 +72,14 @@ class AppContext:
 
     def review_state(self, client: str) -> ReviewState:
         return ReviewState(self.session, self.live, self.runner, client)
+
+    def guess_model(self, frame: int) -> dict:
+        """The hand model and ``frame``'s points the live refits fit its guesses with
+        (:func:`handanno_core.prefill.guess_model`; ``{}`` before "Lift all" has two lifted
+        references, or without the crop cache)."""
+        from handanno_core.prefill import guess_model
+
+        return guess_model(self.session, frame)
 
     def prefill(self, frame: int) -> np.ndarray | None:
         """``(J, 3)`` mm first guess of ``frame``'s joints, always hand-shaped:

@@ -21,10 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from handanno_core import pipeline
+from handanno_core import guesses, pipeline
 from handanno_core.evaluate import error_summary
 from handanno_core.review_loop import REFERENCE_ORDERS, annotate_prefilled
 from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+
+
+DEFAULT_GUESS_WEIGHTS = (guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT)
 
 
 def fresh_copy(src: Session, folder: Path) -> Session:
@@ -63,7 +66,8 @@ def main() -> None:
         "from the annotated references before and after in time too; -pickmodel: the "
         "propagation whose model fit explains the frame's points best wins; -bisect / -similar: "
         "the references annotated in that order, handanno_core.review_loop.order_references; "
-        "-refit: each refit also fits the unplaced joints with that hand model)",
+        "-refit: each refit also fits the unplaced joints with that hand model, -uvwX / -posewX "
+        "its 2D / pose weights)",
     )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
@@ -84,6 +88,12 @@ def main() -> None:
                 refit_s: list[float] = []
                 parts = mode.split("-")
                 px = [float(p[2:]) for p in parts if p.startswith("px")]
+                guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT = DEFAULT_GUESS_WEIGHTS
+                for p in parts:  # weights of the guesses' model fit (tune-part experiments)
+                    if p.startswith("uvw"):
+                        guesses.GUESS_UV_WEIGHT = float(p[3:])
+                    if p.startswith("posew"):
+                        guesses.GUESS_POSE_WEIGHT = float(p[5:])
                 info = annotate_prefilled(
                     s,
                     click_px=px[0] if px else args.click_px,

@@ -26,7 +26,6 @@ from handanno_core.evaluate import error_summary
 from handanno_core.review_loop import REFERENCE_ORDERS, annotate_prefilled
 from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
 
-
 DEFAULT_GUESS_WEIGHTS = (guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT)
 
 

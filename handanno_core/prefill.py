@@ -12,9 +12,11 @@ is wrong. The estimate, best first:
    one jump or through the frames in between (every ``stride``-th; see :data:`STRIDE`). With
    ``descriptors`` (the session's crop descriptors) also one jump from the frame that looks most
    alike; of the two the propagation with the higher mean confidence wins;
-   Optionally (``hand_model``) the propagation ends with the hand model personalized from the
-   lifted references fitted to the frame's own depth (:func:`reference_hand_model`; off in the
-   bench: on the suite's tune part it moved 16.5 joints per reference against 16.0 without);
+   With ``hand_model`` the propagation ends with the hand model personalized from the lifted
+   references fitted to the frame's own depth (:func:`reference_hand_model`,
+   :func:`session_hand_model`; the app and the bench's annotator use it once two references are
+   lifted: on the suite's tune part with the interactive annotator it lowered the joints moved
+   per reference from 12.0 to 11.0, README "Fourth round");
 3. without hand crops on disk (the app never computes them on the UI thread): that neighbour's
    joints moved by the difference of the two hand centres (no translation without crop metadata).
 

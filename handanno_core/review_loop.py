@@ -332,7 +332,7 @@ def annotate_prefilled(
     noise_px: float = 0.0,
     seed: int = 0,
     click_px: float = CLICK_PX,
-    hand_model: bool = False,
+    hand_model: bool = True,
     interactive: bool = True,
     order: str = "worst",
     bones_so_far: bool = True,
@@ -340,12 +340,13 @@ def annotate_prefilled(
     quiet: bool = False,
     reference_order: str = "time",
     prefill_kw: dict | None = None,
-    model_refit: bool = False,
+    model_refit: bool = True,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
     personalized from them (:func:`handanno_core.prefill.reference_hand_model`) snaps each further
-    pre-fill to its frame's own depth and silhouette. ``interactive``: the annotator moves one
+    pre-fill to its frame's own depth and silhouette (on by default, as the app's pre-fill:
+    chosen on the suite's tune part, README). ``interactive``: the annotator moves one
     guess at a time and the guesses refit after each click (:func:`interactive_fix`, click
     ``order``, each refit's seconds appended to ``refit_s``); False: every joint
     more than ``click_px`` off the pre-fill is moved once (:func:`simulated_fix`).
@@ -358,14 +359,15 @@ def annotate_prefilled(
     ``prefill_kw``: further options of :func:`handanno_core.prefill.prefill_reference`
     (``both_sides``, ``choose``). ``model_refit`` (with ``hand_model`` and ``interactive``): each
     refit also fits the unplaced joints to the frame's own points with that hand model
-    (:func:`handanno_core.guesses.model_guesses`).
+    (:func:`handanno_core.guesses.model_guesses`; on by default, as the app's live refits).
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
     the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
     plain one), "click_order": {frame: joints in click order}, "guess_off_px": {frame: (J,) px
     of the pre-fill from the truth (evaluation)}, "gap": {frame: frames in time to the nearest
-    reference annotated before it}, "order": the frames in annotation order}``. Needs the session's crops on disk for propagated pre-fills.
+    reference annotated before it}, "order": the frames in annotation order}``. Needs the
+    session's crops on disk for propagated pre-fills.
     """
     from .prefill import cached_crops, prefill_reference, reference_hand_model
 

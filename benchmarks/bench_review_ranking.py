@@ -7,12 +7,18 @@ joint is more than ``--bad-mm`` off (evaluation and weight fitting only).
 
 The weights: a logistic regression (non-negative weights, L2, on ``log1p(x / scale)`` with each
 term's scale = its median over the tune frames) fitted on the ``--tune`` sessions only, with frames
-bad at ``--fit-mm`` as the positive class. recall@10 % (share of bad frames among the ranking's
-first 10 % of frames) is then reported per session for the app's ranking until now (``score``),
-the fitted ``evidence`` ranking and each term alone. The weights to paste into
-``handanno_core/review.py`` are printed and written with the report.
+bad at ``--fit-mm`` as the positive class (``--search``: coordinate ascent of the tune objective
+instead, :func:`tune_objective` at ``--objective-mm``). ``--loso``: the same choice made without
+each tune sequence (all its suite replicas) and scored on it. ``--smoothing``: also search temporal
+smoothing and neighbour suppression (off otherwise: the committed ``review.SMOOTH`` /
+``SUPPRESS_RADIUS``). ``--fixed``: report the committed ``review.EVIDENCE_WEIGHTS``. recall@10 %
+(share of bad frames among the ranking's first 10 % of frames) at ``--bad-mm`` and 40 mm, and the
+rank correlation with the frame error, are then reported per session for the app's ranking
+until now (``score``), :data:`BEFORE_WEIGHTS`, the chosen weights and each term alone. The
+weights to paste into ``handanno_core/review.py`` are printed and written with the report.
 
-    python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --json out.json
+    python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --loso \
+        --objective-mm 10,15,20,30,40 --json out.json
 """
 
 from __future__ import annotations

@@ -14,6 +14,12 @@ pre-fill for the first one. The bone lengths matter most: the bench passes the b
 the references annotated before (what the app's "Lift all" stores in the session). The variants
 tried and not adopted (other starts, a wrist-and-fingertips-first click order) and their figures
 are in the README ("Third round: pre-filled references").
+
+With a personalized hand model and the frame's points (the app's lift worker and the bench's
+annotator pass them once two references are lifted), :func:`model_guesses` then fits the
+unplaced joints to the frame's own depth, the clicks as a 2D prior: one click pulls the other
+guesses onto the observed hand (tune part: 11.0 -> 9.0 joints moved per reference, README
+"Fourth round").
 No ground truth is read here.
 """
 

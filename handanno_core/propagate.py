@@ -516,7 +516,8 @@ def _model_fit(ctx: _Context, src: int, frame: int, x_flow, joints_s, uv_f, fb, 
     references' (``ctx.model_levels``) failed, and the frame keeps ``x_flow``.
     Returns the joints (J,3), a per-joint confidence factor (J,) from the fit residuals of the
     capsules touching each joint at the returned pose (mean point-to-surface mm, fraction of
-    free-space violations) and the frame's evidence ``(T,)`` (:data:`handanno_core.results.MODEL_FIT_TERMS`).
+    free-space violations) and the frame's evidence ``(T,)``
+    (:data:`handanno_core.results.MODEL_FIT_TERMS`).
     """
     st = ctx.settings
     h = 0 if ctx.bones.hand is None else int(ctx.bones.hand[frame])

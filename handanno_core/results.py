@@ -2,7 +2,8 @@
 
 Arrays (float64): ``lifted_mm``, ``init_mm``, ``final_mm`` ``(N, J, 3)`` in mm (camera frame),
 ``confidence`` ``(N, J)`` in [0, 1] and ``model_fit`` ``(N, T)`` (:data:`MODEL_FIT_TERMS`); NaN
-where a stage has no value for a frame. The file is always written whole (:func:`handanno_core.fileio.atomic_save_npz`) by
+where a stage has no value for a frame. The file is always written whole
+(:func:`handanno_core.fileio.atomic_save_npz`) by
 :meth:`handanno_core.session.Session.save_results`; partial progress lives elsewhere.
 """
 

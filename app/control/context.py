@@ -93,7 +93,11 @@ class AppContext:
 
         try:
             results = self.session.load_results()
-            model = session_hand_model(self.session, frame, results)
+            try:
+                model = session_hand_model(self.session, frame, results)
+            except Exception:  # no model fit: the flow-only pre-fill
+                traceback.print_exc()
+                model = False
             joints = prefill_reference(self.session, frame, results, hand_model=model)
             if joints is None:
                 data = self.frames.get(frame)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .session import CROPS_FILE, CROPS_META_FILE, Session
+from .skeleton import Skeleton
 
 __all__ = [
     "cached_crops",
@@ -38,6 +39,7 @@ __all__ = [
     "guess_model",
     "reference_hand_model",
     "session_hand_model",
+    "template_hand",
 ]
 
 #: the pre-fill propagates through every STRIDE-th frame between the source and the frame (0: one
@@ -313,6 +315,27 @@ def guess_model(session: Session, frame: int, results: dict[str, np.ndarray] | N
     model = session_hand_model(session, frame, results)
     obs = frame_observation(session, frame) if model else None
     return {} if obs is None else {"hand_model": model, "observation": obs}
+
+
+def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
+    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
+    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
+    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
+    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
+    from .skeleton import MSRA21
+    from .synth import (
+        GESTURES,
+        build_hand_model,
+        forward_kinematics,
+        rotation_matrices,
+    )
+
+    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
+        return None
+    model = build_hand_model(np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64))
+    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
+    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
+    return hand[0] - hand[0].mean(axis=0) + np.asarray(centre_mm, dtype=np.float64)
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

@@ -302,6 +302,18 @@ def _model_refit_inputs(session: Session, frame: int, model) -> dict:
     return {} if obs is None else {"hand_model": model, "observation": obs}
 
 
+def _template_guess(session: Session, frame: int) -> np.ndarray | None:
+    """The app's first guess of a frame when nothing has joints: the template hand at the hand
+    centre of the frame's crop (None without the crop cache or a template)."""
+    from .prefill import cached_crops, template_hand
+
+    crop_data = cached_crops(session)
+    centre = None if crop_data is None else np.asarray(crop_data[1][frame], dtype=np.float64)
+    if centre is None or not np.all(np.isfinite(centre)):
+        return None
+    return template_hand(session.skeleton, centre)
+
+
 def _lift_all(
     session: Session, sequence, annotations: dict, lifted_mm: np.ndarray, start_bones=None
 ) -> np.ndarray:
@@ -341,6 +353,7 @@ def annotate_prefilled(
     reference_order: str = "time",
     prefill_kw: dict | None = None,
     model_refit: bool = True,
+    first_template: bool = True,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
@@ -360,13 +373,17 @@ def annotate_prefilled(
     (``both_sides``, ``choose``). ``model_refit`` (with ``hand_model`` and ``interactive``): each
     refit also fits the unplaced joints to the frame's own points with that hand model
     (:func:`handanno_core.guesses.model_guesses`; on by default, as the app's live refits).
+    ``first_template`` (with ``interactive``): a reference with nothing to pre-fill from (the
+    first) opens with the template hand at its hand centre, as in the app
+    (:func:`handanno_core.prefill.template_hand`); False: all its joints are clicked.
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
     the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
     plain one), "click_order": {frame: joints in click order}, "guess_off_px": {frame: (J,) px
     of the pre-fill from the truth (evaluation)}, "gap": {frame: frames in time to the nearest
-    reference annotated before it}, "order": the frames in annotation order}``. Needs the
+    reference annotated before it}, "order": the frames in annotation order, "template": the
+    frames opened with the template hand}``. Needs the
     session's crops on disk for propagated pre-fills.
     """
     from .prefill import cached_crops, prefill_reference, reference_hand_model
@@ -386,9 +403,9 @@ def annotate_prefilled(
     clicks_drag: dict[int, int] = {}
     order_of: dict[int, list[int]] = {}
     prefilled: list[int] = []
+    templates: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
-    guess_off: dict[int, list[float]] = {}
-    gaps: dict[int, int] = {}
+    guess_off, gaps = {}, {}  # {frame: (J,) px}, {frame: frames to the nearest annotated}
     refs = order_references(session.reference_frames, reference_order, descriptors)
     estimated = None  # the bones of the last "lift all"
     for f in refs:
@@ -403,6 +420,9 @@ def annotate_prefilled(
         )
         if annotations:
             gaps[f] = int(min(abs(f - g) for g in annotations))
+        elif guess is None and interactive and first_template:
+            guess = _template_guess(session, f)  # as the app: a template hand at the centre
+            templates += [] if guess is None else [f]
         if guess is not None:  # evaluation only: how far each guess is drawn from the truth
             guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])
         if guess is None:
@@ -430,7 +450,7 @@ def annotate_prefilled(
                 refit_s=refit_s,
                 **_model_refit_inputs(session, f, model if model_refit else False),
             )
-            prefilled.append(f)
+            prefilled += [] if f in templates else [f]
         else:
             ann, clicks[f] = simulated_fix(
                 guess,
@@ -485,6 +505,7 @@ def annotate_prefilled(
         "guess_off_px": guess_off,
         "gap": gaps,
         "order": refs,
+        "template": templates,
     }
 
 

@@ -17,8 +17,10 @@ app would, from ground truth (2D positions, visibility and depth order only):
   :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
   annotated before it and fixed with :func:`interactive_fix` (default) or :func:`simulated_fix`;
   after each, the references annotated so far are lifted with their bone lengths estimated (as
-  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones; a
-  frame with nothing to pre-fill from costs one click per joint.
+  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones
+  (and, from the second lifted reference on, with the hand model personalized from them); a
+  frame with nothing to pre-fill from opens with the template hand at its hand centre, as in the
+  app (one click per joint with :func:`simulated_fix`).
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed

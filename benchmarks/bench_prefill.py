@@ -21,10 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from handanno_core import pipeline
+from handanno_core import guesses, pipeline
 from handanno_core.evaluate import error_summary
-from handanno_core.review_loop import annotate_prefilled
+from handanno_core.review_loop import REFERENCE_ORDERS, annotate_prefilled
 from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+
+DEFAULT_GUESS_WEIGHTS = (guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT)
 
 
 def fresh_copy(src: Session, folder: Path) -> Session:
@@ -58,7 +60,13 @@ def main() -> None:
         "once), prefilled_model (flow + hand model), interactive (one guess at a time, refit "
         "after each click, as in the app, the bones estimated from the references so far; -tips: "
         "wrist and fingertips first; -template: the template bones, each reference lifted alone; "
-        "-pxN: guesses more than N px off are moved instead of --click-px)",
+        "-pxN: guesses more than N px off are moved instead of --click-px; -model: each pre-fill "
+        "fitted with the hand model personalized from the references so far; -both: pre-filled "
+        "from the annotated references before and after in time too; -pickmodel: the "
+        "propagation whose model fit explains the frame's points best wins; -bisect / -similar: "
+        "the references annotated in that order, handanno_core.review_loop.order_references; "
+        "-refit: each refit also fits the unplaced joints with that hand model, -uvwX / -posewX "
+        "its 2D / pose weights)",
     )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
@@ -79,17 +87,40 @@ def main() -> None:
                 refit_s: list[float] = []
                 parts = mode.split("-")
                 px = [float(p[2:]) for p in parts if p.startswith("px")]
+                guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT = DEFAULT_GUESS_WEIGHTS
+                for p in parts:  # weights of the guesses' model fit (tune-part experiments)
+                    if p.startswith("uvw"):
+                        guesses.GUESS_UV_WEIGHT = float(p[3:])
+                    if p.startswith("posew"):
+                        guesses.GUESS_POSE_WEIGHT = float(p[5:])
                 info = annotate_prefilled(
                     s,
                     click_px=px[0] if px else args.click_px,
                     noise_px=args.noise_px,
-                    hand_model=mode == "prefilled_model",
+                    hand_model=mode == "prefilled_model" or "model" in parts,
                     interactive=parts[0] == "interactive",
                     order="wrist_tips" if "tips" in parts else "worst",
                     bones_so_far="template" not in parts and parts[0] == "interactive",
                     refit_s=refit_s,
                     quiet=True,
+                    model_refit="refit" in parts,
+                    reference_order=next(
+                        (p for p in parts if p in REFERENCE_ORDERS and p != "time"), "time"
+                    ),
+                    prefill_kw={
+                        "both_sides": "both" in parts,
+                        "choose": "model" if "pickmodel" in parts else "confidence",
+                    },
                 )
+                row[f"{mode}_detail"] = {
+                    str(f): {
+                        "clicks": info["clicks"][f],
+                        "click_order": info["click_order"].get(f, []),
+                        "guess_off_px": info["guess_off_px"].get(f),
+                        "gap": info["gap"].get(f),
+                    }
+                    for f in info["order"]
+                }
                 if refit_s:
                     ms = np.asarray(refit_s) * 1000.0
                     row[f"{mode}_refit_ms"] = {
@@ -115,7 +146,10 @@ def main() -> None:
             s.close()
         src.close()
         rows.append(row)
-        print(json.dumps({k: v for k, v in row.items() if not k.endswith("clicks")}), flush=True)
+        print(
+            json.dumps({k: v for k, v in row.items() if not k.endswith(("clicks", "detail"))}),
+            flush=True,
+        )
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"rows": rows}, indent=1))
 

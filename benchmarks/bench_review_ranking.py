@@ -7,12 +7,18 @@ joint is more than ``--bad-mm`` off (evaluation and weight fitting only).
 
 The weights: a logistic regression (non-negative weights, L2, on ``log1p(x / scale)`` with each
 term's scale = its median over the tune frames) fitted on the ``--tune`` sessions only, with frames
-bad at ``--fit-mm`` as the positive class. recall@10 % (share of bad frames among the ranking's
-first 10 % of frames) is then reported per session for the app's ranking until now (``score``),
-the fitted ``evidence`` ranking and each term alone. The weights to paste into
-``handanno_core/review.py`` are printed and written with the report.
+bad at ``--fit-mm`` as the positive class (``--search``: coordinate ascent of the tune objective
+instead, :func:`tune_objective` at ``--objective-mm``). ``--loso``: the same choice made without
+each tune sequence (all its suite replicas) and scored on it. ``--smoothing``: also search temporal
+smoothing and neighbour suppression (off otherwise: the committed ``review.SMOOTH`` /
+``SUPPRESS_RADIUS``). ``--fixed``: report the committed ``review.EVIDENCE_WEIGHTS``. recall@10 %
+(share of bad frames among the ranking's first 10 % of frames) at ``--bad-mm`` and 40 mm, and the
+rank correlation with the frame error, are then reported per session for the app's ranking
+until now (``score``), :data:`BEFORE_WEIGHTS`, the chosen weights and each term alone. The
+weights to paste into ``handanno_core/review.py`` are printed and written with the report.
 
-    python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --json out.json
+    python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --loso \
+        --objective-mm 10,15,20,30,40 --json out.json
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from handanno_core.session import Session
 def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
     """One finished bench session: its evidence, the old ranking, ground-truth frame errors. With
     ``cache`` (a folder) the arrays are stored there and read back on the next run."""
-    name = f"{folder.parent.name}/{folder.name}"
+    name = f"{folder.parent.parent.name}/{folder.parent.name}/{folder.name}"
     hit = None if cache is None else cache / (name.replace("/", "__") + ".npz")
     if hit is not None and hit.exists():
         with np.load(hit) as z:
@@ -118,17 +124,27 @@ def priority_of(d: dict, weights: dict, smooth: tuple[int, float]) -> np.ndarray
     return review.smooth_in_time(p, smooth[0], smooth[1], d["breaks"])
 
 
+#: the thresholds (mm) of :func:`tune_objective` (``--objective-mm``); empty: ``bad_mm``,
+#: ``bad_mm + 10`` and ``bad_mm + 20``
+OBJECTIVE_MM: list[float] = []
+
+
+def thresholds(bad_mm: float) -> list[float]:
+    """The frame-error thresholds (mm) the tune objective counts recall at."""
+    return OBJECTIVE_MM or [bad_mm, bad_mm + 10.0, bad_mm + 20.0]
+
+
 def tune_objective(
     tune: list[dict], weights: dict, bad_mm: float, smooth=(0, 0.0), radius: int = 0
 ) -> float:
-    """Mean recall@10 % (relative to its :func:`ceiling`) over the tune sessions at ``bad_mm``,
-    ``bad_mm + 10`` and ``bad_mm + 20``, counting only (session, threshold) pairs whose ceiling is
+    """Mean recall@10 % (relative to its :func:`ceiling`) over the tune sessions at each of
+    :func:`thresholds`, counting only (session, threshold) pairs whose ceiling is
     at least 0.5: where more than a fifth of the frames are bad, every ranking's first 10 % is
     bad and says nothing about the ranking (on the suite most sessions saturate at 20 mm)."""
     out = []
     for d in tune:
         p = priority_of(d, weights, smooth)
-        for thr in (bad_mm, bad_mm + 10.0, bad_mm + 20.0):
+        for thr in thresholds(bad_mm):
             bad = np.isfinite(d["err"]) & (d["err"] > thr)
             if ceiling(bad, d["refs"]) < 0.5:
                 continue
@@ -140,7 +156,9 @@ def tune_objective(
     return float(np.mean(out)) if out else 0.0
 
 
-def coordinate_search(tune: list[dict], names: list[str], start: dict, bad_mm: float) -> dict:
+def coordinate_search(
+    tune: list[dict], names: list[str], start: dict, bad_mm: float, quiet: bool = False
+) -> dict:
     """Greedy coordinate ascent of :func:`tune_objective` over each weight in a small grid, from
     ``start`` (scale, weight) per term."""
     weights = dict(start)
@@ -157,8 +175,82 @@ def coordinate_search(tune: list[dict], names: list[str], start: dict, bad_mm: f
                     best, weights, improved = v, trial, True
         if not improved:
             break
-    print(f"tune objective (weights) {best:.3f}")
+    if not quiet:
+        print(f"tune objective (weights) {best:.3f}")
     return weights
+
+
+def spearman(priority: np.ndarray, err: np.ndarray, refs: np.ndarray) -> float:
+    """Rank correlation of the priority with the frame's worst joint error over the non-reference
+    frames with both (NaN with fewer than 3)."""
+    from scipy.stats import spearmanr
+
+    m = np.isfinite(priority) & np.isfinite(err)
+    m[refs] = False
+    if m.sum() < 3:
+        return float("nan")
+    return float(spearmanr(priority[m], err[m]).statistic)
+
+
+def family(d: dict) -> str:
+    """The sequence a session runs on, whatever suite replica (seed) it comes from: the name of
+    its dataset folder (``tune-fpha-1``)."""
+    return d["name"].split("/")[-2]
+
+
+def leave_one_out(tune: list[dict], choose, start: dict, bad_mm: float) -> list[dict]:
+    """For each sequence of the tune part (all its replicas held out together): weights chosen
+    by ``choose(sessions) -> weights`` on the other sequences; each held-out session's
+    :func:`tune_objective` and rank correlation with ``start`` and with them."""
+    out = []
+    for held in tune:
+        rest = [d for d in tune if family(d) != family(held)]
+        w = choose(rest)
+        p0 = review.evidence_priority(held["evidence"], start)
+        p1 = review.evidence_priority(held["evidence"], w)
+        out.append(
+            {
+                "session": held["name"],
+                "start": round(tune_objective([held], start, bad_mm), 3),
+                "chosen": round(tune_objective([held], w, bad_mm), 3),
+                "spearman_start": round(spearman(p0, held["err"], held["refs"]), 3),
+                "spearman_chosen": round(spearman(p1, held["err"], held["refs"]), 3),
+                "informative": bool(_informative(held, bad_mm)),
+            }
+        )
+        print("leave-one-out", out[-1], flush=True)
+    return out
+
+
+def logistic_weights(sessions: list[dict], names: list[str], fit_mm: float) -> dict:
+    """``{term: (scale, weight)}`` of a non-negative logistic regression (:func:`fit_logistic`)
+    of "a joint more than ``fit_mm`` off" on ``log1p(x / scale)`` over the non-reference frames
+    of ``sessions``, each term's scale its median there; terms of weight 0 left out."""
+
+    def candidates(d):
+        m = np.isfinite(d["err"])
+        m[d["refs"]] = False
+        return m
+
+    ev_all = {k: np.concatenate([d["evidence"][k][candidates(d)] for d in sessions]) for k in names}
+    scales = {}
+    for k in names:
+        v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
+        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
+    x = features(ev_all, names, scales)
+    y = np.concatenate([d["err"][candidates(d)] > fit_mm for d in sessions]).astype(np.float64)
+    w = fit_logistic(x, y)
+    out = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
+    return {k: v for k, v in out.items() if v[1] > 0}
+
+
+def _informative(d: dict, bad_mm: float) -> bool:
+    """Whether the session counts in :func:`tune_objective` at any threshold."""
+    for thr in thresholds(bad_mm):
+        bad = np.isfinite(d["err"]) & (d["err"] > thr)
+        if bad.any() and ceiling(bad, d["refs"]) >= 0.5:
+            return True
+    return False
 
 
 def search_smoothing(tune: list[dict], weights: dict, bad_mm: float) -> tuple[tuple, int]:
@@ -175,86 +267,106 @@ def search_smoothing(tune: list[dict], weights: dict, bad_mm: float) -> tuple[tu
     return arg
 
 
+def report_row(
+    part: str, d: dict, weights: dict, smoothing: tuple, names: list[str], bad_mm: float
+) -> dict:
+    """One session's recalls at ``bad_mm`` and 40 mm, ceilings and rank correlations for the
+    rankings compared (``smoothing`` = ``((radius, weight), suppression radius)``)."""
+    smooth, radius = smoothing
+    ex, br = d["refs"], d["breaks"]
+    bad = np.isfinite(d["err"]) & (d["err"] > bad_mm)
+    bad[ex] = False
+    row = {
+        "part": part,
+        "session": d["name"],
+        "frames": d["n"],
+        "bad_frames": int(bad.sum()),
+        "bad10_frames": int((np.isfinite(d["err"]) & (d["err"] > 10)).sum()),
+        "ceiling": ceiling(bad, ex),
+    }
+    p_before = review.evidence_priority(d["evidence"], BEFORE_WEIGHTS)
+    p_after = priority_of(d, weights, smooth)
+    top = review.uniform_pick(d["n"], int(round(0.1 * d["n"])), exclude=ex)
+    row["score"] = review.recall_at(d["score"], bad, exclude=ex)
+    row["before"] = review.recall_at(p_before, bad, exclude=ex)
+    row["weights_only"] = review.recall_at(
+        review.evidence_priority(d["evidence"], weights), bad, exclude=ex
+    )
+    row["after"] = review.recall_at(p_after, bad, exclude=ex, radius=radius, sequence_breaks=br)
+    row["uniform"] = float(bad[top].sum() / bad.sum()) if bad.any() else float("nan")
+    bad40 = np.isfinite(d["err"]) & (d["err"] > 40.0)
+    bad40[ex] = False
+    row["bad40_frames"] = int(bad40.sum())
+    row["ceiling40"] = ceiling(bad40, ex)
+    row["before40"] = review.recall_at(p_before, bad40, exclude=ex)
+    row["after40"] = review.recall_at(p_after, bad40, exclude=ex, radius=radius, sequence_breaks=br)
+    row["uniform40"] = float(bad40[top].sum() / bad40.sum()) if bad40.any() else float("nan")
+    row["spearman_before"] = spearman(p_before, d["err"], ex)
+    row["spearman_after"] = spearman(p_after, d["err"], ex)
+    for k in names:
+        row[f"only_{k}"] = review.recall_at(
+            np.nan_to_num(d["evidence"][k], nan=-1.0), bad, exclude=ex
+        )
+    print(
+        part,
+        d["name"],
+        f"bad={row['bad_frames']} bad40={row['bad40_frames']}",
+        " ".join(f"{k}={v:.2f}" for k, v in row.items() if isinstance(v, float)),
+        flush=True,
+    )
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tune", nargs="+", type=Path, required=True)
-    ap.add_argument("--report", nargs="+", type=Path, required=True)
+    ap.add_argument("--report", nargs="*", type=Path, default=[])
     ap.add_argument("--bad-mm", type=float, default=20.0)
     ap.add_argument("--fit-mm", type=float, default=10.0)
     ap.add_argument("--search", action="store_true", help="refine the weights on tune recall")
     ap.add_argument("--fixed", action="store_true", help="evaluate the committed constants")
     ap.add_argument("--cache", type=Path, help="folder to keep each session's evidence in")
+    ap.add_argument("--loso", action="store_true", help="leave-one-sequence-out inside --tune")
+    ap.add_argument(
+        "--smoothing", action="store_true", help="search temporal smoothing and suppression too"
+    )
+    ap.add_argument(
+        "--objective-mm",
+        type=lambda t: [float(x) for x in t.split(",")],
+        default=[],
+        help="comma-separated thresholds of the tune objective (default: bad, +10, +20 mm)",
+    )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
+    OBJECTIVE_MM[:] = args.objective_mm
 
     tune = [load(f, args.bad_mm, args.cache) for f in args.tune]
     report = [load(f, args.bad_mm, args.cache) for f in args.report]
     names = [k for k in tune[0]["evidence"] if all(k in d["evidence"] for d in tune + report)]
 
-    def candidates(d):
-        m = np.isfinite(d["err"])
-        m[d["refs"]] = False
-        return m
-
-    stack = np.concatenate
-    ev_all = {k: stack([d["evidence"][k][candidates(d)] for d in tune]) for k in names}
-    scales = {}
-    for k in names:
-        v = ev_all[k][np.isfinite(ev_all[k]) & (ev_all[k] > 0)]
-        scales[k] = max(float(np.median(v)), 1e-3) if v.size else 1.0
-    x = features(ev_all, names, scales)
-    y = stack([d["err"][candidates(d)] > args.fit_mm for d in tune]).astype(np.float64)
-    w = fit_logistic(x, y)
-    weights = {k: (round(scales[k], 4), round(float(w[i]), 4)) for i, k in enumerate(names)}
-    if args.search:  # from the weights before the suite (new terms: weight 0), scales as fitted
-        weights = {k: (BEFORE_WEIGHTS.get(k, weights[k])[0], 0.0) for k in names}
-        weights.update(BEFORE_WEIGHTS)
-        weights = coordinate_search(tune, names, weights, args.bad_mm)
+    weights = logistic_weights(tune, names, args.fit_mm)
+    start = dict(BEFORE_WEIGHTS)
+    choose = lambda sessions: logistic_weights(sessions, names, args.fit_mm)  # noqa: E731
+    if args.search:  # from the weights before (new terms: weight 0), scales as fitted
+        start = {k: (BEFORE_WEIGHTS.get(k, weights.get(k, (1.0, 0.0)))[0], 0.0) for k in names}
+        start.update({k: v for k, v in BEFORE_WEIGHTS.items() if k in names})
+        weights = coordinate_search(tune, names, start, args.bad_mm)
+        choose = lambda sessions: coordinate_search(sessions, names, start, args.bad_mm, True)  # noqa: E731
+    loso = leave_one_out(tune, choose, BEFORE_WEIGHTS, args.bad_mm) if args.loso else []
     weights = {k: v for k, v in weights.items() if v[1] > 0}
-    smooth, radius = search_smoothing(tune, weights, args.bad_mm)
+    smooth, radius = review.SMOOTH, review.SUPPRESS_RADIUS
+    if args.smoothing:
+        smooth, radius = search_smoothing(tune, weights, args.bad_mm)
     if args.fixed:  # report the committed constants (handanno_core.review)
         weights = dict(review.EVIDENCE_WEIGHTS)
-        smooth, radius = review.SMOOTH, review.SUPPRESS_RADIUS
     print("EVIDENCE_WEIGHTS =", json.dumps(weights))
     print("SMOOTH =", smooth, "SUPPRESS_RADIUS =", radius)
 
-    rows = []
-    for part, data in (("tune", tune), ("report", report)):
-        for d in data:
-            bad = np.isfinite(d["err"]) & (d["err"] > args.bad_mm)
-            bad[d["refs"]] = False
-            row = {
-                "part": part,
-                "session": d["name"],
-                "frames": d["n"],
-                "bad_frames": int(bad.sum()),
-                "bad10_frames": int((np.isfinite(d["err"]) & (d["err"] > 10)).sum()),
-                "ceiling": ceiling(bad, d["refs"]),
-            }
-            ex, br = d["refs"], d["breaks"]
-            row["score"] = review.recall_at(d["score"], bad, exclude=ex)
-            row["before"] = review.recall_at(
-                review.evidence_priority(d["evidence"], BEFORE_WEIGHTS), bad, exclude=ex
-            )
-            row["weights_only"] = review.recall_at(
-                review.evidence_priority(d["evidence"], weights), bad, exclude=ex
-            )
-            row["after"] = review.recall_at(
-                priority_of(d, weights, smooth), bad, exclude=ex, radius=radius, sequence_breaks=br
-            )
-            top = review.uniform_pick(d["n"], int(round(0.1 * d["n"])), exclude=ex)
-            row["uniform"] = float(bad[top].sum() / bad.sum()) if bad.any() else float("nan")
-            for k in names:
-                row[f"only_{k}"] = review.recall_at(
-                    np.nan_to_num(d["evidence"][k], nan=-1.0), bad, exclude=ex
-                )
-            rows.append(row)
-            print(
-                part,
-                d["name"],
-                f"bad={row['bad_frames']}",
-                " ".join(f"{k}={v:.2f}" for k, v in row.items() if isinstance(v, float)),
-            )
+    rows = [
+        report_row(part, d, weights, (smooth, radius), names, args.bad_mm)
+        for part, data in (("tune", tune), ("report", report))
+        for d in data
+    ]
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(
         json.dumps(
@@ -264,6 +376,9 @@ def main() -> None:
                 "weights": weights,
                 "smooth": list(smooth),
                 "suppress_radius": radius,
+                "objective_mm": thresholds(args.bad_mm),
+                "before_weights": BEFORE_WEIGHTS,
+                "leave_one_out": loso,
                 "rows": rows,
             },
             indent=1,
@@ -271,18 +386,22 @@ def main() -> None:
     )
 
 
-#: the committed weights before the suite (issue 14's first round, tuned on synthetic seeds 0-1)
+#: the weights before this round: the second round's (chosen on the tune part with the hand model
+#: off), ``handanno_core.review.EVIDENCE_WEIGHTS`` at main 0f9e053
 BEFORE_WEIGHTS = {
+    "conf": (0.7359, 4.0),
     "depth_mm": (4.07, 2.0),
-    "unexplained": (0.414, 1.99),
-    "refine_mm": (6.57, 0.135),
+    "depth_max_mm": (40.0, 4.0),
+    "unexplained": (0.414, 4.0),
+    "behind_mm": (2.2849, 0.5),
+    "drift_mm": (5.495, 1.0),
+    "refine_mm": (6.57, 0.5),
     "angle_deg": (8.35, 2.2),
     "swap_mm": (8.53, 3.84),
     "bone": (0.001, 0.063),
-    "hops": (5.0, 0.292),
-    "gap": (8.0, 1.0),
+    "hops": (5.0, 2.0),
+    "gap": (8.0, 0.5),
 }
-
 
 if __name__ == "__main__":
     main()

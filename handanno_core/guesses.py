@@ -14,6 +14,12 @@ pre-fill for the first one. The bone lengths matter most: the bench passes the b
 the references annotated before (what the app's "Lift all" stores in the session). The variants
 tried and not adopted (other starts, a wrist-and-fingertips-first click order) and their figures
 are in the README ("Third round: pre-filled references").
+
+With a personalized hand model and the frame's points (the app's lift worker and the bench's
+annotator pass them once two references are lifted), :func:`model_guesses` then fits the
+unplaced joints to the frame's own depth, the clicks as a 2D prior: one click pulls the other
+guesses onto the observed hand (tune part: 11.0 -> 9.0 joints moved per reference, README
+"Fourth round").
 No ground truth is read here.
 """
 
@@ -29,7 +35,7 @@ from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .skeleton import Skeleton
 
-__all__ = ["LIVE_MAX_ITER", "GuessFit", "live_lift_function", "refit_guesses"]
+__all__ = ["LIVE_MAX_ITER", "GuessFit", "live_lift_function", "model_guesses", "refit_guesses"]
 
 #: SLSQP iterations of the live re-lift while a joint is edited (measured on the demo: hard solves
 #: converge in 13-28 iterations at ~0.9 ms each, elastic ones in 16-22 at ~2.5 ms each, since their
@@ -74,6 +80,8 @@ def refit_guesses(
     start_elastic: bool = False,
     elastic_joints: tuple[int, ...] = (),
     lift_fn: Callable[..., object] | None = None,
+    hand_model=None,
+    observation=None,
 ) -> GuessFit:
     """Refit a frame's guesses to its placed joints (see the module docstring).
 
@@ -84,6 +92,9 @@ def refit_guesses(
     refit needed slack on these joints. ``lift_fn``: the lift (default :func:`live_lift_function`,
     tests pass a fake). The solve starts from ``previous_mm``, else ``prefill_mm``, else the
     annotation's 3D placements when every joint has one (else the lift's own start).
+    ``hand_model`` / ``observation`` (a personalized :class:`handanno_core.handmodel.HandModel`
+    and the frame's :func:`handanno_core.handmodel.observe`): the unplaced joints are then
+    fitted to the frame's own points (:func:`model_guesses`).
     """
     if lift_fn is None:
         lift_fn = live_lift_function()
@@ -105,4 +116,46 @@ def refit_guesses(
     joints = np.asarray(result.joints_mm, dtype=np.float64)  # type: ignore[attr-defined]
     conf = np.asarray(getattr(result, "confidence", np.ones(len(joints))), dtype=np.float64)
     slack = tuple(int(k) for k in getattr(result, "slack_joints", ()))
+    if hand_model is not None and observation is not None and np.all(np.isfinite(joints)):
+        joints = model_guesses(joints, annotation, hand_model, observation, camera)
     return GuessFit(joints, conf, slack)
+
+
+#: weights of :func:`model_guesses` (the hand model's energy units, ``handmodel.FitWeights``):
+#: per px² to a placed joint's click (the lift refit's weight for exact clicks,
+#: ``lift.model_refit.RefitSettings``: 1.2 / 0.4²) and per mm² to the lift's pose
+GUESS_UV_WEIGHT = 7.5
+GUESS_POSE_WEIGHT = 0.02
+
+
+def model_guesses(
+    joints_mm: np.ndarray,
+    annotation: FrameAnnotation,
+    hand_model,
+    observation,
+    camera: CameraIntrinsics,
+) -> np.ndarray:
+    """``(J, 3)`` mm: ``joints_mm`` (a lift of the placed joints) with its unplaced joints moved to
+    the hand model's fit of the frame's own points (articulated ICP,
+    :func:`handanno_core.handmodel.fit_frames`, from ``joints_mm``): the placed joints' clicks
+    as a 2D prior, the lift's pose as a weak prior. The placed joints keep the lift's position.
+    ``observation``: the frame's :class:`handanno_core.handmodel.FrameObservations` (one frame)."""
+    from dataclasses import replace
+
+    from . import handmodel as hm
+
+    x = np.asarray(joints_mm, dtype=np.float64)
+    placed = np.asarray(annotation.has_2d, dtype=bool)
+    priors = hm.Priors(
+        pose=x[None],
+        pose_w=np.ones((1, len(x))),
+        uv=np.nan_to_num(np.asarray(annotation.uv_px, dtype=np.float64))[None],
+        uv_w=placed[None].astype(np.float64),
+    )
+    w = replace(hm.FitWeights(), uv=GUESS_UV_WEIGHT, pose=GUESS_POSE_WEIGHT)
+    fit = hm.fit_frames(hand_model, x[None], observation, camera, weights=w, priors=priors)
+    out = x.copy()
+    fitted = fit.joints_mm[0]
+    if np.all(np.isfinite(fitted)):
+        out[~placed] = fitted[~placed]
+    return out

@@ -617,12 +617,14 @@ def propagate(
         current = session.load_results()
         init = np.where(computed[:, None, None], result.joints_mm, current["init_mm"])
         confidence = np.where(computed[:, None], result.confidence, current["confidence"])
+        model_fit = np.where(computed[:, None], result.model_fit, current["model_fit"])
         if frames is None:
             init[~computed] = np.nan
+            model_fit[~computed] = np.nan
         # A reference's initialization is its lifted pose, so every frame has one for refinement.
         for f, joints in reference_joints.items():
             init[f] = joints
-        session.save_results(init_mm=init, confidence=confidence)
+        session.save_results(init_mm=init, confidence=confidence, model_fit=model_fit)
     if result.skipped:
         _log(f"propagation skipped {len(result.skipped)} frame(s): {result.skipped[:10]}", quiet)
     return result

@@ -12,9 +12,11 @@ is wrong. The estimate, best first:
    one jump or through the frames in between (every ``stride``-th; see :data:`STRIDE`). With
    ``descriptors`` (the session's crop descriptors) also one jump from the frame that looks most
    alike; of the two the propagation with the higher mean confidence wins;
-   Optionally (``hand_model``) the propagation ends with the hand model personalized from the
-   lifted references fitted to the frame's own depth (:func:`reference_hand_model`; off in the
-   bench: on the suite's tune part it moved 16.5 joints per reference against 16.0 without);
+   With ``hand_model`` the propagation ends with the hand model personalized from the lifted
+   references fitted to the frame's own depth (:func:`reference_hand_model`,
+   :func:`session_hand_model`; the app and the bench's annotator use it once two references are
+   lifted: on the suite's tune part with the interactive annotator it lowered the joints moved
+   per reference from 12.0 to 11.0, README "Fourth round");
 3. without hand crops on disk (the app never computes them on the UI thread): that neighbour's
    joints moved by the difference of the two hand centres (no translation without crop metadata).
 
@@ -26,13 +28,18 @@ from __future__ import annotations
 import numpy as np
 
 from .session import CROPS_FILE, CROPS_META_FILE, Session
+from .skeleton import Skeleton
 
 __all__ = [
     "cached_crops",
     "known_joints",
     "prefill_reference",
     "prefill_uv",
+    "frame_observation",
+    "guess_model",
     "reference_hand_model",
+    "session_hand_model",
+    "template_hand",
 ]
 
 #: the pre-fill propagates through every STRIDE-th frame between the source and the frame (0: one
@@ -42,6 +49,13 @@ __all__ = [
 STRIDE = 0
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
+#: how :func:`prefill_reference` picks among its propagations
+CHOICES = ("confidence", "model")
+#: lifted references needed before pre-fills are fitted with the hand model personalized from them
+MODEL_MIN_REFERENCES = 2
+#: :func:`session_hand_model` personalizes from at most this many lifted references, the nearest
+#: in time to the frame (bounds its cost in long sessions; the bench's sequences have <= 18)
+MODEL_MAX_REFERENCES = 32
 
 
 def _finite_rows(x: np.ndarray) -> np.ndarray:
@@ -89,6 +103,13 @@ def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | No
     return int(cand[np.lexsort((cand, d))[0]])
 
 
+def _neighbours_known(frame: int, has: np.ndarray, segment: np.ndarray) -> list[int]:
+    """The nearest frames with joints before and after ``frame`` in time in its segment (0-2)."""
+    cand = np.flatnonzero(has & (segment == segment[frame]))
+    before, after = cand[cand < frame], cand[cand > frame]
+    return ([int(before[-1])] if before.size else []) + ([int(after[0])] if after.size else [])
+
+
 def _most_similar_known(frame: int, has: np.ndarray, descriptors: np.ndarray) -> int | None:
     """The frame with joints whose hand crop looks most like ``frame``'s (cosine distance of the
     L2-normalized ``descriptors`` (N, D) of :mod:`handanno_core.descriptors`)."""
@@ -123,7 +144,9 @@ def _propagate_path(
     hand_model=False,
 ):
     """Propagate ``source -> frame`` through the frames between them in time, every ``stride``-th
-    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence)`` or None if it was skipped.
+    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence, model residual mm)`` or None if it
+    was skipped (the residual: mean |point-to-surface| of the frame's observed points at the
+    returned pose, ``data_mm`` of ``PropagationResult.model_fit``; NaN without the model).
     ``hand_model``: a :class:`handanno_core.handmodel.HandModel` fitted to ``frame``'s own depth
     after the flow (see :func:`handanno_core.propagate.propagate`), or False."""
     from .propagate import propagate
@@ -155,7 +178,8 @@ def _propagate_path(
     out = result.joints_mm[frame]
     if not np.all(np.isfinite(out)):
         return None
-    return out, float(np.nanmean(result.confidence[frame]))
+    residual = np.nan if result.model_fit is None else float(result.model_fit[frame, 1])
+    return out, float(np.nanmean(result.confidence[frame])), residual
 
 
 def prefill_reference(
@@ -166,13 +190,22 @@ def prefill_reference(
     stride: int = STRIDE,
     descriptors: np.ndarray | None = None,
     hand_model=False,
+    both_sides: bool = False,
+    choose: str = "confidence",
 ) -> np.ndarray | None:
     """``(J, 3)`` mm best current estimate of ``frame``'s joints (see the module docstring), or
     None when nothing in the session has joints. ``results`` are the session's result arrays
     (:meth:`Session.load_results`; read from the session when None); they are not modified.
     ``hand_model``: a personalized :class:`handanno_core.handmodel.HandModel`
     (:func:`reference_hand_model`) fitted to the frame's own depth after the flow: the guess
-    snapped to the frame's surface and silhouette (False: flow only)."""
+    snapped to the frame's surface and silhouette (False: flow only). ``both_sides``: also
+    propagate from the nearest frame with joints before and the nearest after ``frame`` in time
+    (same segment). ``choose``: which propagation wins, ``"confidence"`` (highest mean
+    confidence) or ``"model"`` (lowest model residual: the fitted pose explains the frame's own
+    points best; needs ``hand_model``, else as "confidence").
+    """
+    if choose not in CHOICES:
+        raise ValueError(f"unknown pre-fill choice {choose!r}; use one of {CHOICES}")
     frame = int(frame)
     n = session.num_frames
     if not 0 <= frame < n:
@@ -182,22 +215,29 @@ def prefill_reference(
     joints, has = known_joints(results)
     if has[frame]:
         return joints[frame].copy()
-    source = _nearest_known(frame, has, _segment_ids(n, session.model.sequence_breaks))
+    segment = _segment_ids(n, session.model.sequence_breaks)
+    source = _nearest_known(frame, has, segment)
     if source is None:
         return None
     crop_data = cached_crops(session)
     if crop_data is not None:
         tries = [(source, stride)]
+        if both_sides:
+            for side in _neighbours_known(frame, has, segment):
+                if side not in {t[0] for t in tries}:
+                    tries.append((side, stride))
         if descriptors is not None:
             similar = _most_similar_known(frame, has, descriptors)
-            if similar is not None and similar != source:
+            if similar is not None and similar not in {t[0] for t in tries}:
                 tries.append((similar, 0))
         found = [
             _propagate_path(session, s, frame, joints[s], crop_data, k, hand_model)
             for s, k in tries
         ]
         found = [f for f in found if f is not None]
-        if found:  # the most confident propagation (no ground truth)
+        if found:  # no ground truth: the most confident propagation, or the best model fit
+            if choose == "model" and all(np.isfinite(f[2]) for f in found):
+                return min(found, key=lambda f: f[2])[0].copy()
             return max(found, key=lambda f: f[1])[0].copy()
         centres = crop_data[1]
         shift = np.asarray(centres[frame] - centres[source], dtype=np.float64)
@@ -228,6 +268,75 @@ def reference_hand_model(session: Session, joints_mm: np.ndarray, frames, bone_l
         session.camera,
         cube_mm=session.model.settings.cube_mm,
     )[0]
+
+
+def session_hand_model(session: Session, frame: int, results: dict[str, np.ndarray]):
+    """The hand model the app's pre-fill of ``frame`` is fitted with: personalized
+    (:func:`reference_hand_model`) from the session's lifted references with the bones of
+    ``frame``'s hand, as the bench's simulated annotator does with the references annotated so
+    far (at most :data:`MODEL_MAX_REFERENCES`, the nearest in time). False (flow only) before
+    "Lift all" (no bone lengths), with fewer than :data:`MODEL_MIN_REFERENCES` lifted
+    references, or without the crop cache."""
+    bones = session.bone_lengths_of(int(frame))
+    lifted = np.asarray(results["lifted_mm"], dtype=np.float64)
+    refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
+    if bones is None or len(refs) < MODEL_MIN_REFERENCES:
+        return False
+    if len(refs) > MODEL_MAX_REFERENCES:
+        near = np.argsort(np.abs(np.asarray(refs) - int(frame)), kind="stable")
+        refs = sorted(refs[int(k)] for k in near[:MODEL_MAX_REFERENCES])
+    return reference_hand_model(session, lifted, refs, np.asarray(bones, dtype=np.float64)) or False
+
+
+def frame_observation(session: Session, frame: int):
+    """``frame``'s :class:`handanno_core.handmodel.FrameObservations` (its hand points) from the
+    session's crop cache; None without it."""
+    from . import handmodel as hm
+
+    crop_data = cached_crops(session)
+    if crop_data is None:
+        return None
+    crops, centres, boxes = crop_data
+    f = slice(int(frame), int(frame) + 1)
+    return hm.observe(
+        np.asarray(crops[f], dtype=np.float32),
+        np.asarray(boxes[f], dtype=np.float64),
+        np.asarray(centres[f], dtype=np.float64),
+        session.camera,
+        cube_mm=session.model.settings.cube_mm,
+    )
+
+
+def guess_model(session: Session, frame: int, results: dict[str, np.ndarray] | None = None):
+    """``{"hand_model", "observation"}`` for :func:`handanno_core.guesses.refit_guesses` of
+    ``frame`` (the refit then fits the unplaced joints to the frame's points): the model of
+    :func:`session_hand_model` and :func:`frame_observation`; ``{}`` where either is missing."""
+    if results is None:
+        results = session.load_results()
+    model = session_hand_model(session, frame, results)
+    obs = frame_observation(session, frame) if model else None
+    return {} if obs is None else {"hand_model": model, "observation": obs}
+
+
+def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
+    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
+    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
+    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
+    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
+    from .skeleton import MSRA21
+    from .synth import (
+        GESTURES,
+        build_hand_model,
+        forward_kinematics,
+        rotation_matrices,
+    )
+
+    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
+        return None
+    model = build_hand_model(np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64))
+    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
+    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
+    return hand[0] - hand[0].mean(axis=0) + np.asarray(centre_mm, dtype=np.float64)
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

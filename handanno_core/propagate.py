@@ -78,6 +78,7 @@ from .forest import descendants, propagation_order
 from .hands import BoneTable, bone_table
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .parallel import Runner
+from .results import MODEL_FIT_TERMS
 from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
@@ -160,6 +161,9 @@ class PropagationResult:
     order: list[int] = field(default_factory=list)
     #: ``(N, J)`` mm each joint's depth below the observed surface where it was placed on it
     below_surface_mm: np.ndarray | None = None
+    #: ``(N, T)`` the hand-model fit's own evidence per frame (NaN without the model or where
+    #: not computed), columns :data:`handanno_core.results.MODEL_FIT_TERMS`
+    model_fit: np.ndarray | None = None
 
     @property
     def frame_score(self) -> np.ndarray:
@@ -575,14 +579,16 @@ def _model_fits(ctx: _Context, items: list[_ModelInput]) -> list[tuple[np.ndarra
     Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s``, the parent moved on
     at its own velocity (``2 joints_s - joints_gs``, where the grandparent, parent and frame are
     consecutive frames) and the lifted poses of the nearest references before and after the frame
-    in time, each (but the velocity start) moved by the difference of the hand centres. All share one energy (priors: closeness to the flowed pose, the flowed 2D
-    ``uv_f`` weighted by the flow's forward-backward consistency ``fb``), so the energies compare;
+    in time, each (but the velocity start) moved by the difference of the hand centres. All share
+    one energy (priors: closeness to the flowed pose, the flowed 2D ``uv_f`` weighted by the
+    flow's forward-backward consistency ``fb``), so the energies compare;
     the ``model_fits`` starts of lowest energy are fitted and the best fit is kept.
     Guard: a fit whose data + free-space energy exceeds ``model_fail_ratio`` times the
     references' (``ctx.model_levels``) failed, and the frame keeps ``x_flow``.
-    Returns per item the joints (J,3) and a per-joint confidence factor (J,) from the fit
-    residuals of the capsules touching each joint at the returned pose (mean point-to-surface mm,
-    fraction of free-space violations).
+    Returns per item the joints (J,3), a per-joint confidence factor (J,) from the fit residuals
+    of the capsules touching each joint at the returned pose (mean point-to-surface mm, fraction of
+    free-space violations) and the frame's evidence ``(T,)``
+    (:data:`handanno_core.results.MODEL_FIT_TERMS`).
 
     The frames are independent and fitted together, one batch per hand model (the batched LM
     treats every row on its own, so a frame's result does not depend on the others in its batch:
@@ -663,12 +669,17 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     x = np.empty((len(items), j, 3))
     root = np.empty((len(items), 3))
     u = np.empty((len(items),) + fit.u.shape[1:])
+    level = np.empty(len(items))
+    rejected = np.zeros(len(items), dtype=bool)
     for i in range(len(items)):
         rows = np.flatnonzero(owner[best] == i)
         k = rows[int(np.argmin(fit.energy[rows]))]
         x[i], root[i], u[i] = fit.joints_mm[k], fit.root[k], fit.u[k]
-        level = fit.terms["data"][k] + fit.terms["free_space"][k]
-        if st.model_fail_ratio > 0 and level > st.model_fail_ratio * ctx.model_levels[h]:
+        level[i] = fit.terms["data"][k] + fit.terms["free_space"][k]
+        rejected[i] = (
+            st.model_fail_ratio > 0 and level[i] > st.model_fail_ratio * ctx.model_levels[h]
+        )
+        if rejected[i]:
             # the fit does not explain the frame's depth: keep the flowed pose
             x[i] = x_flow[i]
             r1, u1 = kin.fit(x_flow[i][None])
@@ -687,7 +698,18 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     conf = np.exp(-0.5 * (res_j / st.model_scale_mm) ** 2) * np.clip(
         1.0 - st.model_free_scale * free_j, 0.0, 1.0
     )
-    return list(zip(x, conf, strict=True))
+    res, free, points = diag["capsule_data_mm"], diag["capsule_free"], diag["capsule_points"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        evidence = np.stack(
+            [
+                level / ctx.model_levels[h],
+                np.nansum(res * points, axis=1) / points.sum(axis=1),
+                free.mean(axis=1),
+                rejected.astype(float),
+            ],
+            axis=1,
+        )
+    return list(zip(x, conf, evidence, strict=True))
 
 
 class _Skip(Exception):
@@ -698,7 +720,8 @@ class _Skip(Exception):
 class _TaskResult:
     """One task's rows: ``frames`` (M,), the frame each was propagated from ``sources`` (M,) (-1
     where skipped), ``joints`` (M, J, 3) mm, ``confidence`` (M, J), ``below`` (M, J) mm depth
-    below the surface (NaN off it) and ``skipped`` ``{frame: reason}``."""
+    below the surface (NaN off it), ``skipped`` ``{frame: reason}`` and ``model_fit`` (M, T)
+    (:data:`MODEL_FIT_TERMS`)."""
 
     frames: np.ndarray
     sources: np.ndarray
@@ -706,6 +729,7 @@ class _TaskResult:
     confidence: np.ndarray
     below: np.ndarray
     skipped: dict[int, str]
+    model_fit: np.ndarray
 
 
 def _run_task(ctx: _Context, task: _Task, emit: Callable | None = None):
@@ -731,6 +755,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
     out_j = np.full((m, j, 3), np.nan)
     out_c = np.full((m, j), np.nan)
     out_b = np.full((m, j), np.nan)
+    out_m = np.full((m, len(MODEL_FIT_TERMS)), np.nan)
     used_src = np.full(m, -1, dtype=np.int64)
     skipped: dict[int, str] = {}
     state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -772,8 +797,10 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
             if ctx.hand_models is not None and flowed:
                 fits = _model_fits(ctx, [fl.model_in for _, _, fl in flowed])
             else:
-                fits = [(fl.model_in.x_flow, None) for _, _, fl in flowed]
-            for (k, s, fl), (x, model_conf) in zip(flowed, fits, strict=True):
+                no_fit = np.full(len(MODEL_FIT_TERMS), np.nan)
+                fits = [(fl.model_in.x_flow, None, no_fit) for _, _, fl in flowed]
+            for (k, s, fl), (x, model_conf, evidence) in zip(flowed, fits, strict=True):
+                out_m[k] = evidence
                 x, conf, vis = _finish(ctx, fl, x, model_conf)
                 f = fl.model_in.frame
                 state[f] = (x, conf, vis)
@@ -781,7 +808,7 @@ def _run_task_inner(ctx: _Context, task: _Task, emit: Callable | None):
                 out_j[k], out_c[k], out_b[k], used_src[k] = x, conf, vis, s
                 if emit is not None:
                     emit(f, x, conf)
-    return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped)
+    return _TaskResult(task.frames, used_src, out_j, out_c, out_b, skipped, out_m)
 
 
 def _grandparent(state: dict, came_from: dict[int, int], f: int, s: int) -> np.ndarray | None:
@@ -1141,6 +1168,7 @@ class _Collector:
     joints: np.ndarray
     confidence: np.ndarray
     below: np.ndarray
+    model_fit: np.ndarray
     source: np.ndarray
     reasons: dict[int, str]
     total: int
@@ -1155,6 +1183,7 @@ class _Collector:
             joints=np.full((n, j, 3), np.nan),
             confidence=np.full((n, j), np.nan),
             below=np.full((n, j), np.nan),
+            model_fit=np.full((n, len(MODEL_FIT_TERMS)), np.nan),
             source=np.full(n, -1, dtype=np.int64),
             reasons=dict(problems),
             total=sum(len(t.frames) for t in tasks),
@@ -1167,6 +1196,7 @@ class _Collector:
         fr = r.frames
         self.joints[fr], self.confidence[fr], self.below[fr] = r.joints, r.confidence, r.below
         self.source[fr] = r.sources
+        self.model_fit[fr] = r.model_fit
         self.reasons.update(r.skipped)
 
     def add_remote(self, r: _TaskResult) -> None:
@@ -1201,6 +1231,7 @@ class _Collector:
             reasons={f: self.reasons[f] for f in skipped},
             source=self.source,
             below_surface_mm=self.below,
+            model_fit=self.model_fit,
             seconds=seconds,
             order=self.order,
         )

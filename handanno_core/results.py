@@ -1,8 +1,9 @@
 """``results.npz``: the session's derived joints, one format, read and checked in one place.
 
-Arrays (float64): ``lifted_mm``, ``init_mm``, ``final_mm`` ``(N, J, 3)`` in mm (camera frame) and
-``confidence`` ``(N, J)`` in [0, 1]; NaN where a stage has no value for a frame. The file is always
-written whole (:func:`handanno_core.fileio.atomic_save_npz`) by
+Arrays (float64): ``lifted_mm``, ``init_mm``, ``final_mm`` ``(N, J, 3)`` in mm (camera frame),
+``confidence`` ``(N, J)`` in [0, 1] and ``model_fit`` ``(N, T)`` (:data:`MODEL_FIT_TERMS`); NaN
+where a stage has no value for a frame. The file is always written whole
+(:func:`handanno_core.fileio.atomic_save_npz`) by
 :meth:`handanno_core.session.Session.save_results`; partial progress lives elsewhere.
 """
 
@@ -18,7 +19,14 @@ if TYPE_CHECKING:
     from .session import Session
 
 RESULTS_FILE = "results.npz"
-RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence")
+RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence", "model_fit")
+#: the columns of ``model_fit`` (N, T): the hand-model fit's own evidence per propagated frame
+#: (``handanno_core.propagate._model_fit``; NaN without the model): ``level`` the best fit's
+#: data + free-space energy over the references' level (the propagation guard's ratio),
+#: ``data_mm`` mean |point-to-surface| mm of the observed points at the kept pose, ``free`` the
+#: fraction of the capsules' free-space samples violated at the kept pose, ``rejected`` 1 where
+#: the guard kept the flowed pose (the fit did not explain the depth), else 0.
+MODEL_FIT_TERMS = ("level", "data_mm", "free", "rejected")
 
 
 class Stage(IntEnum):
@@ -36,6 +44,8 @@ class ResultsError(ValueError):
 
 def result_shape(key: str, frames: int, joints: int) -> tuple[int, ...]:
     """Shape of result array ``key`` for a session of ``frames`` frames and ``joints`` joints."""
+    if key == "model_fit":
+        return (frames, len(MODEL_FIT_TERMS))
     return (frames, joints) if key == "confidence" else (frames, joints, 3)
 
 

@@ -17,8 +17,10 @@ app would, from ground truth (2D positions, visibility and depth order only):
   :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
   annotated before it and fixed with :func:`interactive_fix` (default) or :func:`simulated_fix`;
   after each, the references annotated so far are lifted with their bone lengths estimated (as
-  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones; a
-  frame with nothing to pre-fill from costs one click per joint.
+  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones
+  (and, from the second lifted reference on, with the hand model personalized from them); a
+  frame with nothing to pre-fill from opens with the template hand at its hand centre, as in the
+  app (one click per joint with :func:`simulated_fix`).
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
@@ -39,6 +41,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
+from .prefill import MODEL_MIN_REFERENCES
 from .session import Batch, Session, SetFrameAnnotation, SetReference
 
 __all__ = [
@@ -56,8 +59,6 @@ __all__ = [
 CLICK_PX = 4.0
 #: a frame is "bad" when a joint is more than this (mm) off
 BAD_MM = 20.0
-#: references lifted before the pre-fills are snapped with the hand model personalized from them
-MODEL_MIN_REFERENCES = 2
 
 
 def simulated_fix(
@@ -144,6 +145,8 @@ def interactive_fix(
     click_px: float = CLICK_PX,
     order: str = "worst",
     refit_s: list[float] | None = None,
+    hand_model=None,
+    observation=None,
 ) -> tuple[FrameAnnotation, int, list[int]]:
     """What a person does in the app with a frame opened with guesses ``guess_mm`` (J, 3) mm: move
     the guess that is furthest off (more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm;
@@ -156,7 +159,9 @@ def interactive_fix(
     depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the
     annotation returned, as :func:`simulated_fix` gives them. A guess not drawn (NaN, behind the
     camera, off the image) counts as off. Returns ``(annotation, clicks, joints in click
-    order)``. ``refit_s``: each refit's duration (s) is appended to it."""
+    order)``. ``refit_s``: each refit's duration (s) is appended to it. ``hand_model`` /
+    ``observation``: the refit also fits the unplaced joints to the frame's own points
+    (:func:`handanno_core.guesses.model_guesses`)."""
     from .guesses import refit_guesses
     from .synth import simulate_annotation
 
@@ -198,6 +203,8 @@ def interactive_fix(
                 previous_mm=previous,
                 start_elastic=bool(slack),
                 elastic_joints=slack,
+                hand_model=hand_model,
+                observation=observation,
             )
         except ValueError:  # the app keeps drawing the last guesses when a refit fails
             continue
@@ -229,23 +236,132 @@ def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init
     )
 
 
+#: the orders :func:`annotate_prefilled` can annotate the references in
+REFERENCE_ORDERS = ("time", "bisect", "similar")
+
+
+def order_references(
+    frames, order: str = "time", descriptors: np.ndarray | None = None
+) -> list[int]:
+    """The reference ``frames`` in the order they are annotated: ``"time"``; ``"bisect"`` (the
+    first and the last, then each time the one in the middle of the widest gap between annotated
+    ones, so most references have an annotated neighbour on both sides); ``"similar"`` (the first,
+    then each time the one whose crop descriptor (``descriptors`` (N, D), L2-normalized) is
+    closest to an annotated one's: every next reference has a similar-looking annotated one)."""
+    f = sorted(int(x) for x in frames)
+    if order == "time" or len(f) < 3:
+        return f
+    if order == "bisect":
+        out, todo = [f[0], f[-1]], [(0, len(f) - 1)]
+        while todo:
+            todo.sort(key=lambda ab: (f[ab[0]] - f[ab[1]], ab[0]))  # widest gap first
+            a, b = todo.pop(0)
+            if b - a < 2:
+                continue
+            m = (a + b) // 2
+            out.append(f[m])
+            todo += [(a, m), (m, b)]
+        return out
+    if order == "similar":
+        if descriptors is None:
+            raise ValueError("the 'similar' reference order needs crop descriptors")
+        d = np.asarray(descriptors, dtype=np.float64)[f]
+        dist = 1.0 - d @ d.T  # (K, K) cosine distance
+        done = np.zeros(len(f), dtype=bool)
+        done[0] = True
+        best = dist[0].copy()
+        out = [f[0]]
+        for _ in range(len(f) - 1):
+            k = int(np.argmin(np.where(done, np.inf, best)))
+            done[k] = True
+            best = np.minimum(best, dist[k])
+            out.append(f[k])
+        return out
+    raise ValueError(f"unknown reference order {order!r}; use one of {REFERENCE_ORDERS}")
+
+
+def _offsets_px(camera: CameraIntrinsics, a_mm: np.ndarray, b_mm: np.ndarray) -> list[float]:
+    """``(J,)`` px between the projections of two skeletons (J, 3) mm, rounded, as a list."""
+    off = np.linalg.norm(camera.project(a_mm) - camera.project(b_mm), axis=-1)
+    return [round(float(v), 2) for v in off]
+
+
+def _crop_descriptors(session: Session, crop_data) -> np.ndarray | None:
+    """The session's crop descriptors (N, D), None without cached crops."""
+    if crop_data is None:
+        return None
+    from .descriptors import compute_descriptors
+
+    return compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
+
+
+def _model_refit_inputs(session: Session, frame: int, model) -> dict:
+    """``{"hand_model", "observation"}`` of :func:`interactive_fix` for ``frame`` (empty without
+    a model or the crop cache)."""
+    from .prefill import frame_observation
+
+    obs = frame_observation(session, frame) if model else None
+    return {} if obs is None else {"hand_model": model, "observation": obs}
+
+
+def _template_guess(session: Session, frame: int) -> np.ndarray | None:
+    """The app's first guess of a frame when nothing has joints: the template hand at the hand
+    centre of the frame's crop (None without the crop cache or a template)."""
+    from .prefill import cached_crops, template_hand
+
+    crop_data = cached_crops(session)
+    centre = None if crop_data is None else np.asarray(crop_data[1][frame], dtype=np.float64)
+    if centre is None or not np.all(np.isfinite(centre)):
+        return None
+    return template_hand(session.skeleton, centre)
+
+
+def _lift_all(
+    session: Session, sequence, annotations: dict, lifted_mm: np.ndarray, start_bones=None
+) -> np.ndarray:
+    """The app's "Lift all" on the references annotated so far: their lifts written into
+    ``lifted_mm`` (N, J, 3) mm; returns the bone lengths (B,) mm estimated with them, starting
+    from ``start_bones`` (B,) mm (the previous estimate: fewer re-estimation rounds; None: from
+    the annotations)."""
+    from .lift import lift_references
+
+    s = session.model.settings
+    done = lift_references(
+        annotations,
+        sequence.depth,
+        sequence.camera,
+        session.skeleton,
+        bone_lengths_mm=start_bones,
+        eps_mm=s.eps_mm,
+        angle_limits=s.angle_limits,
+    )
+    for g, joints in done.joints_mm.items():
+        lifted_mm[g] = joints
+    return np.asarray(done.bone_lengths_mm, dtype=np.float64)
+
+
 def annotate_prefilled(
     session: Session,
     *,
     noise_px: float = 0.0,
     seed: int = 0,
     click_px: float = CLICK_PX,
-    hand_model: bool = False,
+    hand_model: bool = True,
     interactive: bool = True,
     order: str = "worst",
     bones_so_far: bool = True,
     refit_s: list[float] | None = None,
     quiet: bool = False,
+    reference_order: str = "time",
+    prefill_kw: dict | None = None,
+    model_refit: bool = True,
+    first_template: bool = True,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
     personalized from them (:func:`handanno_core.prefill.reference_hand_model`) snaps each further
-    pre-fill to its frame's own depth and silhouette. ``interactive``: the annotator moves one
+    pre-fill to its frame's own depth and silhouette (on by default, as the app's pre-fill:
+    chosen on the suite's tune part, README). ``interactive``: the annotator moves one
     guess at a time and the guesses refit after each click (:func:`interactive_fix`, click
     ``order``, each refit's seconds appended to ``refit_s``); False: every joint
     more than ``click_px`` off the pre-fill is moved once (:func:`simulated_fix`).
@@ -254,21 +370,28 @@ def annotate_prefilled(
     does), and those bones and lifts feed the next pre-fill and refits (one bone set for the
     session: the several-hands bones are not estimated here); False: the session's bones (the
     template in a fresh session) and each reference lifted on its own.
+    ``reference_order``: the order the references are annotated in (:func:`order_references`).
+    ``prefill_kw``: further options of :func:`handanno_core.prefill.prefill_reference`
+    (``both_sides``, ``choose``). ``model_refit`` (with ``hand_model`` and ``interactive``): each
+    refit also fits the unplaced joints to the frame's own points with that hand model
+    (:func:`handanno_core.guesses.model_guesses`; on by default, as the app's live refits).
+    ``first_template`` (with ``interactive``): a reference with nothing to pre-fill from (the
+    first) opens with the template hand at its hand centre, as in the app
+    (:func:`handanno_core.prefill.template_hand`); False: all its joints are clicked.
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
     the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
-    plain one)}``. Needs the session's crops on disk for propagated pre-fills.
+    plain one), "click_order": {frame: joints in click order}, "guess_off_px": {frame: (J,) px
+    of the pre-fill from the truth (evaluation)}, "gap": {frame: frames in time to the nearest
+    reference annotated before it}, "order": the frames in annotation order, "template": the
+    frames opened with the template hand}``. Needs the
+    session's crops on disk for propagated pre-fills.
     """
     from .prefill import cached_crops, prefill_reference, reference_hand_model
 
     sequence = session.open_sequence()
-    crop_data = cached_crops(session)
-    descriptors = None
-    if crop_data is not None:
-        from .descriptors import compute_descriptors
-
-        descriptors = compute_descriptors(crop_data[0], kind=session.model.settings.descriptor)
+    descriptors = _crop_descriptors(session, cached_crops(session))
     gt = sequence.ground_truth
     if gt is None:
         raise ValueError(f"{sequence.path}: the simulated annotator needs ground truth")
@@ -282,15 +405,28 @@ def annotate_prefilled(
     clicks_drag: dict[int, int] = {}
     order_of: dict[int, list[int]] = {}
     prefilled: list[int] = []
+    templates: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
-    for f in (int(x) for x in session.reference_frames):
+    guess_off, gaps = {}, {}  # {frame: (J,) px}, {frame: frames to the nearest annotated}
+    refs = order_references(session.reference_frames, reference_order, descriptors)
+    estimated = None  # the bones of the last "lift all"
+    for f in refs:
         rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
         depth = sequence.depth(f)
         model = False
         lifted = np.flatnonzero(np.all(np.isfinite(scratch["lifted_mm"]), axis=(1, 2)))
         if hand_model and bones is not None and lifted.size >= MODEL_MIN_REFERENCES:
             model = reference_hand_model(session, scratch["lifted_mm"], lifted, bones) or False
-        guess = prefill_reference(session, f, scratch, descriptors=descriptors, hand_model=model)
+        guess = prefill_reference(
+            session, f, scratch, descriptors=descriptors, hand_model=model, **(prefill_kw or {})
+        )
+        if annotations:
+            gaps[f] = int(min(abs(f - g) for g in annotations))
+        elif guess is None and interactive and first_template:
+            guess = _template_guess(session, f)  # as the app: a template hand at the centre
+            templates += [] if guess is None else [f]
+        if guess is not None:  # evaluation only: how far each guess is drawn from the truth
+            guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])
         if guess is None:
             from .synth import simulate_annotation
 
@@ -314,8 +450,9 @@ def annotate_prefilled(
                 click_px=click_px,
                 order=order,
                 refit_s=refit_s,
+                **_model_refit_inputs(session, f, model if model_refit else False),
             )
-            prefilled.append(f)
+            prefilled += [] if f in templates else [f]
         else:
             ann, clicks[f] = simulated_fix(
                 guess,
@@ -339,20 +476,8 @@ def annotate_prefilled(
             prefilled.append(f)
         annotations[f] = ann
         if bones_so_far and len(annotations) >= 2:  # "lift all" on the references so far
-            from .lift import lift_references
-
-            s = session.model.settings
-            done = lift_references(
-                annotations,
-                sequence.depth,
-                sequence.camera,
-                skeleton,
-                eps_mm=s.eps_mm,
-                angle_limits=s.angle_limits,
-            )
-            bones = np.asarray(done.bone_lengths_mm, dtype=np.float64)
-            for g, joints in done.joints_mm.items():
-                scratch["lifted_mm"][g] = joints
+            bones = _lift_all(session, sequence, annotations, scratch["lifted_mm"], estimated)
+            estimated = bones
         elif bones is not None:  # lifted now so that the next reference can be pre-filled from it
             own = session.bone_lengths_of(f) or bones  # the frame's hand's, if lifted
             scratch["lifted_mm"][f] = _lift(session, ann, depth, own, guess).joints_mm
@@ -379,6 +504,10 @@ def annotate_prefilled(
         "clicks_per_reference": per_ref,
         "clicks_per_reference_drag": per_ref_drag,
         "click_order": order_of,
+        "guess_off_px": guess_off,
+        "gap": gaps,
+        "order": refs,
+        "template": templates,
     }
 
 

@@ -528,3 +528,35 @@ def test_cli_every_option_has_help_and_select_defaults_to_5_percent(monkeypatch,
     assert seen == {"strategy": "uniform", "ref_fraction": 0.05, "rho": None}
     assert cli.main(["--sessions-dir", str(tmp_path), "select", "sess", "--rho", "0.3"]) == 0
     assert seen["ref_fraction"] is None and seen["rho"] == 0.3
+
+
+def test_worker_fits_guesses_with_the_frames_hand_model(session, monkeypatch):
+    """The live refits pass the frame's hand model and points (asked once, at the frame's first
+    lift) to the guesses' model fit, whose result is what the worker shows."""
+    import handanno_core.guesses as guesses
+
+    asked, fitted = [], []
+
+    def guess_model(frame):
+        asked.append(frame)
+        return {"hand_model": "model", "observation": f"points of {frame}"}
+
+    def model_guesses(joints, annotation, hand_model, observation, camera):
+        fitted.append((hand_model, observation))
+        return joints + 1.0
+
+    monkeypatch.setattr(guesses, "model_guesses", model_guesses)
+    worker = LiftWorker(
+        session, FrameStore(session), lift_fn=fake_lift, guess_model=guess_model
+    ).start()
+    try:
+        st = AnnotateState(session, "c")
+        for j in range(2):
+            st.place_2d(np.array([150.0 + j, 130.0]))
+            worker.submit(0)
+            assert worker.wait_idle(60)
+        assert asked == [0] and fitted == [("model", "points of 0")] * 2
+        plain = fake_lift(session.annotation(0), None, session.camera, session.skeleton, None)
+        np.testing.assert_allclose(worker.latest[0].joints_mm, plain.joints_mm + 1.0)
+    finally:
+        worker.stop()

@@ -11,6 +11,7 @@ import pytest
 from handanno_core import handmodel as hm
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.crops import crop_boxes, crop_depth
+from handanno_core.results import MODEL_FIT_TERMS
 from handanno_core.skeleton import MSRA21
 from handanno_core.synth import (
     Primitives,
@@ -276,19 +277,54 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
 
     def fit(crop, ratio):
         c = replace(ctx, settings=prop.PropagationSettings(model_fail_ratio=ratio))
-        out, conf = prop._model_fits(c, [item(crop)])[0]
-        return np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
+        out, conf, ev = prop._model_fits(c, [item(crop)])[0]
+        err = np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
+        return err, dict(zip(MODEL_FIT_TERMS, ev, strict=True))
 
-    to_flow, to_truth = fit(hand_crop, 5.0)
+    (to_flow, to_truth), on_hand = fit(hand_crop, 5.0)
     assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
-    assert fit(ball_crop, 5.0)[0] == 0.0  # failed: the flowed pose, unchanged
-    assert fit(ball_crop, 0.0)[0] > 20.0  # without the guard the fit leaves it
+    (to_flow, _), on_ball = fit(ball_crop, 5.0)
+    assert to_flow == 0.0  # failed: the flowed pose, unchanged
+    assert fit(ball_crop, 0.0)[0][0] > 20.0  # without the guard the fit leaves it
+    # the fit's own evidence, as the review ranking reads it: the guard's verdict, the energy
+    # ratio it used, and the point residual at the kept pose
+    assert on_hand["rejected"] == 0.0 and on_ball["rejected"] == 1.0
+    assert on_hand["level"] < 5.0 < on_ball["level"]
+    assert on_hand["data_mm"] < 3.0 < on_ball["data_mm"]
+
     # frames fitted in one batch (as propagation does) get exactly their results when alone
     batch = prop._model_fits(ctx, [item(hand_crop), item(ball_crop), item(hand_crop)])
     for got, crop in zip(batch, [hand_crop, ball_crop, hand_crop], strict=True):
         alone = prop._model_fits(ctx, [item(crop)])[0]
-        np.testing.assert_array_equal(got[0], alone[0])
-        np.testing.assert_array_equal(got[1], alone[1])
+        for a, b in zip(got, alone, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_model_guesses_fit_unplaced_joints_to_the_frames_points():
+    """The interactive annotator's refit with the hand model: the frame shows the hand bent 15
+    degrees at every joint away from the guessed pose; with the wrist and the five fingertips
+    clicked, the unplaced guesses move towards the frame's true pose, and the clicked joints keep
+    the lift's position."""
+    from handanno_core.annotation import FrameAnnotation
+    from handanno_core.guesses import model_guesses
+
+    rng = np.random.default_rng(1)
+    x = _pose("open")
+    model = _model(x)
+    signs = [(-1) ** i for i in range(len(MSRA21.angle_joints))]
+    moved = _perturb_joints(x, 15.0, signs)
+    c1 = moved.mean(axis=0)
+    crop = _noisy_crop(_render(model, moved), c1, rng)
+    obs = hm.observe(crop[None], crop_boxes(c1, CAM)[None], c1[None], CAM)
+    ann = FrameAnnotation.empty(21)
+    clicked = [0, 4, 8, 12, 16, 20]
+    ann.uv_px[clicked] = CAM.project(moved[clicked])
+    out = model_guesses(x, ann, model, obs, CAM)
+    free = np.setdiff1d(np.arange(21), clicked)
+    before = np.linalg.norm(x[free] - moved[free], axis=-1).mean()
+    after = np.linalg.norm(out[free] - moved[free], axis=-1).mean()
+    assert after < 0.5 * before, (before, after)
+    np.testing.assert_array_equal(out[clicked], x[clicked])
 
 
 def test_a_layout_without_three_bone_fingers_has_no_hand_model():

@@ -98,7 +98,11 @@ def test_bench_annotator_opens_references_prefilled(session, interactive):
     refs = session.reference_frames.tolist()  # 0, 10, 20
     entries_before = len(session.folder.joinpath("journal.jsonl").read_text().splitlines())
     info = annotate_prefilled(session, interactive=interactive, quiet=True)
-    assert info["clicks"][refs[0]] == 21 and refs[0] not in info["prefilled"]
+    assert refs[0] not in info["prefilled"]  # nothing to pre-fill it from
+    if interactive:  # it opens with the template hand at its hand centre, as in the app
+        assert info["template"] == [refs[0]] and info["clicks"][refs[0]] < 21
+    else:  # every joint clicked
+        assert info["template"] == [] and info["clicks"][refs[0]] == 21
     assert info["prefilled"] == refs[1:]
     assert all(info["clicks"][f] < 21 for f in refs[1:])  # the guesses were mostly right
     assert info["clicks_per_reference"] == pytest.approx(np.mean(list(info["clicks"].values())))
@@ -135,3 +139,38 @@ def test_hand_model_snaps_the_prefill_to_the_frames_depth(session):
     # still a usable guess, its bones the session's
     assert errors(snapped, gt[frame]).mean() < 15.0
     np.testing.assert_allclose(session.skeleton.bone_lengths(snapped), bones, rtol=0.02)
+
+
+def test_reference_orders():
+    from handanno_core.review_loop import order_references
+
+    refs = [40, 0, 10, 20, 30]
+    assert order_references(refs) == [0, 10, 20, 30, 40]
+    # bisect: the ends, then the middle of the widest gap between annotated ones
+    assert order_references(refs, "bisect") == [0, 40, 20, 10, 30]
+    # similar: each next reference is the one most alike an annotated one (not the next in time)
+    desc = np.zeros((41, 2))
+    angles = {0: 0.0, 10: 1.2, 20: 0.1, 30: 1.3, 40: 0.2}  # 0, 20, 40 look alike; 10, 30 too
+    for f, a in angles.items():
+        desc[f] = [np.cos(a), np.sin(a)]
+    assert order_references(refs, "similar", desc) == [0, 20, 40, 10, 30]
+    with pytest.raises(ValueError, match="descriptors"):
+        order_references(refs, "similar")
+    with pytest.raises(ValueError, match="unknown"):
+        order_references(refs, "random")
+
+
+def test_session_hand_model_needs_two_lifted_references_and_bones(session):
+    from handanno_core import handmodel as hm
+    from handanno_core.pipeline import ensure_crops
+    from handanno_core.prefill import session_hand_model
+
+    results = session.load_results()
+    assert session_hand_model(session, 26, results) is False  # no crop cache yet
+    ensure_crops(session, quiet=True)
+    refs = session.reference_frames  # 0, 10, 20: lifted
+    model = session_hand_model(session, 26, results)
+    assert isinstance(model, hm.HandModel)
+    np.testing.assert_allclose(model.bone_lengths_mm, session.model.bone_lengths_mm)
+    results["lifted_mm"][refs[1:]] = np.nan  # one lifted reference: flow only
+    assert session_hand_model(session, 26, results) is False

@@ -483,3 +483,27 @@ def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session)
         assert key in second
     assert effort_to_target(entries, mean_mm=1e3, bad_share=1.0) == len(refs)
     assert effort_to_target(entries, mean_mm=0.0) is None
+
+
+def test_review_evidence_reads_the_model_fit_of_propagation(session):
+    """The propagation's model-fit evidence (results ``model_fit``) reaches the ranking as it
+    is, without a refit: a frame whose fit the guard rejected, with a large residual, ranks
+    above the same frame without that evidence."""
+    from handanno_core.results import MODEL_FIT_TERMS
+    from handanno_core.review import evidence_priority, review_evidence
+
+    gt = session.open_sequence().ground_truth.joints_mm
+    results = session.load_results()
+    assert np.all(np.isnan(results["model_fit"]))  # never propagated with the model
+    results["init_mm"] = gt + 1.0
+    results["confidence"] = np.full(results["confidence"].shape, 0.9)
+    results["model_fit"][7] = [12.0, 30.0, 0.5, 1.0]
+    results["model_fit"][8] = [1.0, 1.2, 0.0, 0.0]
+    ev = review_evidence(session, results)
+    for k, name in enumerate(MODEL_FIT_TERMS):
+        np.testing.assert_array_equal(ev[f"model_{name}"], results["model_fit"][:, k])
+    weights = {"conf": (0.5, 1.0), "model_data_mm": (1.5, 1.0), "model_rejected": (1.0, 1.0)}
+    p = evidence_priority(ev, weights)
+    assert p[7] > p[8] >= p[9]  # frame 9: no model evidence (NaN) adds nothing
+    session.save_results(model_fit=results["model_fit"])  # a result array like the others
+    np.testing.assert_array_equal(session.load_results()["model_fit"], results["model_fit"])

@@ -23,7 +23,6 @@ from handanno_core.session import (
     SetJoint3D,
     SetVisibility,
 )
-from handanno_core.skeleton import Skeleton
 
 from .events import entry_frame
 from .geometry import surface_under
@@ -247,24 +246,3 @@ def display_joints(
             z = np.where(np.isfinite(d), d, z)
         out[only2d] = camera.backproject(uv, z)
     return out
-
-
-def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
-    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
-    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
-    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
-    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
-    from handanno_core.skeleton import MSRA21
-    from handanno_core.synth import (
-        GESTURES,
-        build_hand_model,
-        forward_kinematics,
-        rotation_matrices,
-    )
-
-    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
-        return None
-    model = build_hand_model(np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64))
-    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
-    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
-    return hand[0] - hand[0].mean(axis=0) + np.asarray(centre_mm, dtype=np.float64)

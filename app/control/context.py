@@ -19,10 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from handanno_core.prefill import template_hand
 from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, Session
 
-from .annotate import AnnotateState, template_hand
+from .annotate import AnnotateState
 from .events import EventBus, Update, UpdateTopic, entry_update, job_update, lift_update
 from .frames import FrameStore
 from .jobs import LiftFunction, LiftOutcome, LiftWorker, ReviewRunner
@@ -51,6 +52,7 @@ class AppContext:
             lift_fn=lift_fn,
             on_result=self._on_lift,
             initial_guess=self.prefill,
+            guess_model=self.guess_model,
         )
         self.live = LiveResults(session, on_ranked=self._on_ranked)
         self.live.start_ranking()  # ranked in the background from the start (seconds at 76k frames)
@@ -72,16 +74,32 @@ class AppContext:
     def review_state(self, client: str) -> ReviewState:
         return ReviewState(self.session, self.live, self.runner, client)
 
+    def guess_model(self, frame: int) -> dict:
+        """The hand model and ``frame``'s points the live refits fit its guesses with
+        (:func:`handanno_core.prefill.guess_model`; ``{}`` before "Lift all" has two lifted
+        references, or without the crop cache)."""
+        from handanno_core.prefill import guess_model
+
+        return guess_model(self.session, frame)
+
     def prefill(self, frame: int) -> np.ndarray | None:
         """``(J, 3)`` mm first guess of ``frame``'s joints, always hand-shaped:
         :func:`handanno_core.prefill.prefill_reference` (the frame's own results, else one
-        propagation step from the nearest frame with joints), else, when nothing in the session
-        has joints yet, :func:`~app.control.annotate.template_hand` at the frame's hand centre.
+        propagation step from the nearest frame with joints, fitted to the frame's own depth with
+        the hand model personalized from the lifted references once there are two,
+        :func:`handanno_core.prefill.session_hand_model`), else, when nothing in the session
+        has joints yet, :func:`handanno_core.prefill.template_hand` at the frame's hand centre.
         None where neither exists. Never raises: a failed pre-fill only means no first guess."""
-        from handanno_core.prefill import prefill_reference
+        from handanno_core.prefill import prefill_reference, session_hand_model
 
         try:
-            joints = prefill_reference(self.session, frame, None)
+            results = self.session.load_results()
+            try:
+                model = session_hand_model(self.session, frame, results)
+            except Exception:  # no model fit: the flow-only pre-fill
+                traceback.print_exc()
+                model = False
+            joints = prefill_reference(self.session, frame, results, hand_model=model)
             if joints is None:
                 data = self.frames.get(frame)
                 if data.depth is not None:

@@ -74,12 +74,14 @@ def lift_for_session(
     *,
     lift_fn: LiftFunction | None = None,
     warm_start: WarmStart = WarmStart(),
+    guess_model: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...], int]:
     """Lift ``frame``'s current annotation on ``depth`` (H, W) mm with the session's bone lengths
     (the skeleton's template ones before ``lift all`` estimated them), eps and angle limits: THE
     adapter from a session to :func:`handanno_core.guesses.refit_guesses` (the refit of the
     guesses the bench's interactive annotator uses too) of the app (live lift worker, review
-    corrections).
+    corrections). ``guess_model``: ``{"hand_model", "observation"}`` of the frame
+    (:func:`handanno_core.prefill.guess_model`): the unplaced joints are fitted to its points.
 
     Returns ``(joints (J, 3) mm, confidence (J,), slack joints, journal seq the lift saw)``.
     Raises :class:`LiftUnavailable` when nothing is annotated or no bone lengths exist.
@@ -113,6 +115,7 @@ def lift_for_session(
         start_elastic=warm_start.start_elastic,
         elastic_joints=warm_start.elastic_joints,
         lift_fn=lift_fn,
+        **(guess_model or {}),
     )
     return fit.joints_mm, fit.confidence, fit.slack_joints, seq
 
@@ -145,6 +148,7 @@ class LiftWorker:
         on_result: Callable[[int, LiftOutcome], None] | None = None,
         save_after_s: float = 3.0,
         initial_guess: Callable[[int], np.ndarray | None] | None = None,
+        guess_model: Callable[[int], dict] | None = None,
     ):
         self.session = session
         self.frames = frames
@@ -153,6 +157,10 @@ class LiftWorker:
         self.save_after_s = save_after_s
         #: frame -> (J, 3) mm start of a frame's first lift (the pre-fill), or None
         self.initial_guess = initial_guess
+        #: frame -> {"hand_model", "observation"} the refits of a frame fit its guesses with
+        #: (:func:`handanno_core.prefill.guess_model`; computed at the frame's first lift)
+        self.guess_model = guess_model
+        self._guess_models: dict[int, dict] = {}
         self.latest: dict[int, LiftOutcome] = {}
         self._pending: OrderedDict[int, float] = OrderedDict()
         self._cond = threading.Condition()
@@ -196,6 +204,7 @@ class LiftWorker:
         with self.session.lock:
             for f in frames:
                 self.latest.pop(int(f), None)
+                self._guess_models.pop(int(f), None)
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Block until no job is pending or running (tests and benchmarks only)."""
@@ -256,6 +265,8 @@ class LiftWorker:
         prefill = None
         if init is None and self.initial_guess is not None:
             prefill = self.initial_guess(frame)  # first lift of the frame: start hand-shaped
+        if init is None and self.guess_model is not None:
+            self._guess_models[frame] = self._safe_guess_model(frame)
         slack = previous.slack_joints if previous is not None else ()
         try:
             if data.depth is None:
@@ -266,6 +277,7 @@ class LiftWorker:
                 data.depth,
                 lift_fn=self.lift_fn,
                 warm_start=WarmStart(init, bool(slack), tuple(slack), prefill),
+                guess_model=self._guess_models.get(frame),
             )
         except LiftUnavailable as exc:
             now = time.perf_counter()
@@ -277,6 +289,14 @@ class LiftWorker:
             return LiftOutcome(frame, None, None, msg, seq, submitted, now, now - t0)
         now = time.perf_counter()
         return LiftOutcome(frame, joints, conf, None, seq, submitted, now, now - t0, slack)
+
+    def _safe_guess_model(self, frame: int) -> dict:
+        """:attr:`guess_model` of ``frame``; ``{}`` (plain refits) if it fails."""
+        try:
+            return self.guess_model(frame)
+        except Exception:
+            traceback.print_exc()
+            return {}
 
     def _save_results(self) -> None:
         """Write lifted joints of every frame lifted so far into results.npz (atomic; frames

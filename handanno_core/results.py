@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 RESULTS_FILE = "results.npz"
 RESULT_KEYS = ("lifted_mm", "init_mm", "final_mm", "confidence", "model_fit")
 #: the columns of ``model_fit`` (N, T): the hand-model fit's own evidence per propagated frame
-#: (``handanno_core.propagate._model_fit``; NaN without the model): ``level`` the best fit's
+#: (``handanno_core.propagate._model_fits``; NaN without the model): ``level`` the best fit's
 #: data + free-space energy over the references' level (the propagation guard's ratio),
 #: ``data_mm`` mean |point-to-surface| mm of the observed points at the kept pose, ``free`` the
 #: fraction of the capsules' free-space samples violated at the kept pose, ``rejected`` 1 where

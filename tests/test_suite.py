@@ -36,9 +36,14 @@ def test_catalogue_split_is_disjoint_and_deterministic():
     def subjects(part):
         return {r.motion.split(":")[1].split("/")[0] for r in part if "fpha" in r.motion}
 
-    assert not sources(tune) & sources(report) - {"fpha"}
+    def icvl(part):
+        return {r.motion for r in part if r.motion.startswith("icvl")}
+
+    # recorded datasets in both parts are split by subject (FPHA) or test sequence (ICVL)
+    assert not sources(tune) & sources(report) - {"fpha", "icvl"}
     if REAL_MOTION.is_dir():
         assert subjects(tune) == {"Subject_1"} and subjects(report) == {"Subject_2"}
+        assert icvl(tune) == {"icvl:2"} and icvl(report) == {"icvl:1"}
     # the report part holds every kind of variation the issue asks for
     assert {r.motion for r in report} >= {"smooth", "fast"}
     assert {r.sensor for r in report} >= {"msra", "kinect", "sr300"}

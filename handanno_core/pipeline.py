@@ -566,6 +566,32 @@ def _reference_joints(session: Session, results: dict[str, np.ndarray]) -> dict[
     return {f: lifted[f] for f in refs}
 
 
+def propagation_forests(session: Session, use_model: bool | None = None) -> np.ndarray:
+    """The parent forests ``(P, N)`` a session's frames are propagated along: its selection's
+    (first) and, with the hand model on and ``PropagationSettings.both_ways``, the two temporal
+    chains between its references (:func:`handanno_core.select.temporal_chains`); propagation
+    keeps per frame the candidate whose fit explains the frame's depth best."""
+    from .propagate import PropagationSettings
+    from .select import temporal_chains
+
+    parent = session.parent
+    model_on = _hand_model_on(session, use_model, "propagate", quiet=True)
+    if not (model_on and PropagationSettings.both_ways):
+        return parent[None]
+    refs = np.flatnonzero(parent == -1)
+    chains = temporal_chains(len(parent), refs, session.model.sequence_breaks)
+    return np.concatenate([parent[None], chains])
+
+
+def frames_to_repropagate(session: Session, changed, use_model: bool | None = None) -> np.ndarray:
+    """Sorted frames whose propagation depends on ``changed`` frames (a corrected or re-lifted
+    reference): their descendants in every forest of :func:`propagation_forests`."""
+    from .forest import descendants
+
+    forests = propagation_forests(session, use_model)
+    return np.unique(np.concatenate([descendants(p, changed) for p in forests]))
+
+
 def propagate(
     session: Session,
     *,
@@ -590,8 +616,10 @@ def propagate(
     reference_joints = _reference_joints(session, results)
     if session.model.bone_lengths_mm is None:
         raise SessionError(f"{session.folder}: no bone lengths; run `handanno lift` first")
+    settings = PropagationSettings.from_session(session.model.settings)
+    model_on = _hand_model_on(session, use_model, "propagate", quiet)
     result = run_propagation(
-        session.parent,
+        propagation_forests(session, model_on),
         reference_joints,
         crops,
         boxes,
@@ -608,8 +636,8 @@ def propagate(
         initial_confidence=results["confidence"] if frames is not None else None,
         progress=progress,
         on_result=on_result,
-        settings=PropagationSettings.from_session(session.model.settings),
-        hand_model=_hand_model_on(session, use_model, "propagate", quiet),
+        settings=settings,
+        hand_model=model_on,
     )
     computed = np.all(np.isfinite(result.joints_mm), axis=(1, 2))
     with session.lock:

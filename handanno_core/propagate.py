@@ -134,6 +134,11 @@ class PropagationSettings:
     #: the fit failed when its data + free-space energy exceeds this many times the references'
     #: (median over the lifted references, :func:`_model_levels`): the frame keeps its flowed pose
     model_fail_ratio: float = 5.0
+    #: with the hand model, a session's propagation (:func:`handanno_core.pipeline.propagate`)
+    #: also carries every frame between two references from both of them in time
+    #: (:func:`handanno_core.select.temporal_chains`) and keeps, per frame, the candidate whose fit
+    #: explains the frame's depth best (about twice the propagation's CPU)
+    both_ways: bool = True
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -951,29 +956,31 @@ def propagate(
     Returns a :class:`PropagationResult`; rows outside ``frames`` are NaN.
     """
     t0 = time.perf_counter()
-    parent = np.asarray(parent, dtype=np.int64)
-    n = len(parent)
+    parents = np.asarray(parent, dtype=np.int64)
+    if parents.ndim == 1:
+        parents = parents[None]
+    if parents.ndim != 2 or len(parents) == 0:
+        raise ValueError(f"parent must be (N,) or (P, N), got shape {parents.shape}")
+    n = parents.shape[1]
     if aligner not in ALIGNERS:
         raise ValueError(f"unknown aligner {aligner!r}; choose one of {ALIGNERS}")
     if crops.shape[0] != n or boxes.shape[0] != n or len(centres_mm) != n:
         raise ValueError("parent, crops, boxes and centres must have the same number of frames")
+    if np.any((parents[1:] < 0) != (parents[0] < 0)):
+        raise ValueError("candidate parent forests must have the same references (-1 entries)")
     settings = settings or PropagationSettings()
     bones = bone_table(bone_lengths_mm, n, len(skeleton.bones))
     known, bad_refs = _reference_seeds(reference_joints, skeleton, bones, reference_confidence)
-    todo = np.flatnonzero(parent >= 0)
-    if frames is not None:
-        todo = np.unique(np.asarray(frames, dtype=np.int64).ravel())
-        todo = todo[parent[todo] >= 0]
-        _previous_seeds(known, todo, previous, initial_mm, initial_confidence, skeleton.num_joints)
+    todos = _candidate_todos(parents, frames)
     remote = scheduler is not None or workers > 1
     n_workers = _DASK_TASK_SLOTS if scheduler is not None else max(workers, 1)
-    tasks, problems = _plan(parent, known, todo, n_workers * tasks_per_worker if remote else 1)
-    _name_bad_references(problems, bad_refs, parent)
     models = _hand_models(
         hand_model, known, reference_joints, crops, boxes, centres_mm, camera, skeleton,
         bones, settings,
     )  # fmt: skip
-    out = _Collector.empty(n, skeleton.num_joints, problems, tasks, progress, on_result)
+    single = len(parents) == 1
+    total = sum(len(t) for t in todos)
+    runs: list[PropagationResult] = []
     with _crops_for_workers(crops, remote) as crops_file:
         ctx = _Context(
             *crops_file,
@@ -991,12 +998,111 @@ def propagate(
             crops_array=None if remote else crops,
             fit_weights=fit_weights,
         ).with_model(models, known, reference_joints)
-        if remote:
-            with Runner(workers, scheduler, fresh_processes=True) as runner:
-                runner.each(_run_task, tasks, out.add_remote, runner.share(ctx, broadcast=True))
+        for par, todo in zip(parents, todos, strict=True):
+            seeds = dict(known)
+            if runs:  # the first candidate's frames seed the chains the others share with it
+                _previous_seeds(seeds, todo, runs[0], None, None, skeleton.num_joints)
+            if frames is not None:
+                _previous_seeds(
+                    seeds, todo, previous, initial_mm, initial_confidence, skeleton.num_joints
+                )
+            tasks, problems = _plan(par, seeds, todo, n_workers * tasks_per_worker if remote else 1)
+            _name_bad_references(problems, bad_refs, par)
+            done_before = sum(len(t) for t in todos[: len(runs)])
+            out = _Collector.empty(
+                n, skeleton.num_joints, problems, tasks,
+                None if progress is None else _offset_progress(progress, done_before, total),
+                on_result if single else None,
+            )  # fmt: skip
+            if remote:
+                with Runner(workers, scheduler, fresh_processes=True) as runner:
+                    runner.each(_run_task, tasks, out.add_remote, runner.share(ctx, broadcast=True))
+            else:
+                _run_local(ctx, tasks, out)
+            runs.append(out.result(0.0))
+    if single:
+        runs[0].seconds = time.perf_counter() - t0
+        return runs[0]
+    return _keep_best(runs, on_result, time.perf_counter() - t0)
+
+
+def _offset_progress(progress: Callable[[int, int], None], offset: int, total: int):
+    """``progress`` of one candidate's run reported as part of all candidates' frames."""
+    return lambda done, _total: progress(offset + done, total)
+
+
+def _same_chain(parents: np.ndarray, k: int) -> np.ndarray:
+    """``(N,)`` bool: frames whose whole parent chain in forest ``k`` is the one in forest 0."""
+    p0 = parents[0]
+    same = parents[k] == p0
+    while True:
+        nxt = same & ((p0 < 0) | same[np.maximum(p0, 0)])
+        if np.array_equal(nxt, same):
+            return same
+        same = nxt
+
+
+def _candidate_todos(parents: np.ndarray, frames) -> list[np.ndarray]:
+    """Frames to compute in each candidate forest ``parents`` (P, N): the first computes every
+    non-reference frame (or ``frames``, and with several candidates their descendants in each),
+    the others only the frames whose chain differs from the first's."""
+    nonref = parents[0] >= 0
+    if frames is None:
+        wanted = nonref
+    else:
+        given = np.unique(np.asarray(frames, dtype=np.int64).ravel())
+        wanted = np.zeros(parents.shape[1], dtype=bool)
+        if len(parents) == 1:
+            wanted[given] = True
         else:
-            _run_local(ctx, tasks, out)
-    return out.result(time.perf_counter() - t0)
+            for par in parents:
+                wanted[descendants(par, given)] = True
+        wanted &= nonref
+    todos = [np.flatnonzero(wanted)]
+    for k in range(1, len(parents)):
+        todos.append(np.flatnonzero(wanted & ~_same_chain(parents, k)))
+    return todos
+
+
+def _keep_best(
+    runs: list[PropagationResult],
+    on_result: Callable[[int, np.ndarray, np.ndarray], None] | None,
+    seconds: float,
+) -> PropagationResult:
+    """Per frame, the candidate whose hand-model fit explains the frame's own depth best (the
+    lowest data + free-space level, :data:`handanno_core.results.MODEL_FIT_TERMS`); without the
+    model the highest mean confidence. ``source`` says which parent each frame kept."""
+    first = runs[0]
+    computed = np.stack([np.all(np.isfinite(r.joints_mm), axis=(1, 2)) for r in runs])
+    level = np.stack([r.model_fit[:, 0] for r in runs])
+    score = np.stack([r.frame_score for r in runs])
+    key = np.where(np.isfinite(level), level, np.inf)
+    no_model = ~np.any(np.isfinite(key) & computed, axis=0)
+    key = np.where(no_model[None], -np.nan_to_num(score, nan=-np.inf), key)
+    key = np.where(computed, key, np.inf)
+    pick = np.argmin(key, axis=0)  # ties and frames nobody computed: the first candidate
+    rows = np.arange(len(pick))
+    out = PropagationResult(
+        joints_mm=np.stack([r.joints_mm for r in runs])[pick, rows],
+        confidence=np.stack([r.confidence for r in runs])[pick, rows],
+        source=np.stack([r.source for r in runs])[pick, rows],
+        below_surface_mm=np.stack([r.below_surface_mm for r in runs])[pick, rows],
+        model_fit=np.stack([r.model_fit for r in runs])[pick, rows],
+        seconds=seconds,
+        order=list(first.order),
+    )
+    reasons = {}
+    for r in runs:
+        for f, why in r.reasons.items():
+            if not computed[:, f].any():
+                reasons.setdefault(f, why)
+    out.skipped = sorted(reasons)
+    out.reasons = reasons
+    if on_result is not None:
+        for f in first.order:
+            if computed[pick[f], f]:
+                on_result(f, out.joints_mm[f], out.confidence[f])
+    return out
 
 
 _Seeds = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]]

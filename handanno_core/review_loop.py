@@ -24,8 +24,9 @@ app would, from ground truth (2D positions, visibility and depth order only):
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
-  one); the corrected frames are lifted, only their descendants in the parent forest re-propagate
-  (:func:`handanno_core.propagate.descendants`, as the app's review runner does), then everything
+  one); the corrected frames are lifted, only their descendants in the propagation's forests
+  re-propagate (:func:`handanno_core.pipeline.frames_to_repropagate`, as the app's review runner
+  does), then everything
   is refined. One report entry per round (round 0 = the first pass).
 * :func:`bench_review` - :func:`review_rounds` once per ranking, each on its own copy of a finished
   bench session, so that every ranking starts from the same first pass.
@@ -583,7 +584,6 @@ def review_rounds(
     """
     from . import pipeline
     from .export import best_joints
-    from .propagate import descendants
 
     sequence = session.open_sequence()
     gt = np.asarray(sequence.ground_truth.joints_mm, dtype=np.float64)
@@ -642,7 +642,7 @@ def review_rounds(
         session.save_results(lifted_mm=lifted, confidence=conf)
         timings["annotate_lift"] = round(time.perf_counter() - t, 3)
         t = time.perf_counter()
-        frames = descendants(session.parent, shown)
+        frames = pipeline.frames_to_repropagate(session, shown)
         pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
         timings["propagate"] = round(time.perf_counter() - t, 3)
         t = time.perf_counter()

@@ -545,10 +545,19 @@ def _select_uniform(n, breaks, target, rho) -> Selection:
 
 def _temporal_parents(n: int, refs: np.ndarray, breaks: np.ndarray) -> np.ndarray:
     """Parent = temporal neighbour towards the nearest reference in time (same segment)."""
+    d_prev, d_next = _reference_distances(n, refs, breaks)
+    frames = np.arange(n)
+    parent = np.where(d_prev <= d_next, frames - 1, frames + 1)
+    parent[d_prev == 0] = -1
+    return parent
+
+
+def _reference_distances(n: int, refs: np.ndarray, breaks: np.ndarray):
+    """Frames ``(N,)`` to the nearest reference at or before / at or after each frame in its
+    segment between ``breaks`` (``10 N`` where there is none)."""
     seg_id = np.searchsorted(breaks, np.arange(n), side="right")
     frames = np.arange(n)
     big = 10 * n
-    # nearest reference at or before / at or after each frame, within the segment
     is_ref = np.zeros(n, bool)
     is_ref[refs] = True
     prev_ref = np.maximum.accumulate(np.where(is_ref, frames, -1))
@@ -559,9 +568,25 @@ def _temporal_parents(n: int, refs: np.ndarray, breaks: np.ndarray) -> np.ndarra
     d_next = np.where(
         (next_ref < big) & (seg_id[np.clip(next_ref, 0, n - 1)] == seg_id), next_ref - frames, big
     )
-    parent = np.where(d_prev <= d_next, frames - 1, frames + 1)
-    parent[is_ref] = -1
-    return parent
+    return d_prev, d_next
+
+
+def temporal_chains(n: int, refs, breaks=()) -> np.ndarray:
+    """Two parent forests ``(2, N)`` over time: every frame between two references (same segment
+    between ``breaks``) propagated forwards from the one before it, and backwards from the one
+    after it; frames with a reference on one side only chain from that side in both. References
+    are ``-1``. Propagation fits both and keeps, per frame, the chain its depth supports
+    (:func:`handanno_core.propagate.propagate` with several parent forests)."""
+    refs = np.asarray(refs, dtype=np.int64)
+    d_prev, d_next = _reference_distances(n, refs, np.asarray(breaks, dtype=np.int64))
+    frames = np.arange(n)
+    big = 10 * n
+    nearest = np.where(d_prev <= d_next, frames - 1, frames + 1)
+    forward = np.where(d_prev < big, frames - 1, nearest)
+    backward = np.where(d_next < big, frames + 1, nearest)
+    out = np.stack([forward, backward])
+    out[:, d_prev == 0] = -1
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -246,29 +246,36 @@ def test_hidden_joints_move_rigidly_with_the_seen_ones():
     np.testing.assert_allclose(_carry_rigidly(joints, observed, few, st), joints + shift)
 
 
-def test_model_start_at_the_parents_velocity_follows_fast_motion(tmp_path):
-    """At the suite's fast-motion speed (>= 10 mm joint steps), a chain whose hand-model fit may
-    start from the parent moved on at its own velocity stays on the hand; from the flowed pose
-    and the parent's pose alone it loses it within a few frames."""
+def fast_data(folder, n: int, seed: int = 3) -> dict:
+    """A rendered sequence of ``n`` frames at the suite's fast-motion speed."""
     from handanno_core import suite, synth
-    from handanno_core.propagate import PropagationSettings
 
-    n = 16
     motion = synth.synthesize_motion(
-        n, 3, speed_mm=suite.FAST_SPEED_MM, hold_frames=suite.FAST_HOLD_FRAMES
+        n, seed, speed_mm=suite.FAST_SPEED_MM, hold_frames=suite.FAST_HOLD_FRAMES
     )
     path = synth.write_sequence(
-        tmp_path / "fast", motion.model, motion.joints_mm, motion.rotation, seed=3,
-        progress=False, workers=1,
+        folder, motion.model, motion.joints_mm, motion.rotation, seed=seed, progress=False,
+        workers=1,
     )  # fmt: skip
     seq = open_sequence(path)
     gt = seq.ground_truth.joints_mm
     assert np.linalg.norm(np.diff(gt, axis=0), axis=-1).mean() >= 10.0
     centres = locate_hands(seq)
-    data = dict(
+    return dict(
         seq=seq, gt=gt, crops=compute_crops(seq, centres, None), centres=centres,
         boxes=crop_boxes(centres, seq.camera), bones=seq.skeleton.estimate_bone_lengths(gt),
     )  # fmt: skip
+
+
+def test_model_start_at_the_parents_velocity_follows_fast_motion(tmp_path):
+    """At the suite's fast-motion speed (>= 10 mm joint steps), a chain whose hand-model fit may
+    start from the parent moved on at its own velocity stays on the hand; from the flowed pose
+    and the parent's pose alone it loses it within a few frames."""
+    from handanno_core.propagate import PropagationSettings
+
+    n = 16
+    data = fast_data(tmp_path / "fast", n)
+    gt = data["gt"]
     chain = np.arange(-1, n - 1)
     mean_error = {
         v: errors(
@@ -279,3 +286,33 @@ def test_model_start_at_the_parents_velocity_follows_fast_motion(tmp_path):
         for v in (False, True)
     }
     assert mean_error[True] < 10.0 < mean_error[False]
+
+
+def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
+    """Fast motion between two references: every frame is carried forwards from the first and
+    backwards from the second, and keeps the candidate whose hand-model fit explains its depth
+    best; that beats either direction alone. A partial run from one changed frame recomputes
+    its descendants in both chains."""
+    from handanno_core.select import temporal_chains
+
+    n = 20
+    data = fast_data(tmp_path / "fast", n, seed=3)
+    gt = data["gt"]
+    refs = [0, n - 1]
+    chains = temporal_chains(n, refs)
+    assert chains[0][5] == 4 and chains[1][5] == 6
+    forward = run(data, chains[0], refs, hand_model=True)
+    backward = run(data, chains[1], refs, hand_model=True)
+    both = run(data, chains, refs, hand_model=True)
+    inner = np.arange(1, n - 1)
+    for f in inner:
+        k = int(backward.model_fit[f, 0] < forward.model_fit[f, 0])
+        np.testing.assert_array_equal(both.joints_mm[f], (forward, backward)[k].joints_mm[f])
+        assert both.source[f] == chains[k][f]
+    mean = {name: errors(r, gt, inner).mean() for name, r in
+            (("forward", forward), ("backward", backward), ("both", both))}  # fmt: skip
+    assert mean["both"] < min(mean["forward"], mean["backward"]), mean
+    partial = run(data, chains, refs, hand_model=True, frames=[7], previous=both)
+    np.testing.assert_array_equal(partial.joints_mm[inner], both.joints_mm[inner])
+    with pytest.raises(ValueError, match="same references"):
+        run(data, np.stack([chains[0], np.arange(-1, n - 1)]), refs)

@@ -302,8 +302,10 @@ def test_runner_cancel_during_refinement_restores_results(session):
 
 
 def test_correction_repropagates_only_descendants_with_the_real_pipeline(session):
-    """Real propagation (DIS aligner) and refinement: after a correction on frame 15 only frames
-    15..19 (its descendants in the chain 10 -> 11 -> ... -> 19) get a new init_mm on disk."""
+    """Real propagation (DIS aligner) and refinement: after a correction on frame 15 only the
+    frames between its neighbouring references get a new init_mm on disk: 16..19 (its descendants
+    in the chain 10 -> 11 -> ... -> 19) and 11..14 (propagated backwards from it, the hand
+    model's second candidate)."""
     gt = session.open_sequence().ground_truth.joints_mm
     runner = ReviewRunner(session, lift_for=lambda f, seq: gt[f], debounce_s=0.05)
     try:
@@ -323,12 +325,12 @@ def test_correction_repropagates_only_descendants_with_the_real_pipeline(session
         assert became
         runner.request_correction(frame, entry.seq)  # wait_idle covers the debounce
         assert runner.wait_idle(120) and runner.status.phase == "done", runner.status.message
-        assert runner.status.frames == [16, 17, 18, 19]
+        assert runner.status.frames == [11, 12, 13, 14, 16, 17, 18, 19]
         second = session.load_results()
         changed = np.flatnonzero(
             np.any(~np.isclose(second["init_mm"], first["init_mm"], equal_nan=True), axis=(1, 2))
         )
-        assert set(changed) <= {15, 16, 17, 18, 19} and {16, 17, 18, 19} <= set(changed)
+        assert set(changed) <= set(range(11, 20)) and {16, 17, 18, 19} <= set(changed)
         assert np.allclose(second["lifted_mm"][frame], gt[frame])
         assert np.all(np.isfinite(second["final_mm"]))
         reopened = Session.open(session.folder)
@@ -476,7 +478,16 @@ def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session)
     assert second["joints_clicked"] == first["joints_clicked"] + second["clicks"]
     shown = sorted(set(session.model.corrections))
     assert not set(shown) & set(refs)
-    assert second["repropagated"] == len(descendants(parent_before, shown))
+    # re-propagated: the shown frames' descendants in the selection's forest and, with the hand
+    # model's both-ways candidates, every frame between their neighbouring references
+    now_refs = np.asarray(sorted(set(refs) | set(shown)))
+    between = set()
+    for f in shown:
+        lo = now_refs[now_refs < f].max(initial=-1)
+        hi = now_refs[now_refs > f].min(initial=session.num_frames)
+        between |= set(range(lo + 1, hi)) - set(now_refs.tolist())
+    assert set(descendants(parent_before, shown)) - set(shown) <= between
+    assert second["repropagated"] == len(between | set(shown))
     res = session.load_results()
     assert np.all(np.isfinite(res["lifted_mm"][shown])) and np.all(np.isfinite(res["final_mm"]))
     for key in ("mean_mm", "median_mm", "max_mm", "bad_share", "recall_at_10", "shown_bad"):

@@ -13,7 +13,8 @@ frame; the first lift of a frame starts from ``initial_guess(frame)``, the app's
 queue has been idle for ``save_after_s`` seconds.
 
 **ReviewRunner** runs "propagate & refine" jobs on one background thread: a full run, or after
-review corrections only the corrected frames' descendants in the parent forest; and "lift all"
+review corrections only the frames that depend on the corrected ones (their descendants in the
+propagation's forests, :func:`handanno_core.pipeline.frames_to_repropagate`); and "lift all"
 (:func:`handanno_core.pipeline.lift`: every annotated reference, bone lengths estimated), which a
 full run does first when the session has no bone lengths or an annotated reference has no lifted
 pose (a session annotated only in the browser). Cancelling leaves ``results.npz`` either as it
@@ -604,8 +605,8 @@ class ReviewRunner:
 
     def _lift_corrections(self, corrections: dict[int, int]) -> np.ndarray:
         """Lift each corrected frame (at its journal entry or later); returns the frames to
-        re-propagate (the corrected frames' descendants in the reference forest)."""
-        from handanno_core.propagate import descendants
+        re-propagate (the corrected frames' descendants in the propagation's forests)."""
+        from handanno_core.pipeline import frames_to_repropagate
 
         self._set(phase="lift", message=", ".join(map(str, sorted(corrections))))
         for frame, seq in sorted(corrections.items()):
@@ -614,7 +615,7 @@ class ReviewRunner:
             update_lifted(self.session, {frame: (joints, conf)})
             self.live.put(frame, joints, conf, Stage.LIFTED)
             self.emit("frame", frame)
-        return descendants(self.session.parent, sorted(corrections))
+        return frames_to_repropagate(self.session, sorted(corrections))
 
     def _propagate_refine(self, todo: np.ndarray, frames: np.ndarray | None) -> None:
         """Propagate ``todo`` (``frames`` None: every non-reference frame), then refine all;

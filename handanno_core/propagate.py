@@ -74,7 +74,7 @@ from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
 from .datasets.base import FrameError
 from .flow import dis_flow, ncc_match, sample_flow, sift_flow
-from .forest import descendants, propagation_order
+from .forest import depths, descendants, propagation_order
 from .hands import BoneTable, bone_table
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .parallel import Runner
@@ -139,6 +139,10 @@ class PropagationSettings:
     #: (:func:`handanno_core.select.temporal_chains`) and keeps, per frame, the candidate whose fit
     #: explains the frame's depth best (about twice the propagation's CPU)
     both_ways: bool = True
+    #: among candidate forests, a frame's fit level counts this fraction more per propagation step
+    #: from its reference (errors grow along a chain; 0.02-0.1 alike on the tune part, pure level
+    #: picked a longer chain too often on smooth motion)
+    chain_step_penalty: float = 0.05
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -1023,7 +1027,10 @@ def propagate(
     if single:
         runs[0].seconds = time.perf_counter() - t0
         return runs[0]
-    return _keep_best(runs, on_result, time.perf_counter() - t0)
+    steps = np.stack([depths(p) for p in parents])
+    return _keep_best(
+        runs, 1.0 + settings.chain_step_penalty * steps, on_result, time.perf_counter() - t0
+    )
 
 
 def _offset_progress(progress: Callable[[int, int], None], offset: int, total: int):
@@ -1066,15 +1073,17 @@ def _candidate_todos(parents: np.ndarray, frames) -> list[np.ndarray]:
 
 def _keep_best(
     runs: list[PropagationResult],
+    level_factor: np.ndarray,
     on_result: Callable[[int, np.ndarray, np.ndarray], None] | None,
     seconds: float,
 ) -> PropagationResult:
-    """Per frame, the candidate whose hand-model fit explains the frame's own depth best (the
-    lowest data + free-space level, :data:`handanno_core.results.MODEL_FIT_TERMS`); without the
-    model the highest mean confidence. ``source`` says which parent each frame kept."""
+    """Per frame, the candidate whose hand-model fit explains the frame's own depth best: the
+    lowest data + free-space level (:data:`handanno_core.results.MODEL_FIT_TERMS`) times
+    ``level_factor`` ``(P, N)`` (the chain-length penalty); without the model the highest mean
+    confidence. ``source`` says which parent each frame kept."""
     first = runs[0]
     computed = np.stack([np.all(np.isfinite(r.joints_mm), axis=(1, 2)) for r in runs])
-    level = np.stack([r.model_fit[:, 0] for r in runs])
+    level = np.stack([r.model_fit[:, 0] for r in runs]) * level_factor
     score = np.stack([r.frame_score for r in runs])
     key = np.where(np.isfinite(level), level, np.inf)
     no_model = ~np.any(np.isfinite(key) & computed, axis=0)

@@ -293,6 +293,7 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     backwards from the second, and keeps the candidate whose hand-model fit explains its depth
     best; that beats either direction alone. A partial run from one changed frame recomputes
     its descendants in both chains."""
+    from handanno_core.propagate import PropagationSettings
     from handanno_core.select import temporal_chains
 
     n = 20
@@ -305,8 +306,12 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     backward = run(data, chains[1], refs, hand_model=True)
     both = run(data, chains, refs, hand_model=True)
     inner = np.arange(1, n - 1)
-    for f in inner:
-        k = int(backward.model_fit[f, 0] < forward.model_fit[f, 0])
+    steps = {0: inner, 1: n - 1 - inner}  # propagation steps from each chain's reference
+    penalty = PropagationSettings().chain_step_penalty
+    for i, f in enumerate(inner):
+        level = [r.model_fit[f, 0] * (1 + penalty * steps[k][i]) for k, r in
+                 enumerate((forward, backward))]  # fmt: skip
+        k = int(level[1] < level[0])
         np.testing.assert_array_equal(both.joints_mm[f], (forward, backward)[k].joints_mm[f])
         assert both.source[f] == chains[k][f]
     mean = {name: errors(r, gt, inner).mean() for name, r in

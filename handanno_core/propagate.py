@@ -33,6 +33,16 @@ reference), parents always before children:
    pose. Measured by ``handanno bench --model off,on`` (README, hand model
    section).
 
+6. several candidate forests (``parent`` of shape ``(P, N)``; a session with the hand model on
+   passes its selection's forest and the two temporal chains between its references,
+   :func:`handanno_core.pipeline.propagation_forests`): every frame is propagated along each
+   candidate (frames whose whole chain a candidate shares with the first are computed once), and
+   keeps the result whose model fit explains its own depth best, its data + free-space level
+   times ``1 + chain_step_penalty`` per step from its reference (:func:`_keep_best`). A frame that
+   a chain from one reference lost (fast motion, a finger flipped) is then usually held by the
+   chain from the other side; the fit's level ranks the frames' errors well (Spearman 0.93 on the
+   tune part's ICVL sequence), which is what makes the choice work.
+
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual
 of the normalized crops at the matched points (mm), the depth residual of the fit (mm) and the

@@ -40,8 +40,7 @@ reference), parents always before children:
    keeps the result whose model fit explains its own depth best, its data + free-space level
    times ``1 + chain_step_penalty`` per step from its reference (:func:`_keep_best`). A frame that
    a chain from one reference lost (fast motion, a finger flipped) is then usually held by the
-   chain from the other side; the fit's level ranks the frames' errors well (Spearman 0.93 on the
-   tune part's ICVL sequence), which is what makes the choice work.
+   chain from the other side (the fit's level ranks frames by their error: README, stop 27).
 
 Confidence per joint in [0, 1] multiplies the parent's confidence (errors accumulate along a
 chain) with the local evidence: forward-backward flow consistency (crop px), appearance residual

@@ -109,6 +109,9 @@ def main() -> None:
                         "clicks": info["clicks"][f],
                         "click_order": info["click_order"].get(f, []),
                         "guess_off_px": info["guess_off_px"].get(f),
+                        "guess_mm": None
+                        if f not in info["guess_mm"]
+                        else np.round(info["guess_mm"][f], 2).tolist(),
                         "gap": info["gap"].get(f),
                     }
                     for f in info["order"]

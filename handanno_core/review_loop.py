@@ -282,7 +282,8 @@ def annotate_prefilled(
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
     "clicks_per_reference": mean, "click_order": {frame: joints in click order},
-    "guess_off_px": {frame: (J,) px of the pre-fill from the truth (evaluation)}, "gap": {frame:
+    "guess_off_px": {frame: (J,) px of the pre-fill from the truth (evaluation)}, "guess_mm":
+    {frame: (J, 3) mm the pre-fill}, "gap": {frame:
     frames in time to the nearest reference annotated before it}, "order": the frames in
     annotation order, "template": the frames opened with the template hand}``. Needs the
     session's crops on disk for propagated pre-fills.
@@ -306,6 +307,7 @@ def annotate_prefilled(
     templates: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
     guess_off, gaps = {}, {}  # {frame: (J,) px}, {frame: frames to the nearest annotated}
+    guess_of: dict[int, np.ndarray] = {}  # {frame: (J, 3) mm pre-fill}
     refs = sorted(int(f) for f in session.reference_frames)
     estimated = None  # the bones of the last "lift all"
     for f in refs:
@@ -330,6 +332,7 @@ def annotate_prefilled(
             clicks[f] = skeleton.num_joints
         else:
             guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])  # evaluation
+            guess_of[f] = np.asarray(guess, dtype=np.float64)
             settings = session.model.settings
             ann, clicks[f], order_of[f] = interactive_fix(
                 guess,
@@ -377,6 +380,7 @@ def annotate_prefilled(
         "clicks_per_reference": per_ref,
         "click_order": order_of,
         "guess_off_px": guess_off,
+        "guess_mm": guess_of,
         "gap": gaps,
         "order": refs,
         "template": templates,

@@ -13,41 +13,28 @@ mm), the click noise the refit estimated, the seconds of each lift. The machine 
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
 import os
 import re
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import annotated_session
+from handanno_core.bench import annotated_session, stage_bench_parser, suite_base_sessions
 from handanno_core.evaluate import error_summary
-from handanno_core.suite import read_suite
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("suite")
-    ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
+    ap = stage_bench_parser(__doc__.splitlines()[0])
     ap.add_argument("--noise", default="0,2")
-    ap.add_argument("--ref-fraction", type=float, default=0.05)
-    ap.add_argument("--strategy", default="uniform")
-    ap.add_argument("--json", required=True)
     args = ap.parse_args()
     noises = [float(x) for x in args.noise.split(",")]
-    entries = read_suite(args.suite, args.part)
-    tmp = Path(tempfile.mkdtemp(prefix="bench-lift-refit-"))
     rows = []
-    for name, _part, path in entries:
-        base = pipeline.new_session(tmp / "base", path, overwrite=True)
-        gt = base.open_sequence().ground_truth.joints_mm
-        pipeline.ensure_crops(base, quiet=True)
+    for name, base, gt, tmp in suite_base_sessions(args.suite, args.part, "bench-lift-refit-"):
         for noise in noises:
             session = annotated_session(
                 base, tmp / "run", args.strategy, args.ref_fraction, noise_px=noise
@@ -77,7 +64,6 @@ def main() -> None:
             )
             Path(args.json).write_text(json.dumps(rows, indent=1))
             session.close()
-        base.close()
     for key in ("lift", "refit"):
         for noise in noises:
             sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]

@@ -3,10 +3,9 @@
 For each finished bench session given (``handanno bench --work-dir``), a fresh session with the
 same dataset, selection and cached crops is annotated by the simulated annotator once per mode:
 every joint clicked (``annotate_from_gt``), or pre-filled (:func:`handanno_core.review_loop.
-annotate_prefilled`: guesses within 4 px of the truth accepted; ``prefilled``: every joint off the
-pre-fill moved once; ``interactive``: one guess moved at a time, the guesses refitted after each
-click as the app's live lift does). Each is lifted (bone lengths estimated as the pipeline does)
-and compared with ground truth.
+annotate_prefilled`: one guess moved at a time, the guesses refitted after each click as the
+app's live lift does, guesses within 4 px of the truth accepted). Each is lifted (bone lengths
+estimated as the pipeline does) and compared with ground truth.
 
     python benchmarks/bench_prefill.py SESSION [SESSION ...] --json out.json
 """
@@ -21,12 +20,30 @@ from pathlib import Path
 
 import numpy as np
 
-from handanno_core import guesses, pipeline
+from handanno_core import pipeline
 from handanno_core.evaluate import error_summary
-from handanno_core.review_loop import REFERENCE_ORDERS, annotate_prefilled
+from handanno_core.guesses import GuessWeights
+from handanno_core.review_loop import annotate_prefilled
 from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
 
-DEFAULT_GUESS_WEIGHTS = (guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT)
+
+def prefill_options(mode: str, click_px: float) -> dict:
+    """:func:`annotate_prefilled` keyword arguments of a pre-filled ``mode`` (see ``--modes``)."""
+    parts = mode.split("-")
+    if parts[0] != "interactive":
+        raise ValueError(f"unknown mode {mode!r}")
+    px = [float(p[2:]) for p in parts if p.startswith("px")]
+    uvw = [float(p[3:]) for p in parts if p.startswith("uvw")]
+    posew = [float(p[5:]) for p in parts if p.startswith("posew")]
+    weights = GuessWeights()
+    return {
+        "click_px": px[0] if px else click_px,
+        "hand_model": "model" in parts,
+        "model_refit": "refit" in parts,
+        "guess_weights": GuessWeights(
+            uv=uvw[0] if uvw else weights.uv, pose=posew[0] if posew else weights.pose
+        ),
+    }
 
 
 def fresh_copy(src: Session, folder: Path) -> Session:
@@ -55,18 +72,13 @@ def main() -> None:
     ap.add_argument("--noise-px", type=float, default=0.0, help="2D noise of a click (std, px)")
     ap.add_argument(
         "--modes",
-        default="all_clicks,prefilled,interactive",
-        help="comma-separated: all_clicks, prefilled (moves every joint off the flow pre-fill "
-        "once), prefilled_model (flow + hand model), interactive (one guess at a time, refit "
-        "after each click, as in the app, the bones estimated from the references so far; -tips: "
-        "wrist and fingertips first; -template: the template bones, each reference lifted alone; "
-        "-pxN: guesses more than N px off are moved instead of --click-px; -model: each pre-fill "
-        "fitted with the hand model personalized from the references so far; -both: pre-filled "
-        "from the annotated references before and after in time too; -pickmodel: the "
-        "propagation whose model fit explains the frame's points best wins; -bisect / -similar: "
-        "the references annotated in that order, handanno_core.review_loop.order_references; "
-        "-refit: each refit also fits the unplaced joints with that hand model, -uvwX / -posewX "
-        "its 2D / pose weights)",
+        default="all_clicks,interactive-model-refit",
+        help="comma-separated: all_clicks, interactive (one guess at a time, refit after each "
+        "click, as in the app, the bones estimated from the references so far; -model: each "
+        "pre-fill fitted with the hand model personalized from the references so far; -refit: "
+        "each refit also fits the unplaced joints with that hand model (interactive-model-refit: "
+        "the default of annotate_prefilled and of handanno bench --prefill), -uvwX / -posewX its "
+        "2D / pose weights; -pxN: guesses more than N px off are moved instead of --click-px)",
     )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
@@ -83,40 +95,23 @@ def main() -> None:
         for mode in args.modes.split(","):
             s = fresh_copy(src, args.work / f"{folder.parent.name}-{folder.name}-{mode}")
             t = time.perf_counter()
-            if mode.startswith("prefilled") or mode.startswith("interactive"):
+            if mode.startswith("interactive"):
                 refit_s: list[float] = []
-                parts = mode.split("-")
-                px = [float(p[2:]) for p in parts if p.startswith("px")]
-                guesses.GUESS_UV_WEIGHT, guesses.GUESS_POSE_WEIGHT = DEFAULT_GUESS_WEIGHTS
-                for p in parts:  # weights of the guesses' model fit (tune-part experiments)
-                    if p.startswith("uvw"):
-                        guesses.GUESS_UV_WEIGHT = float(p[3:])
-                    if p.startswith("posew"):
-                        guesses.GUESS_POSE_WEIGHT = float(p[5:])
                 info = annotate_prefilled(
                     s,
-                    click_px=px[0] if px else args.click_px,
                     noise_px=args.noise_px,
-                    hand_model=mode == "prefilled_model" or "model" in parts,
-                    interactive=parts[0] == "interactive",
-                    order="wrist_tips" if "tips" in parts else "worst",
-                    bones_so_far="template" not in parts and parts[0] == "interactive",
                     refit_s=refit_s,
                     quiet=True,
-                    model_refit="refit" in parts,
-                    reference_order=next(
-                        (p for p in parts if p in REFERENCE_ORDERS and p != "time"), "time"
-                    ),
-                    prefill_kw={
-                        "both_sides": "both" in parts,
-                        "choose": "model" if "pickmodel" in parts else "confidence",
-                    },
+                    **prefill_options(mode, args.click_px),
                 )
                 row[f"{mode}_detail"] = {
                     str(f): {
                         "clicks": info["clicks"][f],
                         "click_order": info["click_order"].get(f, []),
                         "guess_off_px": info["guess_off_px"].get(f),
+                        "guess_mm": None
+                        if f not in info["guess_mm"]
+                        else np.round(info["guess_mm"][f], 2).tolist(),
                         "gap": info["gap"].get(f),
                     }
                     for f in info["order"]
@@ -130,10 +125,6 @@ def main() -> None:
                         "count": int(ms.size),
                     }
                 row[f"{mode}_clicks_per_reference"] = round(info["clicks_per_reference"], 3)
-                if np.isfinite(info["clicks_per_reference_drag"]):  # one-pass annotator only
-                    row[f"{mode}_clicks_per_reference_drag"] = round(
-                        info["clicks_per_reference_drag"], 3
-                    )
                 row[f"{mode}_clicks"] = [int(c) for c in info["clicks"].values()]
             else:
                 pipeline.annotate_from_gt(s, noise_px=args.noise_px, quiet=True)

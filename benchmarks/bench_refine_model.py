@@ -14,38 +14,26 @@ machine load is recorded.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import annotated_session
+from handanno_core.bench import annotated_session, stage_bench_parser, suite_base_sessions
 from handanno_core.evaluate import error_summary
 from handanno_core.refine import RefineWeights, refine
-from handanno_core.suite import read_suite
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("suite")
-    ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
+    ap = stage_bench_parser(__doc__.splitlines()[0])
     ap.add_argument("--weights", default="0,0.3,1,3")
-    ap.add_argument("--ref-fraction", type=float, default=0.05)
-    ap.add_argument("--strategy", default="uniform")
-    ap.add_argument("--json", required=True)
     args = ap.parse_args()
     weights = [float(x) for x in args.weights.split(",")]
-    tmp = Path(tempfile.mkdtemp(prefix="bench-refine-model-"))
     rows = []
-    for name, _part, path in read_suite(args.suite, args.part):
-        base = pipeline.new_session(tmp / "base", path, overwrite=True)
-        gt = base.open_sequence().ground_truth.joints_mm
-        pipeline.ensure_crops(base, quiet=True)
+    for name, base, gt, tmp in suite_base_sessions(args.suite, args.part, "bench-refine-model-"):
         session = annotated_session(base, tmp / "run", args.strategy, args.ref_fraction)
         pipeline.lift(session, quiet=True)
         pipeline.propagate(session, quiet=True, use_model=True)
@@ -72,7 +60,6 @@ def main() -> None:
         )
         Path(args.json).write_text(json.dumps(rows, indent=1))
         session.close()
-        base.close()
     for w in weights:
         means = [r[f"model_{w:g}"]["mean_mm"] for r in rows]
         print(f"w={w:g}: mean of means {np.mean(means):.3f} mm over {len(means)} sequences")

@@ -8,12 +8,14 @@ table shaped like the thesis's Tables 2-4 and plots error against reference frac
 
 from __future__ import annotations
 
+import argparse
 import json
 import platform
 import resource
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +70,39 @@ def annotated_session(
     pipeline.select(session, strategy=strategy, ref_fraction=fraction, figures=False, quiet=True)
     pipeline.annotate_from_gt(session, noise_px=noise_px, quiet=True)
     return session
+
+
+def stage_bench_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments every stage benchmark over a suite part takes (``benchmarks/bench_lift_refit
+    .py``, ``bench_refine_model.py``): the suite folder, ``--part``, ``--ref-fraction``,
+    ``--strategy``, ``--json``; the script adds its own."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("suite")
+    ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
+    ap.add_argument("--ref-fraction", type=float, default=0.05)
+    ap.add_argument("--strategy", default="uniform")
+    ap.add_argument("--json", required=True)
+    return ap
+
+
+def suite_base_sessions(
+    suite: str | Path, part: str, prefix: str
+) -> Iterator[tuple[str, Session, np.ndarray, Path]]:
+    """For every sequence of the suite's ``part`` (:func:`handanno_core.suite.read_suite`):
+    ``(name, base session with its crops cached, ground truth (N, J, 3) mm, scratch folder)``, the
+    base session in a new temporary folder named ``prefix...`` (closed when the caller moves on);
+    runs are made from it with :func:`annotated_session` under the scratch folder."""
+    from .suite import read_suite
+
+    tmp = Path(tempfile.mkdtemp(prefix=prefix))
+    for name, _part, path in read_suite(suite, part):
+        base = pipeline.new_session(tmp / "base", path, overwrite=True)
+        try:
+            gt = base.open_sequence().ground_truth.joints_mm
+            pipeline.ensure_crops(base, quiet=True)
+            yield name, base, gt, tmp
+        finally:
+            base.close()
 
 
 def copy_session(folder: Path, to: Path) -> None:

@@ -35,7 +35,14 @@ from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .skeleton import Skeleton
 
-__all__ = ["LIVE_MAX_ITER", "GuessFit", "live_lift_function", "model_guesses", "refit_guesses"]
+__all__ = [
+    "LIVE_MAX_ITER",
+    "GuessFit",
+    "GuessWeights",
+    "live_lift_function",
+    "model_guesses",
+    "refit_guesses",
+]
 
 #: SLSQP iterations of the live re-lift while a joint is edited (measured on the demo: hard solves
 #: converge in 13-28 iterations at ~0.9 ms each, elastic ones in 16-22 at ~2.5 ms each, since their
@@ -53,6 +60,17 @@ def live_lift_function() -> Callable[..., object]:
     from .lift import lift_frame
 
     return functools.partial(lift_frame, max_iter=LIVE_MAX_ITER)
+
+
+@dataclass(frozen=True)
+class GuessWeights:
+    """Weights of :func:`model_guesses` (the hand model's energy units, ``handmodel.FitWeights``):
+    ``uv`` per px² to a placed joint's click (the lift refit's weight for exact clicks,
+    ``lift.model_refit.RefitSettings``: 1.2 / 0.4²), ``pose`` per mm² to the lift's pose. Chosen
+    on the suite's tune part (``benchmarks/bench_prefill.py``; README "Fourth round")."""
+
+    uv: float = 7.5
+    pose: float = 0.02
 
 
 @dataclass
@@ -82,6 +100,7 @@ def refit_guesses(
     lift_fn: Callable[..., object] | None = None,
     hand_model=None,
     observation=None,
+    guess_weights: GuessWeights | None = None,
 ) -> GuessFit:
     """Refit a frame's guesses to its placed joints (see the module docstring).
 
@@ -94,7 +113,7 @@ def refit_guesses(
     annotation's 3D placements when every joint has one (else the lift's own start).
     ``hand_model`` / ``observation`` (a personalized :class:`handanno_core.handmodel.HandModel`
     and the frame's :func:`handanno_core.handmodel.observe`): the unplaced joints are then
-    fitted to the frame's own points (:func:`model_guesses`).
+    fitted to the frame's own points (:func:`model_guesses`, weights ``guess_weights``).
     """
     if lift_fn is None:
         lift_fn = live_lift_function()
@@ -117,15 +136,10 @@ def refit_guesses(
     conf = np.asarray(getattr(result, "confidence", np.ones(len(joints))), dtype=np.float64)
     slack = tuple(int(k) for k in getattr(result, "slack_joints", ()))
     if hand_model is not None and observation is not None and np.all(np.isfinite(joints)):
-        joints = model_guesses(joints, annotation, hand_model, observation, camera)
+        joints = model_guesses(
+            joints, annotation, hand_model, observation, camera, weights=guess_weights
+        )
     return GuessFit(joints, conf, slack)
-
-
-#: weights of :func:`model_guesses` (the hand model's energy units, ``handmodel.FitWeights``):
-#: per px² to a placed joint's click (the lift refit's weight for exact clicks,
-#: ``lift.model_refit.RefitSettings``: 1.2 / 0.4²) and per mm² to the lift's pose
-GUESS_UV_WEIGHT = 7.5
-GUESS_POSE_WEIGHT = 0.02
 
 
 def model_guesses(
@@ -134,25 +148,25 @@ def model_guesses(
     hand_model,
     observation,
     camera: CameraIntrinsics,
+    weights: GuessWeights | None = None,
 ) -> np.ndarray:
     """``(J, 3)`` mm: ``joints_mm`` (a lift of the placed joints) with its unplaced joints moved to
     the hand model's fit of the frame's own points (articulated ICP,
     :func:`handanno_core.handmodel.fit_frames`, from ``joints_mm``): the placed joints' clicks
-    as a 2D prior, the lift's pose as a weak prior. The placed joints keep the lift's position.
-    ``observation``: the frame's :class:`handanno_core.handmodel.FrameObservations` (one frame)."""
+    as a 2D prior, the lift's pose as a weak prior (:func:`handanno_core.lift.model_refit.
+    click_priors`, ``weights`` default :class:`GuessWeights`). The placed joints keep the lift's
+    position. ``observation``: the frame's :class:`handanno_core.handmodel.FrameObservations`
+    (one frame)."""
     from dataclasses import replace
 
     from . import handmodel as hm
+    from .lift.model_refit import click_priors
 
+    gw = weights or GuessWeights()
     x = np.asarray(joints_mm, dtype=np.float64)
     placed = np.asarray(annotation.has_2d, dtype=bool)
-    priors = hm.Priors(
-        pose=x[None],
-        pose_w=np.ones((1, len(x))),
-        uv=np.nan_to_num(np.asarray(annotation.uv_px, dtype=np.float64))[None],
-        uv_w=placed[None].astype(np.float64),
-    )
-    w = replace(hm.FitWeights(), uv=GUESS_UV_WEIGHT, pose=GUESS_POSE_WEIGHT)
+    priors = click_priors(x[None], [annotation])
+    w = replace(hm.FitWeights(), uv=gw.uv, pose=gw.pose)
     fit = hm.fit_frames(hand_model, x[None], observation, camera, weights=w, priors=priors)
     out = x.copy()
     fitted = fit.joints_mm[0]

@@ -7,11 +7,12 @@ is wrong. The estimate, best first:
 1. the frame's own results: refined (``final_mm``), else propagated (``init_mm``), else lifted
    (``lifted_mm``);
 2. propagation (:func:`handanno_core.propagate.propagate`: flow between hand crops, depth read
-   from each frame's own depth map, bone lengths restored) from the nearest frame in time, within
-   the same sequence segment, that has joints (a lifted reference or a frame with results), in
-   one jump or through the frames in between (every ``stride``-th; see :data:`STRIDE`). With
-   ``descriptors`` (the session's crop descriptors) also one jump from the frame that looks most
-   alike; of the two the propagation with the higher mean confidence wins;
+   from each frame's own depth map, bone lengths restored) in one jump from the nearest frame in
+   time, within the same sequence segment, that has joints (a lifted reference or a frame with
+   results). With ``descriptors`` (the session's crop descriptors) also one jump from the frame
+   that looks most alike; of the two the propagation with the higher mean confidence wins
+   (walking through the frames in between, and other sources and choices, were tried and not
+   adopted: README, "pre-filled references");
    With ``hand_model`` the propagation ends with the hand model personalized from the lifted
    references fitted to the frame's own depth (:func:`reference_hand_model`,
    :func:`session_hand_model`; the app and the bench's annotator use it once two references are
@@ -42,15 +43,8 @@ __all__ = [
     "template_hand",
 ]
 
-#: the pre-fill propagates through every STRIDE-th frame between the source and the frame (0: one
-#: jump). On synthetic seed 0 (5 % forest references, the first 11 after the first) walking every
-#: frame moved as many joints as one jump (10.4 vs 11.0 of 21 more than 4 px off) and took longer;
-#: on the 30-frame test sequence it drifted (3.9 mm against 1.6 mm for the jump).
-STRIDE = 0
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
-#: how :func:`prefill_reference` picks among its propagations
-CHOICES = ("confidence", "model")
 #: lifted references needed before pre-fills are fitted with the hand model personalized from them
 MODEL_MIN_REFERENCES = 2
 #: :func:`session_hand_model` personalizes from at most this many lifted references, the nearest
@@ -103,13 +97,6 @@ def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | No
     return int(cand[np.lexsort((cand, d))[0]])
 
 
-def _neighbours_known(frame: int, has: np.ndarray, segment: np.ndarray) -> list[int]:
-    """The nearest frames with joints before and after ``frame`` in time in its segment (0-2)."""
-    cand = np.flatnonzero(has & (segment == segment[frame]))
-    before, after = cand[cand < frame], cand[cand > frame]
-    return ([int(before[-1])] if before.size else []) + ([int(after[0])] if after.size else [])
-
-
 def _most_similar_known(frame: int, has: np.ndarray, descriptors: np.ndarray) -> int | None:
     """The frame with joints whose hand crop looks most like ``frame``'s (cosine distance of the
     L2-normalized ``descriptors`` (N, D) of :mod:`handanno_core.descriptors`)."""
@@ -134,32 +121,21 @@ def cached_crops(session: Session):
     return np.load(folder / CROPS_FILE, mmap_mode="r"), centres, boxes
 
 
-def _propagate_path(
-    session: Session,
-    source: int,
-    frame: int,
-    joints: np.ndarray,
-    crop_data,
-    stride: int,
-    hand_model=False,
+def _propagate_jump(
+    session: Session, source: int, frame: int, joints: np.ndarray, crop_data, hand_model=False
 ):
-    """Propagate ``source -> frame`` through the frames between them in time, every ``stride``-th
-    (``stride`` 0: one jump); ``((J, 3) mm, mean confidence, model residual mm)`` or None if it
-    was skipped (the residual: mean |point-to-surface| of the frame's observed points at the
-    returned pose, ``data_mm`` of ``PropagationResult.model_fit``; NaN without the model).
-    ``hand_model``: a :class:`handanno_core.handmodel.HandModel` fitted to ``frame``'s own depth
-    after the flow (see :func:`handanno_core.propagate.propagate`), or False."""
+    """Propagate ``source -> frame`` in one jump; ``((J, 3) mm, mean confidence)`` or None if it
+    was skipped. ``hand_model``: a :class:`handanno_core.handmodel.HandModel` fitted to
+    ``frame``'s own depth after the flow (see :func:`handanno_core.propagate.propagate`), or
+    False."""
     from .propagate import propagate
 
     crops, centres, boxes = crop_data
     skeleton = session.skeleton
     bones = session.frame_bone_lengths()  # (B,), or (N, B): each frame its hand's
     bones = skeleton.bone_lengths(joints) if bones is None else bones
-    step = 1 if frame > source else -1
-    path = np.arange(source, frame, step * stride) if stride > 0 else np.array([source])
-    path = np.append(path, frame)  # source, ..., frame
     parent = np.full(session.num_frames, -1, dtype=np.int64)
-    parent[path[1:]] = path[:-1]
+    parent[frame] = source
     sequence = session.open_sequence()
     result = propagate(
         parent,
@@ -172,14 +148,13 @@ def _propagate_path(
         skeleton,
         bones,
         aligner=session.model.settings.aligner,
-        frames=path[1:],
+        frames=np.array([frame]),
         hand_model=hand_model,
     )
     out = result.joints_mm[frame]
     if not np.all(np.isfinite(out)):
         return None
-    residual = np.nan if result.model_fit is None else float(result.model_fit[frame, 1])
-    return out, float(np.nanmean(result.confidence[frame])), residual
+    return out, float(np.nanmean(result.confidence[frame]))
 
 
 def prefill_reference(
@@ -187,25 +162,17 @@ def prefill_reference(
     frame: int,
     results: dict[str, np.ndarray] | None,
     *,
-    stride: int = STRIDE,
     descriptors: np.ndarray | None = None,
     hand_model=False,
-    both_sides: bool = False,
-    choose: str = "confidence",
 ) -> np.ndarray | None:
     """``(J, 3)`` mm best current estimate of ``frame``'s joints (see the module docstring), or
     None when nothing in the session has joints. ``results`` are the session's result arrays
     (:meth:`Session.load_results`; read from the session when None); they are not modified.
     ``hand_model``: a personalized :class:`handanno_core.handmodel.HandModel`
     (:func:`reference_hand_model`) fitted to the frame's own depth after the flow: the guess
-    snapped to the frame's surface and silhouette (False: flow only). ``both_sides``: also
-    propagate from the nearest frame with joints before and the nearest after ``frame`` in time
-    (same segment). ``choose``: which propagation wins, ``"confidence"`` (highest mean
-    confidence) or ``"model"`` (lowest model residual: the fitted pose explains the frame's own
-    points best; needs ``hand_model``, else as "confidence").
+    snapped to the frame's surface and silhouette (False: flow only). ``descriptors`` (N, D):
+    the session's crop descriptors (None: the nearest frame in time only).
     """
-    if choose not in CHOICES:
-        raise ValueError(f"unknown pre-fill choice {choose!r}; use one of {CHOICES}")
     frame = int(frame)
     n = session.num_frames
     if not 0 <= frame < n:
@@ -221,23 +188,16 @@ def prefill_reference(
         return None
     crop_data = cached_crops(session)
     if crop_data is not None:
-        tries = [(source, stride)]
-        if both_sides:
-            for side in _neighbours_known(frame, has, segment):
-                if side not in {t[0] for t in tries}:
-                    tries.append((side, stride))
+        tries = [source]
         if descriptors is not None:
             similar = _most_similar_known(frame, has, descriptors)
-            if similar is not None and similar not in {t[0] for t in tries}:
-                tries.append((similar, 0))
+            if similar is not None and similar != source:
+                tries.append(similar)
         found = [
-            _propagate_path(session, s, frame, joints[s], crop_data, k, hand_model)
-            for s, k in tries
+            _propagate_jump(session, s, frame, joints[s], crop_data, hand_model) for s in tries
         ]
         found = [f for f in found if f is not None]
-        if found:  # no ground truth: the most confident propagation, or the best model fit
-            if choose == "model" and all(np.isfinite(f[2]) for f in found):
-                return min(found, key=lambda f: f[2])[0].copy()
+        if found:  # no ground truth: the most confident propagation
             return max(found, key=lambda f: f[1])[0].copy()
         centres = crop_data[1]
         shift = np.asarray(centres[frame] - centres[source], dtype=np.float64)

@@ -15,12 +15,11 @@ app would, from ground truth (2D positions, visibility and depth order only):
   ``click_px``, accept the guesses. One click per moved joint.
 * :func:`annotate_prefilled` - the references, in time order, each opened pre-filled by
   :func:`handanno_core.prefill.prefill_reference` (with the crop descriptors) from the references
-  annotated before it and fixed with :func:`interactive_fix` (default) or :func:`simulated_fix`;
-  after each, the references annotated so far are lifted with their bone lengths estimated (as
-  the app's "Lift all"), so the next one is pre-filled from them and refitted with those bones
-  (and, from the second lifted reference on, with the hand model personalized from them); a
-  frame with nothing to pre-fill from opens with the template hand at its hand centre, as in the
-  app (one click per joint with :func:`simulated_fix`).
+  annotated before it and fixed with :func:`interactive_fix`; after each, the references
+  annotated so far are lifted with their bone lengths estimated (as the app's "Lift all"), so the
+  next one is pre-filled from them and refitted with those bones (and, from the second lifted
+  reference on, with the hand model personalized from them); a frame with nothing to pre-fill
+  from opens with the template hand at its hand centre, as in the app.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
@@ -72,63 +71,20 @@ def simulated_fix(
     noise_px: float = 0.0,
     rng: np.random.Generator | None = None,
     click_px: float = CLICK_PX,
-    drag_subtree: bool = False,
 ) -> tuple[FrameAnnotation, int]:
     """What the simulated annotator leaves on a frame drawn with ``shown_mm`` (J, 3) mm, and how
     many joints it moved (clicks). ``gt_mm`` (J, 3) mm, ``depth`` (H, W) mm. Moved joints get the
     true 2D plus ``noise_px`` Gaussian noise, the others keep their drawn 2D position; visibility
-    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`).
-
-    ``drag_subtree``: moving a joint drags the joints below it in the skeleton by the same 2D
-    offset (joints are visited parents first), so a finger drawn shifted costs one click at its
-    base; without it every joint more than ``click_px`` off is clicked on its own."""
+    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`)."""
     from .synth import simulate_annotation
 
     ann = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
-    target = ann.uv_px.copy()  # truth + noise: where a moved joint is put
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
     drawn = camera.project(np.asarray(shown_mm, dtype=np.float64))
-    if not drag_subtree:
-        with np.errstate(invalid="ignore"):
-            keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
-        ann.uv_px[keep] = drawn[keep]
-        return ann, int((~keep).sum())
-    uv = drawn.copy()
-    clicks = 0
-    parents = skeleton.parent_array
-    below = {int(k): [] for k in range(skeleton.num_joints)}
-    for k in skeleton.topological_order[::-1]:  # children before parents: collect subtrees
-        if parents[k] >= 0:
-            below[int(parents[k])] += [int(k)] + below[int(k)]
-    for k in (int(x) for x in skeleton.topological_order):
-        with np.errstate(invalid="ignore"):
-            ok = np.linalg.norm(uv[k] - truth[k]) <= click_px
-        if ok:
-            continue
-        delta = target[k] - uv[k]
-        uv[k] = target[k]
-        if np.all(np.isfinite(delta)):
-            uv[below[k]] += delta
-        clicks += 1
-    ann.uv_px[:] = uv
-    return ann, clicks
-
-
-#: the order the interactive annotator moves guesses in: "worst" = the guess furthest off first;
-#: "wrist_tips" = the wrist, then the fingertips, then the rest, each when more than click_px off
-ORDERS = ("worst", "wrist_tips")
-
-
-def _click_priority(skeleton, order: str) -> np.ndarray:
-    """``(J,)`` rank of each joint in ``order`` (lower first; ties by how far off)."""
-    j = skeleton.num_joints
-    if order == "worst":
-        return np.zeros(j)
-    if order == "wrist_tips":
-        parents = skeleton.parent_array
-        leaf = ~np.isin(np.arange(j), parents)
-        return np.where(parents < 0, 0.0, np.where(leaf, 1.0, 2.0))
-    raise ValueError(f"unknown click order {order!r}; use one of {ORDERS}")
+    with np.errstate(invalid="ignore"):
+        keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
+    ann.uv_px[keep] = drawn[keep]
+    return ann, int((~keep).sum())
 
 
 def interactive_fix(
@@ -144,14 +100,14 @@ def interactive_fix(
     noise_px: float = 0.0,
     rng: np.random.Generator | None = None,
     click_px: float = CLICK_PX,
-    order: str = "worst",
     refit_s: list[float] | None = None,
     hand_model=None,
     observation=None,
+    guess_weights=None,
 ) -> tuple[FrameAnnotation, int, list[int]]:
     """What a person does in the app with a frame opened with guesses ``guess_mm`` (J, 3) mm: move
-    the guess that is furthest off (more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm;
-    ``order`` may put the wrist and fingertips first), let the guesses refit
+    the guess that is furthest off (more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm),
+    let the guesses refit
     (:func:`handanno_core.guesses.refit_guesses`, as the app's live lift, warm-started from the
     previous refit, ``bone_lengths_mm`` (B,) mm, ``eps_mm``/``angle_limits`` the session's), and
     repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D).
@@ -162,13 +118,12 @@ def interactive_fix(
     camera, off the image) counts as off. Returns ``(annotation, clicks, joints in click
     order)``. ``refit_s``: each refit's duration (s) is appended to it. ``hand_model`` /
     ``observation``: the refit also fits the unplaced joints to the frame's own points
-    (:func:`handanno_core.guesses.model_guesses`)."""
+    (:func:`handanno_core.guesses.model_guesses`, weights ``guess_weights``)."""
     from .guesses import refit_guesses
     from .synth import simulate_annotation
 
     full = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
-    rank = _click_priority(skeleton, order)
     guess = np.asarray(guess_mm, dtype=np.float64)
     ann = FrameAnnotation.empty(skeleton.num_joints)
     shown, previous, slack = guess, None, ()
@@ -185,7 +140,7 @@ def interactive_fix(
         if not todo.any():
             break
         cand = np.flatnonzero(todo)
-        k = int(cand[np.lexsort((-off[cand], rank[cand]))[0]])
+        k = int(cand[np.argmax(off[cand])])  # the furthest off (the first of equals)
         ann.uv_px[k] = full.uv_px[k]
         ann.visible[k] = full.visible[k]
         ann.depth_order[k] = full.depth_order[k]
@@ -206,6 +161,7 @@ def interactive_fix(
                 elastic_joints=slack,
                 hand_model=hand_model,
                 observation=observation,
+                guess_weights=guess_weights,
             )
         except ValueError:  # the app keeps drawing the last guesses when a refit fails
             continue
@@ -235,50 +191,6 @@ def _lift(session: Session, ann: FrameAnnotation, depth: np.ndarray, bones, init
         angle_limits=s.angle_limits,
         init_mm=init_mm,
     )
-
-
-#: the orders :func:`annotate_prefilled` can annotate the references in
-REFERENCE_ORDERS = ("time", "bisect", "similar")
-
-
-def order_references(
-    frames, order: str = "time", descriptors: np.ndarray | None = None
-) -> list[int]:
-    """The reference ``frames`` in the order they are annotated: ``"time"``; ``"bisect"`` (the
-    first and the last, then each time the one in the middle of the widest gap between annotated
-    ones, so most references have an annotated neighbour on both sides); ``"similar"`` (the first,
-    then each time the one whose crop descriptor (``descriptors`` (N, D), L2-normalized) is
-    closest to an annotated one's: every next reference has a similar-looking annotated one)."""
-    f = sorted(int(x) for x in frames)
-    if order == "time" or len(f) < 3:
-        return f
-    if order == "bisect":
-        out, todo = [f[0], f[-1]], [(0, len(f) - 1)]
-        while todo:
-            todo.sort(key=lambda ab: (f[ab[0]] - f[ab[1]], ab[0]))  # widest gap first
-            a, b = todo.pop(0)
-            if b - a < 2:
-                continue
-            m = (a + b) // 2
-            out.append(f[m])
-            todo += [(a, m), (m, b)]
-        return out
-    if order == "similar":
-        if descriptors is None:
-            raise ValueError("the 'similar' reference order needs crop descriptors")
-        d = np.asarray(descriptors, dtype=np.float64)[f]
-        dist = 1.0 - d @ d.T  # (K, K) cosine distance
-        done = np.zeros(len(f), dtype=bool)
-        done[0] = True
-        best = dist[0].copy()
-        out = [f[0]]
-        for _ in range(len(f) - 1):
-            k = int(np.argmin(np.where(done, np.inf, best)))
-            done[k] = True
-            best = np.minimum(best, dist[k])
-            out.append(f[k])
-        return out
-    raise ValueError(f"unknown reference order {order!r}; use one of {REFERENCE_ORDERS}")
 
 
 def _offsets_px(camera: CameraIntrinsics, a_mm: np.ndarray, b_mm: np.ndarray) -> list[float]:
@@ -348,45 +260,33 @@ def annotate_prefilled(
     seed: int = 0,
     click_px: float = CLICK_PX,
     hand_model: bool = True,
-    interactive: bool = True,
-    order: str = "worst",
-    bones_so_far: bool = True,
+    model_refit: bool = True,
+    guess_weights=None,
     refit_s: list[float] | None = None,
     quiet: bool = False,
-    reference_order: str = "time",
-    prefill_kw: dict | None = None,
-    model_refit: bool = True,
-    first_template: bool = True,
 ) -> dict:
     """Annotate every reference with pre-fills (see the module docstring); one journal entry.
+
+    The references are annotated in time order, each opened with its pre-fill and fixed by
+    :func:`interactive_fix` (each refit's seconds appended to ``refit_s``); the first, with
+    nothing to pre-fill from, opens with the template hand at its hand centre, as in the app
+    (:func:`handanno_core.prefill.template_hand`; all its joints clicked without the crop cache).
+    After each reference, the references annotated so far are lifted with their bone lengths
+    estimated (:func:`handanno_core.lift.lift_references`, what the app's "Lift all" does), and
+    those bones and lifts feed the next pre-fill and refits (one bone set for the session).
     ``hand_model``: once :data:`MODEL_MIN_REFERENCES` references are lifted, the hand model
     personalized from them (:func:`handanno_core.prefill.reference_hand_model`) snaps each further
-    pre-fill to its frame's own depth and silhouette (on by default, as the app's pre-fill:
-    chosen on the suite's tune part, README). ``interactive``: the annotator moves one
-    guess at a time and the guesses refit after each click (:func:`interactive_fix`, click
-    ``order``, each refit's seconds appended to ``refit_s``); False: every joint
-    more than ``click_px`` off the pre-fill is moved once (:func:`simulated_fix`).
-    ``bones_so_far``: after each reference, the references annotated so far are lifted with their
-    bone lengths estimated (:func:`handanno_core.lift.lift_references`, what the app's "Lift all"
-    does), and those bones and lifts feed the next pre-fill and refits (one bone set for the
-    session: the several-hands bones are not estimated here); False: the session's bones (the
-    template in a fresh session) and each reference lifted on its own.
-    ``reference_order``: the order the references are annotated in (:func:`order_references`).
-    ``prefill_kw``: further options of :func:`handanno_core.prefill.prefill_reference`
-    (``both_sides``, ``choose``). ``model_refit`` (with ``hand_model`` and ``interactive``): each
-    refit also fits the unplaced joints to the frame's own points with that hand model
-    (:func:`handanno_core.guesses.model_guesses`; on by default, as the app's live refits).
-    ``first_template`` (with ``interactive``): a reference with nothing to pre-fill from (the
-    first) opens with the template hand at its hand centre, as in the app
-    (:func:`handanno_core.prefill.template_hand`); False: all its joints are clicked.
+    pre-fill to its frame's own depth and silhouette, and with ``model_refit`` each refit also fits
+    the unplaced joints to the frame's own points (:func:`handanno_core.guesses.model_guesses`,
+    weights ``guess_weights``, a :class:`handanno_core.guesses.GuessWeights`; None: its
+    defaults). Both on by default, as in the app (chosen on the suite's tune part, README).
 
     Returns ``{"clicks": {frame: joints moved}, "prefilled": frames that opened pre-filled,
-    "clicks_per_reference": mean, "clicks_per_reference_drag": the mean if moving a joint dragged
-    the joints below it along (:func:`simulated_fix` ``drag_subtree``; the annotation stored is the
-    plain one), "click_order": {frame: joints in click order}, "guess_off_px": {frame: (J,) px
-    of the pre-fill from the truth (evaluation)}, "gap": {frame: frames in time to the nearest
-    reference annotated before it}, "order": the frames in annotation order, "template": the
-    frames opened with the template hand}``. Needs the
+    "clicks_per_reference": mean, "click_order": {frame: joints in click order},
+    "guess_off_px": {frame: (J,) px of the pre-fill from the truth (evaluation)}, "guess_mm":
+    {frame: (J, 3) mm the pre-fill}, "gap": {frame:
+    frames in time to the nearest reference annotated before it}, "order": the frames in
+    annotation order, "template": the frames opened with the template hand}``. Needs the
     session's crops on disk for propagated pre-fills.
     """
     from .prefill import cached_crops, prefill_reference, reference_hand_model
@@ -403,13 +303,13 @@ def annotate_prefilled(
     results = session.load_results()
     scratch = {k: np.full_like(results[k], np.nan) for k in ("lifted_mm", "init_mm", "final_mm")}
     clicks: dict[int, int] = {}
-    clicks_drag: dict[int, int] = {}
     order_of: dict[int, list[int]] = {}
     prefilled: list[int] = []
     templates: list[int] = []
     annotations: dict[int, FrameAnnotation] = {}
     guess_off, gaps = {}, {}  # {frame: (J,) px}, {frame: frames to the nearest annotated}
-    refs = order_references(session.reference_frames, reference_order, descriptors)
+    guess_of: dict[int, np.ndarray] = {}  # {frame: (J, 3) mm pre-fill}
+    refs = sorted(int(f) for f in session.reference_frames)
     estimated = None  # the bones of the last "lift all"
     for f in refs:
         rng = np.random.default_rng([seed, f, 404])  # as pipeline.annotate_from_gt
@@ -418,16 +318,12 @@ def annotate_prefilled(
         lifted = np.flatnonzero(np.all(np.isfinite(scratch["lifted_mm"]), axis=(1, 2)))
         if hand_model and bones is not None and lifted.size >= MODEL_MIN_REFERENCES:
             model = reference_hand_model(session, scratch["lifted_mm"], lifted, bones) or False
-        guess = prefill_reference(
-            session, f, scratch, descriptors=descriptors, hand_model=model, **(prefill_kw or {})
-        )
+        guess = prefill_reference(session, f, scratch, descriptors=descriptors, hand_model=model)
         if annotations:
             gaps[f] = int(min(abs(f - g) for g in annotations))
-        elif guess is None and interactive and first_template:
+        elif guess is None:
             guess = _template_guess(session, f)  # as the app: a template hand at the centre
             templates += [] if guess is None else [f]
-        if guess is not None:  # evaluation only: how far each guess is drawn from the truth
-            guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])
         if guess is None:
             from .synth import simulate_annotation
 
@@ -435,7 +331,9 @@ def annotate_prefilled(
                 gt.joints_mm[f], depth, sequence.camera, skeleton, noise_px, rng
             )
             clicks[f] = skeleton.num_joints
-        elif interactive:
+        else:
+            guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])  # evaluation
+            guess_of[f] = np.asarray(guess, dtype=np.float64)
             settings = session.model.settings
             ann, clicks[f], order_of[f] = interactive_fix(
                 guess,
@@ -443,40 +341,19 @@ def annotate_prefilled(
                 depth,
                 sequence.camera,
                 skeleton,
-                np.asarray(bones if bones_so_far else session.bone_lengths_of(f) or bones),
+                np.asarray(bones),
                 eps_mm=settings.eps_mm,
                 angle_limits=settings.angle_limits,
                 noise_px=noise_px,
                 rng=rng,
                 click_px=click_px,
-                order=order,
                 refit_s=refit_s,
+                guess_weights=guess_weights,
                 **_model_refit_inputs(session, f, model if model_refit else False),
             )
             prefilled += [] if f in templates else [f]
-        else:
-            ann, clicks[f] = simulated_fix(
-                guess,
-                gt.joints_mm[f],
-                depth,
-                sequence.camera,
-                skeleton,
-                noise_px=noise_px,
-                rng=rng,
-                click_px=click_px,
-            )
-            clicks_drag[f] = simulated_fix(
-                guess,
-                gt.joints_mm[f],
-                depth,
-                sequence.camera,
-                skeleton,
-                click_px=click_px,
-                drag_subtree=True,
-            )[1]
-            prefilled.append(f)
         annotations[f] = ann
-        if bones_so_far and len(annotations) >= 2:  # "lift all" on the references so far
+        if len(annotations) >= 2:  # "lift all" on the references so far
             bones = _lift_all(session, sequence, annotations, scratch["lifted_mm"], estimated)
             estimated = bones
         elif bones is not None:  # lifted now so that the next reference can be pre-filled from it
@@ -492,7 +369,6 @@ def annotate_prefilled(
         client="simulated-annotator",
     )
     per_ref = float(np.mean(list(clicks.values()))) if clicks else float("nan")
-    per_ref_drag = float(np.mean(list(clicks_drag.values()))) if clicks_drag else float("nan")
     if not quiet:
         print(
             f"annotated {len(clicks)} references pre-filled: {per_ref:.1f} joints moved per "
@@ -503,9 +379,9 @@ def annotate_prefilled(
         "clicks": clicks,
         "prefilled": prefilled,
         "clicks_per_reference": per_ref,
-        "clicks_per_reference_drag": per_ref_drag,
         "click_order": order_of,
         "guess_off_px": guess_off,
+        "guess_mm": guess_of,
         "gap": gaps,
         "order": refs,
         "template": templates,
@@ -723,9 +599,6 @@ def bench_run_review(
     if prefilled is not None:
         clicks = int(sum(prefilled["clicks"].values()))
         run["clicks_per_reference"] = round(prefilled["clicks_per_reference"], 3)
-        drag = prefilled["clicks_per_reference_drag"]
-        if np.isfinite(drag):  # the one-pass annotator only (simulated_fix)
-            run["clicks_per_reference_drag"] = round(drag, 3)
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)

@@ -541,7 +541,7 @@ def test_worker_fits_guesses_with_the_frames_hand_model(session, monkeypatch):
         asked.append(frame)
         return {"hand_model": "model", "observation": f"points of {frame}"}
 
-    def model_guesses(joints, annotation, hand_model, observation, camera):
+    def model_guesses(joints, annotation, hand_model, observation, camera, weights=None):
         fitted.append((hand_model, observation))
         return joints + 1.0
 

@@ -89,27 +89,22 @@ def test_nearest_known_stays_in_its_segment():
     assert _nearest_known(3, has2, seg) == 15  # nothing in its segment: across the break
 
 
-@pytest.mark.parametrize("interactive", [True, False])
-def test_bench_annotator_opens_references_prefilled(session, interactive):
+def test_bench_annotator_opens_references_prefilled(session):
     from handanno_core.pipeline import ensure_crops
     from handanno_core.review_loop import annotate_prefilled
 
     ensure_crops(session, quiet=True)
     refs = session.reference_frames.tolist()  # 0, 10, 20
     entries_before = len(session.folder.joinpath("journal.jsonl").read_text().splitlines())
-    info = annotate_prefilled(session, interactive=interactive, quiet=True)
+    info = annotate_prefilled(session, quiet=True)
     assert refs[0] not in info["prefilled"]  # nothing to pre-fill it from
-    if interactive:  # it opens with the template hand at its hand centre, as in the app
-        assert info["template"] == [refs[0]] and info["clicks"][refs[0]] < 21
-    else:  # every joint clicked
-        assert info["template"] == [] and info["clicks"][refs[0]] == 21
+    # it opens with the template hand at its hand centre, as in the app
+    assert info["template"] == [refs[0]] and info["clicks"][refs[0]] < 21
     assert info["prefilled"] == refs[1:]
     assert all(info["clicks"][f] < 21 for f in refs[1:])  # the guesses were mostly right
     assert info["clicks_per_reference"] == pytest.approx(np.mean(list(info["clicks"].values())))
-    if interactive:  # one guess moved at a time, in the order recorded
-        assert all(len(info["click_order"][f]) == info["clicks"][f] for f in refs[1:])
-    else:
-        assert info["clicks_per_reference_drag"] <= 21
+    # one guess moved at a time, in the order recorded
+    assert all(len(info["click_order"][f]) == info["clicks"][f] for f in refs[1:])
     gt = session.open_sequence().ground_truth.joints_mm
     for f in refs:
         ann = session.annotation(f)
@@ -139,25 +134,6 @@ def test_hand_model_snaps_the_prefill_to_the_frames_depth(session):
     # still a usable guess, its bones the session's
     assert errors(snapped, gt[frame]).mean() < 15.0
     np.testing.assert_allclose(session.skeleton.bone_lengths(snapped), bones, rtol=0.02)
-
-
-def test_reference_orders():
-    from handanno_core.review_loop import order_references
-
-    refs = [40, 0, 10, 20, 30]
-    assert order_references(refs) == [0, 10, 20, 30, 40]
-    # bisect: the ends, then the middle of the widest gap between annotated ones
-    assert order_references(refs, "bisect") == [0, 40, 20, 10, 30]
-    # similar: each next reference is the one most alike an annotated one (not the next in time)
-    desc = np.zeros((41, 2))
-    angles = {0: 0.0, 10: 1.2, 20: 0.1, 30: 1.3, 40: 0.2}  # 0, 20, 40 look alike; 10, 30 too
-    for f, a in angles.items():
-        desc[f] = [np.cos(a), np.sin(a)]
-    assert order_references(refs, "similar", desc) == [0, 20, 40, 10, 30]
-    with pytest.raises(ValueError, match="descriptors"):
-        order_references(refs, "similar")
-    with pytest.raises(ValueError, match="unknown"):
-        order_references(refs, "random")
 
 
 def test_session_hand_model_needs_two_lifted_references_and_bones(session):

@@ -88,13 +88,20 @@ def estimate_click_noise(residual_px: np.ndarray, settings: RefitSettings | None
     return float(np.sqrt(max(s2 - st.probe_floor_px**2, 0.0)) / st.probe_slope)
 
 
-def _priors(lifted, annotations, settings: RefitSettings, fit_pose: float):
+def click_priors(
+    pose_mm: np.ndarray, annotations: list[FrameAnnotation], placed_pose_w: float = 1.0
+) -> hm.Priors:
+    """The clicks of ``annotations`` (K of them) as the hand-model fit's priors
+    (:class:`handanno_core.handmodel.Priors`): each joint's 2D click (weight 1, 0 where not
+    clicked) and the pose ``pose_mm`` (K, J, 3) mm as a pose prior (weight 1), replaced by the
+    annotation's 3D placement where a joint was placed in 3D (weight ``placed_pose_w``: it
+    multiplies ``FitWeights.pose``). Used by the references' refit here and by the guesses' fit
+    (:func:`handanno_core.guesses.model_guesses`)."""
     uv = np.stack([a.uv_px for a in annotations]).astype(np.float64)
     has_uv = np.all(np.isfinite(uv), axis=-1)
     placed = np.stack([a.has_3d for a in annotations])
-    pose = np.where(placed[..., None], np.stack([a.xyz_mm for a in annotations]), lifted)
-    # pose_w multiplies FitWeights.pose: a placed joint's weight is placed_pose per mm²
-    pose_w = np.where(placed, settings.placed_pose / fit_pose, 1.0)
+    pose = np.where(placed[..., None], np.stack([a.xyz_mm for a in annotations]), pose_mm)
+    pose_w = np.where(placed, placed_pose_w, 1.0)
     return hm.Priors(pose=pose, pose_w=pose_w, uv=np.nan_to_num(uv), uv_w=has_uv.astype(float))
 
 
@@ -147,7 +154,8 @@ def refit_references(
         np.asarray(centres_mm)[ok], camera, cube_mm=cube_mm,
     )  # fmt: skip
     anns = [annotations[i] for i in ok]
-    priors = _priors(x0[ok], anns, st, base.pose)
+    # pose_w multiplies FitWeights.pose: a placed joint's weight is placed_pose per mm²
+    priors = click_priors(x0[ok], anns, st.placed_pose / base.pose)
 
     def fit(uv_weight: float) -> np.ndarray:
         w = replace(base, uv=uv_weight)

@@ -152,6 +152,11 @@ class PropagationSettings:
     #: from its reference (errors grow along a chain; 0.02-0.1 alike on the tune part, pure level
     #: picked a longer chain too often on smooth motion)
     chain_step_penalty: float = 0.05
+    #: the other candidates are computed only for the frames whose fit along the first forest is
+    #: above this level (relative to the references', ``MODEL_FIT_TERMS`` "level"), and their
+    #: ancestors; 0: for every frame. Where the first forest's fits explain the depth, its
+    #: chains are kept, at no extra cost
+    candidate_level: float = 2.0
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -1011,7 +1016,10 @@ def propagate(
             crops_array=None if remote else crops,
             fit_weights=fit_weights,
         ).with_model(models, known, reference_joints)
-        for par, todo in zip(parents, todos, strict=True):
+        for k, (par, todo) in enumerate(zip(parents, todos, strict=True)):
+            if k and settings.candidate_level > 0:
+                todo = _needed_by(par, runs[0], todo, settings.candidate_level)
+                todos[k] = todo
             seeds = dict(known)
             if runs:  # the first candidate's frames seed the chains the others share with it
                 _previous_seeds(seeds, todo, runs[0], None, None, skeleton.num_joints)
@@ -1033,6 +1041,8 @@ def propagate(
             else:
                 _run_local(ctx, tasks, out)
             runs.append(out.result(0.0))
+    if progress is not None and not single:
+        progress(total, total)  # the other candidates may have needed fewer frames
     if single:
         runs[0].seconds = time.perf_counter() - t0
         return runs[0]
@@ -1040,6 +1050,19 @@ def propagate(
     return _keep_best(
         runs, 1.0 + settings.chain_step_penalty * steps, on_result, time.perf_counter() - t0
     )
+
+
+def _needed_by(parent: np.ndarray, first: PropagationResult, todo: np.ndarray, level: float):
+    """The frames of ``todo`` that a frame fitted above ``level`` along the first forest (its
+    ``first.model_fit`` level) needs in the forest ``parent`` (N,): the frame and its ancestors."""
+    lv = np.nan_to_num(first.model_fit[:, 0], nan=0.0)
+    need = np.zeros(len(parent), dtype=bool)
+    front = np.intersect1d(np.flatnonzero(lv > level), todo)
+    while front.size:
+        need[front] = True
+        up = parent[front]
+        front = up[(up >= 0) & ~need[np.maximum(up, 0)]]
+    return todo[need[todo]]
 
 
 def _offset_progress(progress: Callable[[int, int], None], offset: int, total: int):

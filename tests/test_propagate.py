@@ -304,7 +304,8 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     assert chains[0][5] == 4 and chains[1][5] == 6
     forward = run(data, chains[0], refs, hand_model=True)
     backward = run(data, chains[1], refs, hand_model=True)
-    both = run(data, chains, refs, hand_model=True)
+    both = run(data, chains, refs, hand_model=True,
+               settings=PropagationSettings(candidate_level=0))  # fmt: skip
     inner = np.arange(1, n - 1)
     steps = {0: inner, 1: n - 1 - inner}  # propagation steps from each chain's reference
     penalty = PropagationSettings().chain_step_penalty
@@ -317,7 +318,15 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     mean = {name: errors(r, gt, inner).mean() for name, r in
             (("forward", forward), ("backward", backward), ("both", both))}  # fmt: skip
     assert mean["both"] < min(mean["forward"], mean["backward"]), mean
-    partial = run(data, chains, refs, hand_model=True, frames=[7], previous=both)
+    # by default the backward chain is computed only where a forward fit is poor (and for its
+    # ancestors): frames before the first poorly fitted one keep the forward result
+    adaptive = run(data, chains, refs, hand_model=True)
+    bad = inner[forward.model_fit[inner, 0] > PropagationSettings().candidate_level]
+    assert len(bad) and bad[0] > 1
+    np.testing.assert_array_equal(adaptive.joints_mm[1 : bad[0]], forward.joints_mm[1 : bad[0]])
+    np.testing.assert_array_equal(adaptive.joints_mm[bad], both.joints_mm[bad])
+    partial = run(data, chains, refs, hand_model=True, frames=[7], previous=both,
+                  settings=PropagationSettings(candidate_level=0))  # fmt: skip
     np.testing.assert_array_equal(partial.joints_mm[inner], both.joints_mm[inner])
     with pytest.raises(ValueError, match="same references"):
         run(data, np.stack([chains[0], np.arange(-1, n - 1)]), refs)

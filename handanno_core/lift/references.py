@@ -14,7 +14,7 @@ from ..camera import CameraIntrinsics
 from ..parallel import Runner
 from ..skeleton import Skeleton
 from .initial import initial_bone_lengths
-from .solve import LiftResult, lift_frame
+from .solve import SURFACE_DEPTH_MM, LiftResult, lift_frame, surface_depths_mm
 
 
 @dataclass
@@ -36,7 +36,7 @@ def surface_correction(
     annotations: dict[int, FrameAnnotation],
     results: dict[int, LiftResult],
     skeleton: Skeleton,
-    surface_depth_mm: float,
+    surface_depth_mm: float | np.ndarray,
     min_samples: int = 8,
 ) -> np.ndarray:
     """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
@@ -190,7 +190,7 @@ def lift_references(
             bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
         history = [bones.copy()]
         sk = skeleton
-        surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
+        surface_depth = surface_depths_mm(sk, lift_kwargs.get("surface_depth_mm", SURFACE_DEPTH_MM))
         kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
         inits: dict[int, np.ndarray] = {}
         soft_lengths = None

@@ -326,7 +326,10 @@ def test_bone_lengths_estimated_from_exact_data():
         depths[f] = render(X)
         anns[f] = annotate(X, depths[f])
         poses[f] = X
-    res = lift_references(anns, depths.__getitem__, CAM, SK)
+    # (render() puts tips inside a sphere, ~5 mm below their surface, unlike synth's capsules
+    # and real fingertips: the votes of references that see a tip would measure that, so every
+    # reference votes here; tests/test_lift_synth.py checks the seen votes on capsule hands)
+    res = lift_references(anns, depths.__getitem__, CAM, SK, seen_votes=False)
     err = np.abs(res.bone_lengths_mm - true)
     start = np.abs(res.bone_history_mm[0] - true)
     # measured: mean 0.35, max 0.87 mm (from 0.97 mm mean at the scaled template)
@@ -557,7 +560,9 @@ def test_bones_from_partial_annotations_of_a_larger_hand():
         a.depth_order[~keep] = 0
     # render() puts a tip at the centre of a sphere, not on the far end of its segment's cap
     # (synth's capsules, real fingertips): the tips' surface rule is left out here
-    res = lift_references(anns, depths.__getitem__, CAM, SK, incline_tips=False, **TOY_SURFACE)
+    res = lift_references(
+        anns, depths.__getitem__, CAM, SK, incline_tips=False, seen_votes=False, **TOY_SURFACE
+    )
     rel = np.abs(res.bone_lengths_mm - true) / true
     assert rel.max() < 0.05, np.round(rel, 3)
     both = keep[SK.bones[:, 0]] & keep[SK.bones[:, 1]]

@@ -85,18 +85,48 @@ def _better(a: LiftResult, b: LiftResult) -> LiftResult:
 
 
 def _reestimate_bones(bones: np.ndarray, soft_lengths: np.ndarray, voted: np.ndarray,
-                      tmpl: np.ndarray | None) -> np.ndarray:  # fmt: skip
+                      tmpl: np.ndarray | None, seen: np.ndarray | None = None,
+                      min_seen: int = 3) -> np.ndarray:  # fmt: skip
     """New bone lengths ``(B,)`` mm: the median over the references of ``soft_lengths`` (F, B)
     for the ``voted`` bones; the others the template ``tmpl`` times the voted bones' median ratio
-    to it (unchanged without a template or a voted bone)."""
+    to it (unchanged without a template or a voted bone). ``seen`` (F, B) bool: references where
+    the bone was seen (:func:`_seen_bones`); a bone seen in ``min_seen`` references or more takes
+    the median over those only (a hidden joint's soft length is its start length again: no data)."""
     new = bones.copy()
     if np.any(voted):
         new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+        if seen is not None:
+            by_seen = voted & (seen.sum(axis=0) >= min_seen)
+            if np.any(by_seen):
+                new[by_seen] = np.nanmedian(
+                    np.where(seen[:, by_seen], soft_lengths[:, by_seen], np.nan), axis=0
+                )
         if tmpl is not None and not np.all(voted):
             # bones without enough evidence: template times the global scale
             scale = float(np.median(new[voted] / tmpl[voted]))
             new[~voted] = tmpl[~voted] * scale
     return new
+
+
+def _seen_bones(
+    annotations: list[FrameAnnotation],
+    results: list[LiftResult],
+    skeleton: Skeleton,
+    max_sin_elevation: float = 0.7,
+) -> np.ndarray:
+    """``(F, B)`` bool: references in which both ends of a bone are annotated visible with an
+    observed depth that the lift kept (no elastic slack), and the lifted bone is not
+    foreshortened (the sine of its angle to the image plane below ``max_sin_elevation``): the
+    references whose soft-bone lift measures the bone's length from the data."""
+    p, c = skeleton.bones[:, 0], skeleton.bones[:, 1]
+    out = np.zeros((len(results), len(p)), dtype=bool)
+    for i, (a, r) in enumerate(zip(annotations, results, strict=True)):
+        ok = a.has_2d & a.visible & np.isfinite(r.observed_depth_mm)
+        ok[r.slack_joints] = False
+        v = r.joints_mm[c] - r.joints_mm[p]
+        sin_el = np.abs(v[:, 2]) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        out[i] = ok[p] & ok[c] & (sin_el < max_sin_elevation)
+    return out
 
 
 def _mark_stretched(res: list, soft_lengths: np.ndarray, bones: np.ndarray, sk: Skeleton,
@@ -146,6 +176,7 @@ def lift_references(
     offset_tol_mm: float = 0.5,
     max_calibrations: int = 3,
     stretch_tolerance: float = 0.2,
+    seen_votes: bool = True,
     **lift_kwargs,
 ) -> LiftSet:
     """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
@@ -223,7 +254,11 @@ def lift_references(
                 res = runner.map(_lift_job, jobs, progress)
                 poses = np.stack([r.joints_mm for r in res])
                 soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
-                new = _reestimate_bones(bones, soft_lengths, voted, tmpl)
+                new = _reestimate_bones(
+                    bones, soft_lengths, voted, tmpl,
+                    _seen_bones([anns[f] for f in frames], res, sk) if seen_votes else None,
+                    min_bone_votes,
+                )  # fmt: skip
                 change = float(np.max(np.abs(new - bones)))
                 bones = new
                 history.append(bones.copy())

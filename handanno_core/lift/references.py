@@ -189,7 +189,9 @@ def lift_references(
     ``bone_tol_mm`` (and no surface offset by more than ``offset_tol_mm``) or ``max_rounds``.
     A bone is re-estimated only where both its joints are annotated in at least
     ``min_bone_votes`` references; the others keep the template times the global scale of the
-    re-estimated ones (median ratio to the template). calibrate_surface: re-estimate the depth of
+    re-estimated ones (median ratio to the template). seen_votes: a bone seen in
+    ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
+    the median over those only (module docstring). calibrate_surface: re-estimate the depth of
     joint centres below the observed surface per joint group in every round
     (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than

@@ -75,8 +75,11 @@ _W_FREE = 1e-3
 
 #: how far (mm) a visible joint's centre lies behind ``D + o`` (``D`` the median of the front
 #: surface in the 3x3 block, ``o`` the skeleton's offset), per kind of joint: root (wrist),
-#: first joints off the root (knuckles, thumb CMC), finger joints, fingertips
-SURFACE_DEPTH_MM = (1.0, 3.0, 1.0, 1.0)
+#: first joints off the root (knuckles, thumb CMC), finger joints, fingertips. Chosen on the
+#: suite's tune part: knuckles lie a knuckle radius (~11.5 mm) below the surface against offsets
+#: of 8-9 mm; 3 mm for them was best for the lift alone (bench_lift mean of means 1.90 against
+#: 1.99 mm at 2 mm), 2 mm end to end (final mean of means, uniform 4.99 against 4.72 mm)
+SURFACE_DEPTH_MM = (1.0, 2.0, 1.0, 1.0)
 
 
 def surface_depths_mm(skeleton: Skeleton, surface_depth_mm) -> np.ndarray:

@@ -285,12 +285,14 @@ def _hidden_bound_change(
     """``(J,)`` mm by which moving the hidden joints' lower depth bounds to ``extra`` (J,) mm (for
     the pose ``X`` (J, 3) mm solved with ``prob``'s bounds) would change the solution's
     constraints: the new bound's violation, or how far an active bound would be released."""
-    new_lo = base.z_lo + np.maximum(extra, 0.0)
-    z = X[:, 2]
+    h = base.hid_mask  # (joints with a reading: finite bounds)
+    out = np.zeros(len(h))
+    new_lo = base.z_lo[h] + np.maximum(extra[h], 0.0)
+    z = X[h, 2]
     violated = np.maximum(new_lo - z, 0.0)
-    active = z - prob.z_lo < 0.5
-    released = np.where(active, np.maximum(prob.z_lo - new_lo, 0.0), 0.0)
-    return np.where(base.hid_mask, np.maximum(violated, released), 0.0)
+    released = np.where(z - prob.z_lo[h] < 0.5, np.maximum(prob.z_lo[h] - new_lo, 0.0), 0.0)
+    out[h] = np.maximum(violated, released)
+    return out
 
 
 def _lift_attempts(

@@ -228,9 +228,10 @@ def _parse_kw(items: list[str]) -> dict:
     out = {}
     for item in items:
         key, value = item.split("=", 1)
-        out[key] = {"true": True, "false": False}.get(value.lower())
-        if out[key] is None:
-            out[key] = float(value)
+        out[key] = {"true": True, "false": False, "none": None}.get(value.lower(), value)
+        if isinstance(out[key], str):
+            parts = [float(v) for v in value.split(",")]
+            out[key] = parts[0] if len(parts) == 1 else tuple(parts)
     return out
 
 

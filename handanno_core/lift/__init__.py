@@ -13,15 +13,20 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
 
-``D_k`` is the observed depth at the joint's 2D position (nearest valid pixel in a small window)
-and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at the tips).
+``D_k`` is the observed depth at the joint's 2D position (the median of the front surface in the
+3x3 block: its pixels within 10 mm of the closest one; the nearest valid pixel in a small window
+where the block has none) and ``o_k`` the skeleton's surface offset (about the finger radius, 0 at
+the tips). The median, not the closest pixel: the closest of 9 noisy readings lies about 1.5
+sensor noise SDs in front of the surface, a bias that differs between sensors (SR300-like noise:
+1.3-1.8 mm; ``depth_front_band_mm``).
 
 Why the surface term: with exact 2D the one-sided depth intervals leave the whole hand free to
 slide up to ``eps`` along the viewing rays, and with noisy 2D a foreshortened bone turns a pixel of
-noise into centimetres of depth. The pull towards ``D_k + o_k + s`` (``w_surface`` = 0.1 px^2/mm^2,
-``surface_depth_mm`` s = 3 mm: the 3x3 closest-surface reading lies that much in front of the
-offset surface, median measured on the synthetic sequence) fixes visible joints near where joint
-centres of a hand seen from the front lie. Hidden joints without a depth order only have a lower
+noise into centimetres of depth. The pull towards ``D_k + o_k + s_k`` (``w_surface`` = 0.1
+px^2/mm^2; ``surface_depth_mm`` ``s_k`` per kind of joint, :data:`solve.SURFACE_DEPTH_MM`: 1 mm
+for the wrist, finger joints and tips, 2 mm for the knuckles, whose centre lies a knuckle radius
+below the surface, deeper than their offsets say; chosen on the suite's tune part) fixes visible
+joints near where joint centres lie. Hidden joints without a depth order only have a lower
 bound; where the two mirror poses of a hidden finger both fit the 2D (bones nearly parallel to the
 image), ``w_flat`` (0.01 px^2/mm^2) prefers the one closer to the parent's depth (figures:
 ``benchmarks/results/design_measurements.md``).
@@ -33,6 +38,10 @@ a solve, the visible PIP/DIP-level joints' surface targets and upper bounds are 
 ``o (k / sin(phi) - 1)`` for the pose found (``k`` = ``incline_radius_factor``, the finger radius
 over the offset; ``phi`` the angle to the covering bone, ``sin`` capped at ``incline_min_sin``) and
 the frame is solved again from that pose (at most twice; ``LiftResult.surface_extra_mm``).
+A hidden joint whose covering segment is inclined lies at least as deep behind whatever is seen
+at its pixel (the ray through its centre enters its own segment ``r / sin(phi)`` before it): its
+lower depth bound ``D + o`` becomes ``D + o + extra`` (``incline_hidden``; never above the truth
+on the suite's tune part, and a bound, not a target: the joint may lie behind another finger).
 Fingertips whose distal segment leads away from the camera lie on the far end of its cap: their
 target moves by ``2 k o_dip cos(phi)`` (``incline_tips``). A warm start (``init_mm``: the previous
 round's pose, a dragged joint) begins with the targets of its start pose, so the re-solve only
@@ -85,7 +94,10 @@ template scaled to the annotated frames and are re-estimated from all lifted ref
 round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
 hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
 stretches or shrinks the bone; the new estimate is the median over frames where both of the
-bone's joints are annotated (at least ``min_bone_votes`` references; a bone with fewer keeps the
+bone's joints are annotated, or, for a bone *seen* in ``min_bone_votes`` references or more (both
+ends visible with a reading the lift kept, the bone not foreshortened: the sine of its angle to
+the image below 0.7), over those references only (a hidden joint's soft length is its start
+length again, so its vote is the prior's, not data) (at least ``min_bone_votes`` references; a bone with fewer keeps the
 template times the global scale of the re-estimated bones, so a partially annotated hand of any
 size gets all its bones). Rounds stop when no bone moves by more than 0.1 mm; a final lift uses
 the estimate as hard constraints, from both the last soft solution and the cold start, keeping

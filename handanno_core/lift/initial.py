@@ -15,11 +15,16 @@ from ..skeleton import Skeleton
 
 # ---------------------------------------------------------------------------------------- depth
 def observed_depth(
-    depth_mm: np.ndarray, uv_px: np.ndarray, window: int = 3, near_px: int = 1
+    depth_mm: np.ndarray,
+    uv_px: np.ndarray,
+    window: int = 3,
+    near_px: int = 1,
+    front_band_mm: float | None = None,
 ) -> np.ndarray:
     """Observed depth ``(J,)`` mm under 2D points ``(J, 2)``: :func:`handanno_core.sampling.depth_at`
-    (closest surface in the 3x3 block, else the nearest valid pixel within ``window`` px)."""
-    return depth_at(depth_mm, uv_px, window=window, near_px=near_px)
+    (closest surface in the 3x3 block, or with ``front_band_mm`` the median of the block's front
+    surface; else the nearest valid pixel within ``window`` px)."""
+    return depth_at(depth_mm, uv_px, window=window, near_px=near_px, front_band_mm=front_band_mm)
 
 
 def _drop_inconsistent_depths(
@@ -115,6 +120,7 @@ def initial_pose(
     bone_lengths_mm: np.ndarray | None = None,
     depth_near_px: int = 1,
     depth_check_mm: float | None = 15.0,
+    front_band_mm: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Initial joints ``(J, 3)`` mm and observed depths ``(J,)`` mm for a frame.
 
@@ -132,7 +138,7 @@ def initial_pose(
     ann = annotation
     j = skeleton.num_joints
     offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
-    d_obs = observed_depth(depth_mm, ann.uv_px, near_px=depth_near_px)
+    d_obs = observed_depth(depth_mm, ann.uv_px, near_px=depth_near_px, front_band_mm=front_band_mm)
     has2d = ann.has_2d
     has3d = ann.has_3d
     lengths = (

@@ -106,6 +106,9 @@ class _Problem(_AngleRows):
         self.surf_mask = valid_d & ann.visible
         self.surf_target = np.where(self.surf_mask, lo + surface_depth_mm, 0.0)
         self.surf_extra = np.zeros(self.j)
+        #: hidden joints with an observed depth (their occluder): lower bound only
+        self.hid_mask = valid_d & ~ann.visible
+        self.hid_extra = np.zeros(self.j)
         self.w_surface = w_surface
         # hidden joints without a depth order: weak pull towards the parent's depth
         par_all = skeleton.parent_array
@@ -144,7 +147,7 @@ class _Problem(_AngleRows):
         self.w_elastic = 1.0
         self._set_elastic(False)
 
-    def with_surface_extra(self, extra_mm: np.ndarray) -> _Problem:
+    def with_surface_extra(self, extra_mm: np.ndarray, hidden: bool = False) -> _Problem:
         """The problem (this one is left unchanged) with visible joints' surface target and upper
         depth bound moved ``extra_mm`` (J,) mm deeper than the offsets say (an inclined finger's
         surface, :func:`handanno_core.lift.surface.inclined_surface_extra_mm`)."""
@@ -155,6 +158,14 @@ class _Problem(_AngleRows):
         p.surf_extra = self.surf_extra + delta
         p.surf_target = self.surf_target + delta
         p.z_hi = np.where(np.isfinite(self.z_hi), self.z_hi + delta, self.z_hi)
+        if hidden:
+            # a hidden joint covered by its own inclined segment lies at least that segment's
+            # inclined depth behind whatever surface is seen at its pixel
+            h = np.where(
+                self.hid_mask, np.maximum(np.asarray(extra_mm, dtype=np.float64), 0.0), 0.0
+            )
+            p.hid_extra = h
+            p.z_lo = np.where(self.hid_mask, self.z_lo + h - self.hid_extra, p.z_lo)
         return p
 
     def without_depth(self, joints: np.ndarray) -> _Problem:

@@ -14,7 +14,7 @@ from ..camera import CameraIntrinsics
 from ..parallel import Runner
 from ..skeleton import Skeleton
 from .initial import initial_bone_lengths
-from .solve import LiftResult, lift_frame
+from .solve import SURFACE_DEPTH_MM, LiftResult, lift_frame, surface_depths_mm
 
 
 @dataclass
@@ -36,7 +36,7 @@ def surface_correction(
     annotations: dict[int, FrameAnnotation],
     results: dict[int, LiftResult],
     skeleton: Skeleton,
-    surface_depth_mm: float,
+    surface_depth_mm: float | np.ndarray,
     min_samples: int = 8,
 ) -> np.ndarray:
     """Per-joint correction ``(J,)`` mm of the surface offsets, from lifted references.
@@ -85,18 +85,48 @@ def _better(a: LiftResult, b: LiftResult) -> LiftResult:
 
 
 def _reestimate_bones(bones: np.ndarray, soft_lengths: np.ndarray, voted: np.ndarray,
-                      tmpl: np.ndarray | None) -> np.ndarray:  # fmt: skip
+                      tmpl: np.ndarray | None, seen: np.ndarray | None = None,
+                      min_seen: int = 3) -> np.ndarray:  # fmt: skip
     """New bone lengths ``(B,)`` mm: the median over the references of ``soft_lengths`` (F, B)
     for the ``voted`` bones; the others the template ``tmpl`` times the voted bones' median ratio
-    to it (unchanged without a template or a voted bone)."""
+    to it (unchanged without a template or a voted bone). ``seen`` (F, B) bool: references where
+    the bone was seen (:func:`_seen_bones`); a bone seen in ``min_seen`` references or more takes
+    the median over those only (a hidden joint's soft length is its start length again: no data)."""
     new = bones.copy()
     if np.any(voted):
         new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+        if seen is not None:
+            by_seen = voted & (seen.sum(axis=0) >= min_seen)
+            if np.any(by_seen):
+                new[by_seen] = np.nanmedian(
+                    np.where(seen[:, by_seen], soft_lengths[:, by_seen], np.nan), axis=0
+                )
         if tmpl is not None and not np.all(voted):
             # bones without enough evidence: template times the global scale
             scale = float(np.median(new[voted] / tmpl[voted]))
             new[~voted] = tmpl[~voted] * scale
     return new
+
+
+def _seen_bones(
+    annotations: list[FrameAnnotation],
+    results: list[LiftResult],
+    skeleton: Skeleton,
+    max_sin_elevation: float = 0.7,
+) -> np.ndarray:
+    """``(F, B)`` bool: references in which both ends of a bone are annotated visible with an
+    observed depth that the lift kept (no elastic slack), and the lifted bone is not
+    foreshortened (the sine of its angle to the image plane below ``max_sin_elevation``): the
+    references whose soft-bone lift measures the bone's length from the data."""
+    p, c = skeleton.bones[:, 0], skeleton.bones[:, 1]
+    out = np.zeros((len(results), len(p)), dtype=bool)
+    for i, (a, r) in enumerate(zip(annotations, results, strict=True)):
+        ok = a.has_2d & a.visible & np.isfinite(r.observed_depth_mm)
+        ok[r.slack_joints] = False
+        v = r.joints_mm[c] - r.joints_mm[p]
+        sin_el = np.abs(v[:, 2]) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        out[i] = ok[p] & ok[c] & (sin_el < max_sin_elevation)
+    return out
 
 
 def _mark_stretched(res: list, soft_lengths: np.ndarray, bones: np.ndarray, sk: Skeleton,
@@ -146,6 +176,7 @@ def lift_references(
     offset_tol_mm: float = 0.5,
     max_calibrations: int = 3,
     stretch_tolerance: float = 0.2,
+    seen_votes: bool = True,
     **lift_kwargs,
 ) -> LiftSet:
     """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
@@ -158,7 +189,9 @@ def lift_references(
     ``bone_tol_mm`` (and no surface offset by more than ``offset_tol_mm``) or ``max_rounds``.
     A bone is re-estimated only where both its joints are annotated in at least
     ``min_bone_votes`` references; the others keep the template times the global scale of the
-    re-estimated ones (median ratio to the template). calibrate_surface: re-estimate the depth of
+    re-estimated ones (median ratio to the template). seen_votes: a bone seen in
+    ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
+    the median over those only (module docstring). calibrate_surface: re-estimate the depth of
     joint centres below the observed surface per joint group in every round
     (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
@@ -190,7 +223,7 @@ def lift_references(
             bones = np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64)
         history = [bones.copy()]
         sk = skeleton
-        surface_depth = float(lift_kwargs.get("surface_depth_mm", 3.0))
+        surface_depth = surface_depths_mm(sk, lift_kwargs.get("surface_depth_mm", SURFACE_DEPTH_MM))
         kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
         inits: dict[int, np.ndarray] = {}
         soft_lengths = None
@@ -223,7 +256,11 @@ def lift_references(
                 res = runner.map(_lift_job, jobs, progress)
                 poses = np.stack([r.joints_mm for r in res])
                 soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
-                new = _reestimate_bones(bones, soft_lengths, voted, tmpl)
+                new = _reestimate_bones(
+                    bones, soft_lengths, voted, tmpl,
+                    _seen_bones([anns[f] for f in frames], res, sk) if seen_votes else None,
+                    min_bone_votes,
+                )  # fmt: skip
                 change = float(np.max(np.abs(new - bones)))
                 bones = new
                 history.append(bones.copy())

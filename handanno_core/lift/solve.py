@@ -73,6 +73,26 @@ _FEASIBLE_MM = 0.5
 #: weight (px^2/mm^2) pulling unannotated joints towards their start (keeps them defined)
 _W_FREE = 1e-3
 
+#: how far (mm) a visible joint's centre lies behind ``D + o`` (``D`` the median of the front
+#: surface in the 3x3 block, ``o`` the skeleton's offset), per kind of joint: root (wrist),
+#: first joints off the root (knuckles, thumb CMC), finger joints, fingertips. Chosen on the
+#: suite's tune part: knuckles lie a knuckle radius (~11.5 mm) below the surface against offsets
+#: of 8-9 mm; 3 mm for them was best for the lift alone (bench_lift mean of means 1.90 against
+#: 1.99 mm at 2 mm), 2 mm end to end (final mean of means, uniform 4.99 against 4.72 mm)
+SURFACE_DEPTH_MM = (1.0, 2.0, 1.0, 1.0)
+
+
+def surface_depths_mm(skeleton: Skeleton, surface_depth_mm) -> np.ndarray:
+    """``(J,)`` mm: ``surface_depth_mm`` (a scalar, ``(J,)``, or 4 values for the root, its
+    children, the other finger joints and the fingertips, as :data:`SURFACE_DEPTH_MM`) per joint."""
+    s = np.asarray(surface_depth_mm, dtype=np.float64)
+    if s.ndim == 0 or s.shape == (skeleton.num_joints,):
+        return np.broadcast_to(s, (skeleton.num_joints,)).astype(np.float64)
+    if s.shape != (4,):
+        raise ValueError(f"surface_depth_mm: a scalar, 4 or {skeleton.num_joints} values, got {s}")
+    g = skeleton.surface_groups()
+    return np.select([g == 0, g == 1, g == -1], [s[0], s[1], s[3]], s[2])
+
 
 @dataclass(frozen=True)
 class WarmStart:
@@ -104,7 +124,7 @@ def lift_frame(
     order_margin_mm: float = 10.0,
     w_3d: float = 1.0,
     w_surface: float = 0.1,
-    surface_depth_mm: float = 3.0,
+    surface_depth_mm: float | tuple[float, ...] = SURFACE_DEPTH_MM,
     w_flat: float = 0.01,
     w_angle: float = 1.0,
     w_angle_inner: float = 0.0,
@@ -122,6 +142,8 @@ def lift_frame(
     incline_radius_factor: float = 0.85,
     incline_tips: bool = True,
     drop_slack_depths: bool = True,
+    incline_hidden: bool = True,
+    depth_front_band_mm: float | None = 10.0,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
 
@@ -147,7 +169,13 @@ def lift_frame(
     if depth.ndim != 2:
         raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
     x0_pose, d_obs = initial_pose(
-        annotation, depth, camera, skeleton, d, depth_near_px=depth_near_px
+        annotation,
+        depth,
+        camera,
+        skeleton,
+        d,
+        depth_near_px=depth_near_px,
+        front_band_mm=depth_front_band_mm,
     )
     if warm is None:
         warm = WarmStart(init_mm, start_elastic, elastic_joints)
@@ -170,7 +198,7 @@ def lift_frame(
         order_margin_mm=order_margin_mm,
         w_3d=w_3d,
         w_surface=w_surface,
-        surface_depth_mm=surface_depth_mm,
+        surface_depth_mm=surface_depths_mm(skeleton, surface_depth_mm),
         w_flat=w_flat,
         w_angle=w_angle,
         w_angle_inner=w_angle_inner,
@@ -180,7 +208,9 @@ def lift_frame(
     )
     hard_bones = soft_bones is None
     moving = inclined_joints(skeleton) | (inclined_tips(skeleton) if incline_tips else False)
-    inclined = incline_surface and bool(np.any(moving & base.surf_mask))
+    inclined = incline_surface and bool(
+        np.any(moving & (base.surf_mask | (base.hid_mask if incline_hidden else False)))
+    )
     extra_of = partial(
         inclined_surface_extra_mm,
         skeleton=skeleton,
@@ -193,7 +223,7 @@ def lift_frame(
         # a warm start is a pose found before (previous round, the joint being dragged): its
         # inclined surfaces are the targets the re-solve below would move to, so start with them
         # and the re-solve is skipped wherever the solution leaves them (nearly) unchanged
-        first = base.with_surface_extra(extra_of(x0_pose))
+        first = base.with_surface_extra(extra_of(x0_pose), incline_hidden)
     res, prob, slack_joints = _lift_attempts(
         first, x0_pose, warm, hard_bones, max_iter, tol, elastic_weight
     )
@@ -203,9 +233,12 @@ def lift_frame(
         for _ in range(2):
             X = prob.pose(res.x)
             extra = extra_of(X)
-            if float(np.max(np.abs(np.where(base.surf_mask, extra - prob.surf_extra, 0.0)))) < 0.5:
+            change = np.abs(np.where(base.surf_mask, extra - prob.surf_extra, 0.0))
+            if incline_hidden:
+                change = np.maximum(change, _hidden_bound_change(base, prob, X, extra))
+            if float(np.max(change)) < 0.5:
                 break
-            moved = base.with_surface_extra(extra)
+            moved = base.with_surface_extra(extra, incline_hidden)
             again = WarmStart(X, len(slack_joints) > 0, slack_joints if len(slack_joints) else None)
             r2, p2, s2 = _lift_attempts(moved, X, again, hard_bones, max_iter, tol, elastic_weight)
             if not _acceptable(r2, p2, hard_bones) and _acceptable(res, prob, hard_bones):
@@ -216,7 +249,9 @@ def lift_frame(
         # background); their pull (surface term, slackened interval) drags the joint there.
         # Solve again without them; keep that solution where it meets every other constraint
         X = prob.pose(res.x)
-        free = base.without_depth(slack_joints).with_surface_extra(prob.surf_extra)
+        free = base.without_depth(slack_joints).with_surface_extra(
+            prob.surf_extra + prob.hid_extra, incline_hidden
+        )
         r3, p3, _ = _lift_attempts(free, X, WarmStart(), hard_bones, max_iter, tol, elastic_weight)
         if _acceptable(r3, p3, hard_bones) and not p3.elastic:
             res, prob = r3, p3
@@ -242,6 +277,22 @@ def lift_frame(
         objective=float(res.fun),
         surface_extra_mm=prob.surf_extra.copy(),
     )
+
+
+def _hidden_bound_change(
+    base: _Problem, prob: _Problem, X: np.ndarray, extra: np.ndarray
+) -> np.ndarray:
+    """``(J,)`` mm by which moving the hidden joints' lower depth bounds to ``extra`` (J,) mm (for
+    the pose ``X`` (J, 3) mm solved with ``prob``'s bounds) would change the solution's
+    constraints: the new bound's violation, or how far an active bound would be released."""
+    h = base.hid_mask  # (joints with a reading: finite bounds)
+    out = np.zeros(len(h))
+    new_lo = base.z_lo[h] + np.maximum(extra[h], 0.0)
+    z = X[h, 2]
+    violated = np.maximum(new_lo - z, 0.0)
+    released = np.where(z - prob.z_lo[h] < 0.5, np.maximum(prob.z_lo[h] - new_lo, 0.0), 0.0)
+    out[h] = np.maximum(violated, released)
+    return out
 
 
 def _lift_attempts(

@@ -576,7 +576,7 @@ def propagation_forests(session: Session, use_model: bool | None = None) -> np.n
 
     parent = session.parent
     model_on = _hand_model_on(session, use_model, "propagate", quiet=True)
-    if not (model_on and PropagationSettings.both_ways):
+    if not (model_on and PropagationSettings.from_session(session.model.settings).both_ways):
         return parent[None]
     refs = np.flatnonzero(parent == -1)
     chains = temporal_chains(len(parent), refs, session.model.sequence_breaks)

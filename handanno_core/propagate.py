@@ -35,8 +35,10 @@ reference), parents always before children:
 
 6. several candidate forests (``parent`` of shape ``(P, N)``; a session with the hand model on
    passes its selection's forest and the two temporal chains between its references,
-   :func:`handanno_core.pipeline.propagation_forests`): every frame is propagated along each
-   candidate (frames whose whole chain a candidate shares with the first are computed once), and
+   :func:`handanno_core.pipeline.propagation_forests`): every frame is propagated along the first,
+   and along the others where its first fit is above ``candidate_level`` times the references'
+   level (with the ancestors it needs; chains a candidate shares with the first are computed
+   once), and
    keeps the result whose model fit explains its own depth best, its data + free-space level
    times ``1 + chain_step_penalty`` per step from its reference (:func:`_keep_best`). A frame that
    a chain from one reference lost (fast motion, a finger flipped) is then usually held by the
@@ -946,7 +948,9 @@ def propagate(
 
     Parameters
     ----------
-    parent : ``(N,)`` int, ``-1`` at references (the selection's parent forest).
+    parent : ``(N,)`` int, ``-1`` at references (the selection's parent forest), or ``(P, N)``
+        candidate forests with the same references: every frame is propagated along each (see
+        step 6 of the module docstring and ``PropagationSettings.candidate_level``).
     reference_joints : ``{frame: (J, 3) mm}`` lifted references.
     crops : ``(N, S, S)`` normalized crops (memmap preferred), ``boxes`` ``(N, 4)``
         ``[u_left, v_top, sx, sy]``, ``centres_mm`` ``(N, 3)`` (see :mod:`handanno_core.crops`).

@@ -258,6 +258,14 @@ def test_worker_lifts_after_edits_and_coalesces(session):
     np.testing.assert_allclose(lifted[0], worker.latest[0].joints_mm)  # saved on stop
 
 
+def place_and_lift(st, worker, clicks: int) -> None:
+    """``clicks`` 2D clicks on frame 0, each lifted by ``worker`` before the next."""
+    for j in range(clicks):
+        st.place_2d(np.array([150.0 + j, 130.0]))
+        worker.submit(0)
+        assert worker.wait_idle(60)
+
+
 def test_worker_relifts_a_frame_that_needed_slack_in_elastic_mode(session):
     """After a lift that could not meet some depth intervals, the next lift of that frame starts
     in elastic mode with slacks on those joints; once a lift meets them all, lifts go back to
@@ -273,11 +281,7 @@ def test_worker_relifts_a_frame_that_needed_slack_in_elastic_mode(session):
 
     worker = LiftWorker(session, FrameStore(session), lift_fn=lift).start()
     try:
-        st = AnnotateState(session, "c")
-        for j in range(4):
-            st.place_2d(np.array([150.0 + j, 130.0]))
-            worker.submit(0)
-            assert worker.wait_idle(60)
+        place_and_lift(AnnotateState(session, "c"), worker, 4)
         assert worker.latest[0].needed_slack is False
     finally:
         worker.stop()
@@ -550,11 +554,7 @@ def test_worker_fits_guesses_with_the_frames_hand_model(session, monkeypatch):
         session, FrameStore(session), lift_fn=fake_lift, guess_model=guess_model
     ).start()
     try:
-        st = AnnotateState(session, "c")
-        for j in range(2):
-            st.place_2d(np.array([150.0 + j, 130.0]))
-            worker.submit(0)
-            assert worker.wait_idle(60)
+        place_and_lift(AnnotateState(session, "c"), worker, 2)
         assert asked == [0] and fitted == [("model", "points of 0")] * 2
         plain = fake_lift(session.annotation(0), None, session.camera, session.skeleton, None)
         np.testing.assert_allclose(worker.latest[0].joints_mm, plain.joints_mm + 1.0)

@@ -706,6 +706,7 @@ def refine(
     hand_model: bool | hmod.HandModel = False,
     fit_weights: hmod.FitWeights | None = None,
     threads: int = 1,
+    hold_references: bool = True,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
 
@@ -729,6 +730,12 @@ def refine(
     weights : :class:`RefineWeights`.
     iterations : maximum LM iterations. ``progress(iteration, energy)`` is called after each.
     fixed_frames : frames kept at their initialization (returned unchanged).
+    hold_references : the reference frames with a finite initialization (their lift) keep it, on
+        the bone lengths (the pose's bone directions are kept). A reference is what a person
+        annotated and the lift made of it; refinement moved them (tune part: references 0.64 ->
+        1.53 mm on tune-icvl, 1.00 -> 1.83 on tune-shape-fast), and their neighbours lean on them
+        through the temporal and appearance terms. ``False``: refined with the rest, anchored
+        only by ``reprojection`` on their annotated 2D.
     hand_model : ``True`` adds the personalized hand model's energy of every frame (fitted to
         the frame's own crop; personalized from the reference frames' initialization, i.e. their
         lift), scales the temporal weight down where the initialization moves fast, and keeps a
@@ -768,6 +775,12 @@ def refine(
     fixed = np.zeros(n, dtype=bool)
     if fixed_frames is not None:
         fixed[np.asarray(list(fixed_frames), dtype=np.int64)] = True
+    reference_frames = [int(r) for r in reference_frames]
+    held = np.zeros(n, dtype=bool)
+    if hold_references:
+        refs = np.asarray(reference_frames, dtype=np.int64)
+        refs = refs[(refs >= 0) & (refs < n)]
+        held[refs[finite[refs]]] = True
     table = bone_table(bone_lengths_mm, n, len(skeleton.bones))
     if not table.single:
         return _refine_by_hand(
@@ -776,7 +789,7 @@ def refine(
             reference_annotations=reference_annotations, closest_reference=closest,
             sequence_breaks=sequence_breaks, weights=w, iterations=iterations, progress=progress,
             cube_mm=cube_mm, tol=tol, chunk_frames=chunk_frames, hand_model=hand_model,
-            fit_weights=fit_weights, threads=threads,
+            fit_weights=fit_weights, threads=threads, hold_references=hold_references,
         )  # fmt: skip
 
     kin = _Kinematics(skeleton, table.lengths[0])
@@ -801,8 +814,8 @@ def refine(
     with _thread_pool(problem, threads):
         if hand_model is not False and hand_model is not None:
             _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
-        fit, e0 = _solve(problem, root, u, fixed, iterations, tol, progress)
-        kept = _keep_check(problem, fit, e0, (root, u), fixed)
+        fit, e0 = _solve(problem, root, u, fixed | held, iterations, tol, progress)
+        kept = _keep_check(problem, fit, e0, (root, u), fixed | held)
     root, u = fit.x
     terms = fit.evaluation.terms
     joints = kin.joints(root, u)

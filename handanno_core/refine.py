@@ -11,7 +11,10 @@ One robust least-squares problem over every frame of the sequence:
     + Σ λ_init  ρ_H(‖X − X_init‖)               weak pull to the initialization, mm``
 
 (ρ_H Huber, ρ_W Welsch, both ≈ ½r² for small r), i.e. residuals weighted by ``√λ`` in the units
-stated; default λ and why in :class:`RefineWeights`.
+stated; default λ and why in :class:`RefineWeights`. The reference frames are held at their
+initialization, the lift of what a person annotated (``hold_references``): they enter the other
+frames' terms (temporal neighbours, appearance templates) unchanged, and ``λ_proj`` matters only
+when they are released.
 
 **Bone lengths are hard constraints** through the parameterization: each frame is a root position
 (3) plus one unit direction per bone (updated on the sphere through a 2-D tangent step), with the
@@ -106,9 +109,10 @@ class RefineWeights:
       in ``benchmarks/results/refine_temporal_tune.json`` and the README).
     * ``temporal`` (per mm² per joint and consecutive-frame pair, Huber ``temporal_huber_mm``):
       0, the velocity prior, kept for comparison.
-    * ``reprojection`` (per px² on the references' annotated 2D): 20; anchors references to a
-      fraction of a pixel with exact annotations; lower it (to about
-      1/σ² for σ px of annotation noise) for noisy annotators.
+    * ``reprojection`` (per px² on the references' annotated 2D): 20, used when the references
+      are refined too (``refine(hold_references=False)``); anchors them to a fraction of a pixel
+      with exact annotations; lower it (to about 1/σ² for σ px of annotation noise) for noisy
+      annotators.
     * ``depth_band`` (per mm² outside Eq. 3's band ``[D + offset, D + offset + eps_mm]``): 1.0 with
       a Welsch loss of scale 10 mm: a joint whose projection falls on a far surface (a fingertip
       just off the finger, onto the palm behind it) is not dragged there (a plain or Huber

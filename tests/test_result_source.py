@@ -10,7 +10,7 @@ import pytest
 from app.control.live import LiveResults
 from app.control.review import frame_text
 from handanno_core import pipeline
-from handanno_core.results import NO_SOURCE, RESULTS_FILE, ResultsError, read_results
+from handanno_core.results import NO_SOURCE, RESULTS_FILE, ResultsError, Stage, read_results
 from handanno_core.session import Session, atomic_save_npz
 
 N = 20
@@ -71,6 +71,12 @@ def test_a_frame_that_kept_the_backward_chain_stores_and_shows_it(fast_session, 
             assert f"propagated from frame {f + 1}" in text
             assert f"from frame {f - 1}" not in text
             assert "propagated from" not in frame_text(0, 1, True, live.source(0), None)
+            # a running job's fresh result: its source is unknown until the job's results are saved
+            joints, _ = live.frame(f)
+            live.put(f, joints, None, Stage.PROPAGATED)
+            assert live.source(f) == NO_SOURCE
+            live.reload()
+            assert live.source(f) == f + 1
         finally:
             live.stop_ranking()
     # the CLI says so too

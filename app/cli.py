@@ -180,6 +180,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("info", "print a session's summary")
     session_arg(p)
+    p.add_argument(
+        "--frame",
+        type=int,
+        action="append",
+        help="also say where this frame's result came from (repeatable)",
+    )
 
     _add_stage_commands(add, session_arg)
 
@@ -381,6 +387,26 @@ def _open(args, write: bool = False):
     return session
 
 
+def _info(session, frames: list[int]) -> str:
+    """The session's summary and, once it has results, where its propagated results came from
+    (``results.npz`` ``source``: the candidate chain propagation kept per frame)."""
+    from handanno_core.export import best_joints
+    from handanno_core.results import RESULTS_FILE, describe_frame, describe_sources
+
+    lines = [session.summary()]
+    bad = [f for f in frames if not 0 <= f < session.num_frames]
+    if bad:
+        raise ValueError(f"--frame {bad[0]}: the session has frames 0-{session.num_frames - 1}")
+    if not (session.folder / RESULTS_FILE).exists():
+        return "\n".join([*lines, "  no results yet"])
+    results = session.load_results()
+    _, stage = best_joints(results)
+    source, parent = results["source"], session.parent
+    lines.append(f"  {describe_sources(source, parent)}")
+    lines += [f"  {describe_frame(f, source, parent, int(stage[f]))}" for f in frames]
+    return "\n".join(lines)
+
+
 def _progress_bar(desc: str):
     from tqdm import tqdm
 
@@ -535,7 +561,7 @@ def _run(args) -> int | None:  # noqa: C901 - one branch per subcommand
         _OPENED.append(session)
         print(session.summary())
     elif cmd == "info":
-        print(_open(args).summary())
+        print(_info(_open(args), args.frame or []))
     elif cmd == "select":
         session = _open(args, write=True)
         fraction = args.ref_fraction

@@ -17,6 +17,7 @@ import numpy as np
 from .camera import CameraIntrinsics
 from .datasets import BadFrameReport, FrameError
 from .forest import roots as root_reference
+from .results import NO_SOURCE
 from .session import (
     CROPS_FILE,
     CROPS_META_FILE,
@@ -646,13 +647,20 @@ def propagate(
         init = np.where(computed[:, None, None], result.joints_mm, current["init_mm"])
         confidence = np.where(computed[:, None], result.confidence, current["confidence"])
         model_fit = np.where(computed[:, None], result.model_fit, current["model_fit"])
+        # the frame each result kept came from; frames not recomputed keep theirs (with their
+        # joints), references have none
+        source = np.where(computed, result.source, current["source"])
         if frames is None:
             init[~computed] = np.nan
             model_fit[~computed] = np.nan
+            source[~computed] = NO_SOURCE
+        source[session.parent < 0] = NO_SOURCE
         # A reference's initialization is its lifted pose, so every frame has one for refinement.
         for f, joints in reference_joints.items():
             init[f] = joints
-        session.save_results(init_mm=init, confidence=confidence, model_fit=model_fit)
+        session.save_results(
+            init_mm=init, confidence=confidence, model_fit=model_fit, source=source
+        )
     if result.skipped:
         _log(f"propagation skipped {len(result.skipped)} frame(s): {result.skipped[:10]}", quiet)
     return result

@@ -1,7 +1,8 @@
 """The skeletons the review panel shows, updated frame by frame while a job runs (no viser).
 
 :class:`LiveResults` holds a copy of ``results.npz`` (``lifted_mm``, ``init_mm``, ``final_mm``
-``(N, J, 3)`` mm, ``confidence`` ``(N, J)``) that the review runner overwrites frame by frame, and
+``(N, J, 3)`` mm, ``confidence`` ``(N, J)``, ``source`` ``(N,)``: the frame each propagated result
+came from) that the review runner overwrites frame by frame, and
 the best joints of each frame with their :class:`~handanno_core.results.Stage`. It ranks frames
 for review with the engine's evidence ranking (:func:`handanno_core.review.rank_priority`,
 ``"evidence"``) and scores them (:func:`handanno_core.review.session_scores`), both cached per
@@ -25,7 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from handanno_core.export import best_joints
-from handanno_core.results import Stage
+from handanno_core.results import NO_SOURCE, Stage
 from handanno_core.review import FrameScores, rank_priority, session_scores, unexplained_foreground
 from handanno_core.session import Session
 
@@ -66,7 +67,7 @@ class LiveResults:
         self.reload()
 
     def reload(self) -> None:
-        results = {k: np.array(v, dtype=np.float64) for k, v in self.session.load_results().items()}
+        results = {k: np.array(v) for k, v in self.session.load_results().items()}
         joints, stage = best_joints(results)
         with self._lock:
             self.results = results
@@ -83,6 +84,8 @@ class LiveResults:
     ) -> None:
         with self._lock:
             self.results[_STAGE_KEY[Stage(stage)]][frame] = joints_mm
+            if stage == Stage.PROPAGATED:  # its kept source is known once the run is saved
+                self.results["source"][frame] = NO_SOURCE
             self.joints_mm[frame] = joints_mm
             if confidence is not None:
                 self.confidence[frame] = confidence
@@ -102,6 +105,13 @@ class LiveResults:
     def frame(self, frame: int) -> tuple[np.ndarray, int]:
         with self._lock:
             return self.joints_mm[frame].copy(), int(self.stage[frame])
+
+    def source(self, frame: int) -> int:
+        """The frame ``frame``'s propagated result came from (``results.npz`` ``source``, the
+        candidate chain propagation kept), :data:`~handanno_core.results.NO_SOURCE` for a
+        reference, a frame not propagated, or one re-propagated by a run still going."""
+        with self._lock:
+            return int(self.results["source"][frame])
 
     def filled(self) -> int:
         with self._lock:

@@ -30,6 +30,22 @@ from .live import LiveResults
 NEIGHBOUR_RADIUS = 2
 #: export format label -> (export_bytes format, file extension)
 EXPORT_FORMATS = {"JSON": ("json", "json"), "NPZ": ("npz", "npz"), "MSRA": ("msra", "txt")}
+#: what a frame's shown joints are, by their :class:`~handanno_core.results.Stage`
+STAGE_TEXT = {0: "not computed yet", 1: "lifted", 2: "propagated", 3: "refined"}
+
+
+def frame_text(frame: int, stage: int, is_reference: bool, source: int, review: str | None) -> str:
+    """The review panel's line about ``frame``: what its shown joints are (reference, or their
+    :class:`~handanno_core.results.Stage`), the frame its propagated result was propagated from
+    (``source``: ``results.npz``'s kept candidate chain, not necessarily the selection's parent;
+    omitted when < 0) and its review status, e.g. ``**Review frame 15** (refined, propagated
+    from frame 20, flagged)``."""
+    bits = ["reference" if is_reference else STAGE_TEXT[int(stage)]]
+    if not is_reference and source >= 0 and stage >= 2:
+        bits.append(f"propagated from frame {int(source)}")
+    if review:
+        bits.append(review)
+    return f"**Review frame {frame}** ({', '.join(bits)})"
 
 
 class ReviewState:

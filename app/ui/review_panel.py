@@ -28,12 +28,11 @@ import numpy as np
 import viser.uplot
 
 from handanno_core.aggregate import bin_edges, summarize_bins
-from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, SessionError
 
 from ..control.events import Update, UpdateTopic
 from ..control.frames import FrameData
-from ..control.review import EXPORT_FORMATS
+from ..control.review import EXPORT_FORMATS, frame_text
 from .hand_scene import Drawing
 
 if TYPE_CHECKING:
@@ -43,7 +42,6 @@ if TYPE_CHECKING:
 PLOT_POINTS = 1000
 #: reference frames marked on the timeline slider (none in sessions with more references)
 MAX_MARKS = 60
-STAGE_TEXT = {0: "not computed yet", 1: "lifted", 2: "propagated", 3: "refined"}
 
 
 @dataclass
@@ -431,8 +429,9 @@ class ReviewPanel:
         _, stage = self.live.frame(self.frame)
         is_ref = self.frame in set(self.session.model.selection.reference_frames)
         review = self.session.model.review.get(str(self.frame))
-        bits = ["reference" if is_ref else STAGE_TEXT[Stage(stage)]] + ([review] if review else [])
-        w.frame_md.content = f"**Review frame {self.frame}** ({', '.join(bits)})"
+        w.frame_md.content = frame_text(
+            self.frame, stage, is_ref, self.live.source(self.frame), review
+        )
         self.chart.show(self.frame)
 
     def close(self) -> None:

@@ -22,7 +22,14 @@ from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
 from ..fileio import FILE_MODE, atomic_save_npz, atomic_write_bytes, fsync_dir
 from ..forest import NO_SELECTION
-from ..results import RESULT_KEYS, RESULTS_FILE, ResultsError, read_results, result_shape
+from ..results import (
+    RESULT_KEYS,
+    RESULTS_FILE,
+    ResultsError,
+    read_results,
+    result_dtype,
+    result_shape,
+)
 from ..skeleton import Skeleton, get_skeleton
 from .commands import (
     Batch,
@@ -684,12 +691,16 @@ class Session:
         return result_shape(key, self.num_frames, self.skeleton.num_joints)
 
     def load_results(self) -> dict[str, np.ndarray]:
-        """Results arrays (:func:`~handanno_core.results.read_results`); inside
-        :meth:`staged_results` this thread sees its staged arrays. A corrupt or foreign
-        ``results.npz`` raises :class:`SessionError` naming the file."""
+        """Results arrays (:func:`~handanno_core.results.read_results`; a file without
+        ``source`` gets it from the selection's parent forest); inside :meth:`staged_results`
+        this thread sees its staged arrays. A corrupt or foreign ``results.npz`` raises
+        :class:`SessionError` naming the file."""
         try:
             out = read_results(
-                self.folder / RESULTS_FILE, self.num_frames, self.skeleton.num_joints
+                self.folder / RESULTS_FILE,
+                self.num_frames,
+                self.skeleton.num_joints,
+                parent=self.parent,
             )
         except ResultsError as exc:
             raise SessionError(str(exc)) from exc
@@ -708,12 +719,12 @@ class Session:
                 )
         staged = getattr(self._stage, "arrays", None)
         if staged is not None:
-            staged.update({k: np.array(v, dtype=np.float64) for k, v in arrays.items()})
+            staged.update({k: np.array(v, dtype=result_dtype(k)) for k, v in arrays.items()})
             return
         with self.lock:
             self.acquire_writer()
             current = self.load_results()
-            current.update({k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()})
+            current.update({k: np.asarray(v, dtype=result_dtype(k)) for k, v in arrays.items()})
             try:
                 atomic_save_npz(self.folder / RESULTS_FILE, current)
             except OSError as exc:

@@ -70,9 +70,12 @@ __all__ = [
     "build_model",
     "estimate_radii",
     "fit_frames",
+    "finger_chains",
+    "finger_hypotheses",
     "frame_energy",
     "observe",
     "personalize",
+    "refit_fingers",
 ]
 
 
@@ -185,8 +188,10 @@ class _AngleMeter:
         self.parents = par[joints]
         self.parent_pos = np.array([pos.get(int(p), -1) for p in self.parents], dtype=np.int64)
 
-    def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand)."""
+    def __call__(self, poses: np.ndarray, axes: bool = False):
+        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand);
+        with ``axes`` also the flexion axes (..., A, 3) (unit; flexion turns a joint's child
+        bone about its axis, right-handed)."""
         x = np.asarray(poses, dtype=np.float64)
         normal = self.skeleton.palm_normal(x)[..., None, :]
         a_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
@@ -211,7 +216,7 @@ class _AngleMeter:
             abd[..., idx] = np.degrees(
                 np.arctan2(np.sum(b * lateral, axis=-1), np.hypot(along, towards))
             )
-        return flex, abd
+        return (flex, abd, lat_all) if axes else (flex, abd)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -228,12 +233,16 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 _METERS: dict[int, _AngleMeter] = {}
 
 
-def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
-    """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
+def _meter(skeleton: Skeleton) -> _AngleMeter:
     meter = _METERS.get(id(skeleton))
     if meter is None or meter.skeleton is not skeleton:
         meter = _METERS[id(skeleton)] = _AngleMeter(skeleton)
-    flex, abd = meter(x)
+    return meter
+
+
+def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
+    """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
+    flex, abd = _meter(skeleton)(x)
     fl, al = skeleton.angle_limits()
     v = np.concatenate(
         [
@@ -1071,6 +1080,144 @@ def fit_frames(
     )
     ev = fit.evaluation
     return FitResult(ev.x, ev.cost, first.cost.copy(), ev.terms, *fit.x, fit.iterations)
+
+
+#: flexions a finger is set to by :func:`refit_fingers`: (first joint, each further joint) as
+#: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``): extended, half and fully
+#: curled knuckle times the same three for the middle and end joints (chosen on the tune part)
+FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.45, 0.8) for b in (0.05, 0.45, 0.8))
+
+#: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
+_HYPOTHESIS_CHUNK = 256
+
+
+def finger_chains(skeleton: Skeleton) -> list[np.ndarray]:
+    """Per finger (chain below a child of the root), the positions in ``skeleton.angle_joints`` of
+    its angle joints, proximal first (fingers without angle joints are left out)."""
+    par = skeleton.parent_array
+    groups: dict[int, list[tuple[int, int]]] = {}
+    for i, k in enumerate(skeleton.angle_joints):
+        q, depth = int(k), 0
+        while par[q] != skeleton.root and par[q] >= 0:
+            q, depth = int(par[q]), depth + 1
+        groups.setdefault(q, []).append((depth, i))
+    return [np.array([i for _, i in sorted(g)], dtype=np.int64) for _, g in sorted(groups.items())]
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, deg: np.ndarray) -> np.ndarray:
+    """Unit vectors ``v`` (..., 3) turned by ``deg`` (...) about unit ``axis`` (..., 3) (Rodrigues)."""
+    t = np.radians(deg)[..., None]
+    c, s = np.cos(t), np.sin(t)
+    return v * c + _cross(axis, v) * s + axis * np.sum(axis * v, axis=-1, keepdims=True) * (1 - c)
+
+
+def finger_hypotheses(
+    skeleton: Skeleton, kin: Kinematics, root: np.ndarray, u: np.ndarray, flexions=FINGER_FLEXIONS
+) -> np.ndarray:
+    """Bone directions (n, F, K, B, 3) of the poses (root (n,3), u (n,B,3)) with one finger ``F``
+    (:func:`finger_chains`) at a time set to flexion ``K`` of ``flexions`` ((first joint, further
+    joints) fractions of each joint's flexion range): the subtree below each of the finger's angle
+    joints is turned about that joint's flexion axis, distal joints first (abduction, the other
+    fingers and the root unchanged; bones stay exact)."""
+    x = kin.joints(root, u)
+    flex, _, lateral = _meter(skeleton)(x, axes=True)
+    fl, _ = skeleton.angle_limits()
+    q = np.asarray(flexions, dtype=np.float64).reshape(-1, 2)
+    chains = finger_chains(skeleton)
+    children = skeleton.angle_children
+    out = np.broadcast_to(u[:, None, None], (len(u), len(chains), len(q)) + u.shape[1:]).copy()
+    below = {}
+    for pos in range(len(skeleton.angle_joints)):  # bones in the subtree below each angle joint
+        sub = [int(children[pos])]
+        for k in skeleton.topological_order:
+            if skeleton.parent_array[k] in sub:
+                sub.append(int(k))
+        below[pos] = kin.bone_of_child[np.asarray(sub)]
+    for f, chain in enumerate(chains):
+        frac = np.where(np.arange(len(chain)) == 0, q[:, :1], q[:, 1:])  # (K, len)
+        target = fl[chain, 0] + frac * (fl[chain, 1] - fl[chain, 0])
+        delta = target[None] - flex[:, None, chain]  # (n, K, len)
+        for i in range(len(chain) - 1, -1, -1):
+            bones = below[int(chain[i])]
+            view = out[:, f]  # (n,K,B,3), a view
+            view[:, :, bones] = _rotate(
+                view[:, :, bones], lateral[:, None, None, chain[i]], delta[..., i, None]
+            )
+    return out
+
+
+def refit_fingers(
+    model: HandModel,
+    fit: FitResult,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    *,
+    weights: FitWeights | None = None,
+    priors: Priors | None = None,
+    kin: Kinematics | None = None,
+    flexions=FINGER_FLEXIONS,
+    rows: np.ndarray | None = None,
+) -> FitResult:
+    """Per-finger hypotheses for fits ``fit`` of ``n`` frames stuck in a finger's local minimum
+    (a finger curled where the depth shows it extended, or the reverse).
+
+    The hand energy is nearly separable per finger (each finger's capsules explain their own
+    points): every finger of every frame is set in turn to each of ``flexions``
+    (:func:`finger_hypotheses`, F·K poses per frame) and scored by the frame's energy (same
+    weights and priors as the fit); each finger takes its best hypothesis where that lowers the
+    frame's energy below the fit's, the fingers are recombined into one pose, and one more
+    Levenberg-Marquardt fit (:func:`fit_frames`) runs from it. A frame keeps its new fit only
+    if that fit's energy is lower than ``fit.energy``, else it keeps ``fit`` unchanged (rows
+    are independent, as in :func:`fit_frames`). ``rows``: the frames to try (None: all); ``obs``
+    and ``priors`` are those of all ``n`` frames. Returns the merged :class:`FitResult`
+    (``energy_start`` and ``iterations`` of ``fit``)."""
+    w = weights or FitWeights()
+    kin = kin or Kinematics(model.skeleton, model.bone_lengths_mm)
+    sel = np.arange(len(fit.energy)) if rows is None else np.asarray(rows, dtype=np.int64)
+    chains = finger_chains(model.skeleton)
+    if len(sel) == 0 or not chains:
+        return fit
+    hyp = finger_hypotheses(model.skeleton, kin, fit.root[sel], fit.u[sel], flexions)
+    nf, nk = hyp.shape[1:3]
+    owner = np.repeat(sel, nf * nk)
+    energy = np.empty(len(owner))
+    flat = hyp.reshape((-1,) + hyp.shape[3:])
+    for a in range(0, len(owner), _HYPOTHESIS_CHUNK):
+        r = owner[a : a + _HYPOTHESIS_CHUNK]
+        energy[a : a + len(r)] = _energy(
+            model, kin, fit.root[r], flat[a : a + len(r)], obs.take(r), camera, w,
+            None if priors is None else priors.take(r), False, False,
+        )[0]  # fmt: skip
+    energy = energy.reshape(len(sel), nf, nk)
+    best = np.argmin(energy, axis=2)  # (m,F)
+    better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < fit.energy[sel, None]
+    hit = np.flatnonzero(np.any(better, axis=1))
+    if len(hit) == 0:
+        return fit
+    todo = sel[hit]
+    u = fit.u[todo].copy()
+    for f, chain in enumerate(chains):
+        bones = kin.bone_of_child[model.skeleton.angle_children[chain]]
+        take = better[hit, f]
+        pick = hyp[hit, f, best[hit, f]]  # (h,B,3)
+        u[np.ix_(take, bones)] = pick[np.ix_(take, bones)]
+    again = fit_frames(
+        model, kin.joints(fit.root[todo], u), obs.take(todo), camera, weights=w,
+        priors=None if priors is None else priors.take(todo), kin=kin,
+    )  # fmt: skip
+    keep = again.energy < fit.energy[todo]
+    rows_k = todo[keep]
+    out = FitResult(
+        fit.joints_mm.copy(), fit.energy.copy(), fit.energy_start, {k: v.copy() for k, v in fit.terms.items()},
+        fit.root.copy(), fit.u.copy(), fit.iterations,
+    )  # fmt: skip
+    out.joints_mm[rows_k] = again.joints_mm[keep]
+    out.energy[rows_k] = again.energy[keep]
+    for k in out.terms:
+        out.terms[k][rows_k] = again.terms[k][keep]
+    out.root[rows_k] = again.root[keep]
+    out.u[rows_k] = again.u[keep]
+    return out
 
 
 @dataclass

@@ -159,6 +159,12 @@ class PropagationSettings:
     #: ancestors; 0: for every frame. Where the first forest's fits explain the depth, its
     #: chains are kept, at no extra cost
     candidate_level: float = 2.0
+    #: per-finger hypotheses (:func:`handanno_core.handmodel.refit_fingers`): where a frame's
+    #: model fit explains its depth worse than ``finger_level`` times the references' level, every
+    #: finger is also tried curled and extended, the best of each is recombined and refitted; the
+    #: new fit is kept only if its energy is lower (README, hand model section)
+    finger_hypotheses: bool = False
+    finger_level: float = 1.5
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -691,6 +697,12 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         priors=pri_f.take(owner[best]),
         kin=kin,
     )
+    if st.finger_hypotheses:
+        lvl = (fit.terms["data"] + fit.terms["free_space"]) / ctx.model_levels[h]
+        fit = hm.refit_fingers(
+            model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
+            kin=kin, rows=np.flatnonzero(lvl > st.finger_level),
+        )  # fmt: skip
     x = np.empty((len(items), j, 3))
     root = np.empty((len(items), 3))
     u = np.empty((len(items),) + fit.u.shape[1:])

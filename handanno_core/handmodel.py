@@ -72,7 +72,9 @@ __all__ = [
     "fit_frames",
     "finger_chains",
     "finger_hypotheses",
+    "finger_targets",
     "frame_energy",
+    "grid_flexions",
     "observe",
     "personalize",
     "refit_fingers",
@@ -1083,9 +1085,8 @@ def fit_frames(
 
 
 #: flexions a finger is set to by :func:`refit_fingers`: (first joint, each further joint) as
-#: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``): extended, half and fully
-#: curled knuckle times the same three for the middle and end joints (chosen on the tune part)
-FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.45, 0.8) for b in (0.05, 0.45, 0.8))
+#: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``), from extended to curled
+FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.3, 0.55, 0.8) for b in (0.05, 0.3, 0.55, 0.8))
 
 #: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
 _HYPOTHESIS_CHUNK = 256
@@ -1104,6 +1105,41 @@ def finger_chains(skeleton: Skeleton) -> list[np.ndarray]:
     return [np.array([i for _, i in sorted(g)], dtype=np.int64) for _, g in sorted(groups.items())]
 
 
+def grid_flexions(skeleton: Skeleton, fractions=FINGER_FLEXIONS) -> np.ndarray:
+    """(K, A) flexion targets, degrees: per ``(first, further)`` pair of ``fractions`` of each
+    joint's flexion range, the first joint of every finger at ``first``, the others at
+    ``further``."""
+    fl, _ = skeleton.angle_limits()
+    first = np.zeros(len(fl), dtype=bool)
+    first[[int(c[0]) for c in finger_chains(skeleton)]] = True
+    q = np.asarray(fractions, dtype=np.float64).reshape(-1, 2)
+    frac = np.where(first[None], q[:, :1], q[:, 1:])
+    return fl[:, 0] + frac * (fl[:, 1] - fl[:, 0])
+
+
+def finger_targets(
+    skeleton: Skeleton, poses: np.ndarray, owner: np.ndarray, n: int, fractions=FINGER_FLEXIONS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hypotheses of :func:`refit_fingers` for ``n`` frames: flexion and abduction targets (n,K,A)
+    degrees, the grid :func:`grid_flexions` (abduction kept: NaN) followed by the angles of each
+    frame's own candidate poses ``poses`` (S,J,3) (``owner`` (S,): the frame each belongs to;
+    e.g. the references before and after it); a frame with fewer poses than the most gets NaN
+    (keep: the fit itself) in the remaining slots."""
+    g = grid_flexions(skeleton, fractions)
+    owner = np.asarray(owner, dtype=np.int64)
+    counts = np.bincount(owner, minlength=n)
+    k = int(counts.max()) if len(owner) else 0
+    fl_p, ab_p = _meter(skeleton)(np.asarray(poses, dtype=np.float64))
+    order = np.argsort(owner, kind="stable")
+    slot = np.arange(len(owner)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[owner[order]]
+    pf = np.full((n, k, g.shape[1]), np.nan)
+    pa = np.full_like(pf, np.nan)
+    pf[owner[order], slot] = fl_p[order]
+    pa[owner[order], slot] = ab_p[order]
+    flex = np.concatenate([np.broadcast_to(g, (n,) + g.shape), pf], axis=1)
+    return flex, np.concatenate([np.full((n,) + g.shape, np.nan), pa], axis=1)
+
+
 def _rotate(v: np.ndarray, axis: np.ndarray, deg: np.ndarray) -> np.ndarray:
     """Unit vectors ``v`` (..., 3) turned by ``deg`` (...) about unit ``axis`` (..., 3) (Rodrigues)."""
     t = np.radians(deg)[..., None]
@@ -1112,37 +1148,54 @@ def _rotate(v: np.ndarray, axis: np.ndarray, deg: np.ndarray) -> np.ndarray:
 
 
 def finger_hypotheses(
-    skeleton: Skeleton, kin: Kinematics, root: np.ndarray, u: np.ndarray, flexions=FINGER_FLEXIONS
+    skeleton: Skeleton,
+    kin: Kinematics,
+    root: np.ndarray,
+    u: np.ndarray,
+    flexion_deg: np.ndarray,
+    abduction_deg: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bone directions (n, F, K, B, 3) of the poses (root (n,3), u (n,B,3)) with one finger ``F``
-    (:func:`finger_chains`) at a time set to flexion ``K`` of ``flexions`` ((first joint, further
-    joints) fractions of each joint's flexion range): the subtree below each of the finger's angle
-    joints is turned about that joint's flexion axis, distal joints first (abduction, the other
-    fingers and the root unchanged; bones stay exact)."""
+    (:func:`finger_chains`) at a time set to the flexions ``flexion_deg`` (K, A) or (n, K, A)
+    degrees (:meth:`Skeleton.joint_angles`' angle joints; NaN: keep) and, at the finger's first
+    joint, the abductions ``abduction_deg`` (same shape; None or NaN: keep). The subtree below
+    each of the finger's angle joints is turned about that joint's flexion axis, distal joints
+    first, then the first joint's about its abduction axis (the other fingers and the root
+    unchanged; bones stay exact; the resulting angles match the targets up to the coupling of
+    flexion and abduction)."""
+    n = len(u)
     x = kin.joints(root, u)
-    flex, _, lateral = _meter(skeleton)(x, axes=True)
-    fl, _ = skeleton.angle_limits()
-    q = np.asarray(flexions, dtype=np.float64).reshape(-1, 2)
+    flex, abd, lateral = _meter(skeleton)(x, axes=True)
+    par = skeleton.parent_array
+    aj = skeleton.angle_joints
+    incoming = _unit(x[:, aj] - x[:, par[aj]])  # (n,A,3)
+    normal = _cross(lateral, incoming)  # flexion direction: abduction turns about it
+    tf = np.broadcast_to(flexion_deg, (n,) + np.shape(flexion_deg)[-2:])
+    ta = None if abduction_deg is None else np.broadcast_to(abduction_deg, tf.shape)
     chains = finger_chains(skeleton)
     children = skeleton.angle_children
-    out = np.broadcast_to(u[:, None, None], (len(u), len(chains), len(q)) + u.shape[1:]).copy()
+    out = np.broadcast_to(u[:, None, None], (n, len(chains), tf.shape[1]) + u.shape[1:]).copy()
     below = {}
-    for pos in range(len(skeleton.angle_joints)):  # bones in the subtree below each angle joint
+    for pos in range(len(aj)):  # bones in the subtree below each angle joint
         sub = [int(children[pos])]
         for k in skeleton.topological_order:
-            if skeleton.parent_array[k] in sub:
+            if par[k] in sub:
                 sub.append(int(k))
         below[pos] = kin.bone_of_child[np.asarray(sub)]
     for f, chain in enumerate(chains):
-        frac = np.where(np.arange(len(chain)) == 0, q[:, :1], q[:, 1:])  # (K, len)
-        target = fl[chain, 0] + frac * (fl[chain, 1] - fl[chain, 0])
-        delta = target[None] - flex[:, None, chain]  # (n, K, len)
+        view = out[:, f]  # (n,K,B,3), a view
         for i in range(len(chain) - 1, -1, -1):
-            bones = below[int(chain[i])]
-            view = out[:, f]  # (n,K,B,3), a view
+            pos = int(chain[i])
+            bones = below[pos]
+            delta = np.nan_to_num(tf[:, :, pos] - flex[:, None, pos])  # (n,K)
             view[:, :, bones] = _rotate(
-                view[:, :, bones], lateral[:, None, None, chain[i]], delta[..., i, None]
+                view[:, :, bones], lateral[:, None, None, pos], delta[..., None]
             )
+            if i == 0 and ta is not None:
+                d_ab = np.nan_to_num(ta[:, :, pos] - abd[:, None, pos])
+                view[:, :, bones] = _rotate(
+                    view[:, :, bones], normal[:, None, None, pos], -d_ab[..., None]
+                )
     return out
 
 
@@ -1155,15 +1208,17 @@ def refit_fingers(
     weights: FitWeights | None = None,
     priors: Priors | None = None,
     kin: Kinematics | None = None,
-    flexions=FINGER_FLEXIONS,
+    flexion_deg: np.ndarray | None = None,
+    abduction_deg: np.ndarray | None = None,
     rows: np.ndarray | None = None,
 ) -> FitResult:
     """Per-finger hypotheses for fits ``fit`` of ``n`` frames stuck in a finger's local minimum
     (a finger curled where the depth shows it extended, or the reverse).
 
     The hand energy is nearly separable per finger (each finger's capsules explain their own
-    points): every finger of every frame is set in turn to each of ``flexions``
-    (:func:`finger_hypotheses`, F·K poses per frame) and scored by the frame's energy (same
+    points): every finger of every frame is set in turn to each hypothesis
+    (:func:`finger_hypotheses`; ``flexion_deg`` (K,A) or (n,K,A), default
+    :func:`grid_flexions`, with ``abduction_deg`` alike) and scored by the frame's energy (same
     weights and priors as the fit); each finger takes its best hypothesis where that lowers the
     frame's energy below the fit's, the fingers are recombined into one pose, and one more
     Levenberg-Marquardt fit (:func:`fit_frames`) runs from it. A frame keeps its new fit only
@@ -1177,7 +1232,14 @@ def refit_fingers(
     chains = finger_chains(model.skeleton)
     if len(sel) == 0 or not chains:
         return fit
-    hyp = finger_hypotheses(model.skeleton, kin, fit.root[sel], fit.u[sel], flexions)
+    flexion_deg = grid_flexions(model.skeleton) if flexion_deg is None else flexion_deg
+
+    def pick(a):
+        return a if a is None or np.ndim(a) == 2 else np.asarray(a)[sel]
+
+    hyp = finger_hypotheses(
+        model.skeleton, kin, fit.root[sel], fit.u[sel], pick(flexion_deg), pick(abduction_deg)
+    )
     nf, nk = hyp.shape[1:3]
     owner = np.repeat(sel, nf * nk)
     energy = np.empty(len(owner))
@@ -1199,8 +1261,8 @@ def refit_fingers(
     for f, chain in enumerate(chains):
         bones = kin.bone_of_child[model.skeleton.angle_children[chain]]
         take = better[hit, f]
-        pick = hyp[hit, f, best[hit, f]]  # (h,B,3)
-        u[np.ix_(take, bones)] = pick[np.ix_(take, bones)]
+        chosen = hyp[hit, f, best[hit, f]]  # (h,B,3)
+        u[np.ix_(take, bones)] = chosen[np.ix_(take, bones)]
     again = fit_frames(
         model, kin.joints(fit.root[todo], u), obs.take(todo), camera, weights=w,
         priors=None if priors is None else priors.take(todo), kin=kin,
@@ -1208,8 +1270,9 @@ def refit_fingers(
     keep = again.energy < fit.energy[todo]
     rows_k = todo[keep]
     out = FitResult(
-        fit.joints_mm.copy(), fit.energy.copy(), fit.energy_start, {k: v.copy() for k, v in fit.terms.items()},
-        fit.root.copy(), fit.u.copy(), fit.iterations,
+        fit.joints_mm.copy(), fit.energy.copy(), fit.energy_start,
+        {k: v.copy() for k, v in fit.terms.items()}, fit.root.copy(), fit.u.copy(),
+        fit.iterations,
     )  # fmt: skip
     out.joints_mm[rows_k] = again.joints_mm[keep]
     out.energy[rows_k] = again.energy[keep]

@@ -698,10 +698,13 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         kin=kin,
     )
     if st.finger_hypotheses:
+        # each fitted row's fingers also tried at the angles of its frame's every start
         lvl = (fit.terms["data"] + fit.terms["free_space"]) / ctx.model_levels[h]
+        flex, abd = hm.finger_targets(ctx.skeleton, starts, owner, len(items))
         fit = hm.refit_fingers(
             model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
-            kin=kin, rows=np.flatnonzero(lvl > st.finger_level),
+            kin=kin, flexion_deg=flex[owner[best]], abduction_deg=abd[owner[best]],
+            rows=np.flatnonzero(lvl > st.finger_level),
         )  # fmt: skip
     x = np.empty((len(items), j, 3))
     root = np.empty((len(items), 3))

@@ -45,6 +45,13 @@ one ``np.bincount``) and mapped to θ once (:func:`_assemble`). The joint-angle 
 differentiated forward over the tangent parameters of the bones its violated angles depend on
 (:func:`angle_jacobian`, shared with :mod:`handanno_core.refine`). A step is accepted per frame
 only if it lowers that frame's energy. Cost: ``benchmarks/bench_handmodel.py`` (README).
+
+**Per-finger hypotheses** (:func:`refit_fingers`, the classic remedy of model-based trackers for a
+finger stuck in the wrong basin, curled where the depth shows it extended): the energy is nearly
+separable per finger, so each finger of a fitted pose is set in turn to a grid of flexions
+(:data:`FINGER_FLEXIONS`, fractions of the joints' limits) and to the angles of caller-given
+poses (:func:`finger_targets`), scored by the same energy; the best of each finger are
+recombined and refitted once, and the result is kept only where its energy is lower.
 """
 
 from __future__ import annotations

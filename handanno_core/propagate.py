@@ -30,7 +30,11 @@ reference), parents always before children:
    unless its own evidence says it failed: its data + free-space energy above
    ``model_fail_ratio`` times the references' level (the model does not explain the frame's
    depth: a wrong start, the hand fitted to another surface); the frame then keeps its flowed
-   pose. Measured by ``handanno bench --model off,on`` (README, hand model
+   pose. With ``finger_hypotheses`` a fit above ``finger_level`` times the references' level
+   is also tried with each finger set to a grid of flexions and to the angles it has in the
+   frame's other starts (:func:`handanno_core.handmodel.refit_fingers`: a finger stuck curled
+   where the depth shows it extended, or the reverse); the recombined, refitted pose is kept
+   only if its energy is lower. Measured by ``handanno bench --model off,on`` (README, hand model
    section).
 
 6. several candidate forests (``parent`` of shape ``(P, N)``; a session with the hand model on
@@ -163,7 +167,7 @@ class PropagationSettings:
     #: model fit explains its depth worse than ``finger_level`` times the references' level, every
     #: finger is also tried curled and extended, the best of each is recombined and refitted; the
     #: new fit is kept only if its energy is lower (README, hand model section)
-    finger_hypotheses: bool = False
+    finger_hypotheses: bool = True
     finger_level: float = 1.5
 
     @classmethod

@@ -1095,6 +1095,10 @@ def fit_frames(
 #: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``), from extended to curled
 FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.3, 0.55, 0.8) for b in (0.05, 0.3, 0.55, 0.8))
 
+#: observed points per frame the hypotheses are ranked on (:func:`refit_fingers`; the nearest
+#: capsule of every point is most of the cost)
+FINGER_SCORE_POINTS = 256
+
 #: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
 _HYPOTHESIS_CHUNK = 256
 
@@ -1218,6 +1222,7 @@ def refit_fingers(
     flexion_deg: np.ndarray | None = None,
     abduction_deg: np.ndarray | None = None,
     rows: np.ndarray | None = None,
+    score_points: int | None = FINGER_SCORE_POINTS,
 ) -> FitResult:
     """Per-finger hypotheses for fits ``fit`` of ``n`` frames stuck in a finger's local minimum
     (a finger curled where the depth shows it extended, or the reverse).
@@ -1230,7 +1235,9 @@ def refit_fingers(
     frame's energy below the fit's, the fingers are recombined into one pose, and one more
     Levenberg-Marquardt fit (:func:`fit_frames`) runs from it. A frame keeps its new fit only
     if that fit's energy is lower than ``fit.energy``, else it keeps ``fit`` unchanged (rows
-    are independent, as in :func:`fit_frames`). ``rows``: the frames to try (None: all); ``obs``
+    are independent, as in :func:`fit_frames`). Hypotheses are ranked on about
+    ``score_points`` of the observed points (None: all), the refit uses all of them.
+    ``rows``: the frames to try (None: all); ``obs``
     and ``priors`` are those of all ``n`` frames. Returns the merged :class:`FitResult`
     (``energy_start`` and ``iterations`` of ``fit``)."""
     w = weights or FitWeights()
@@ -1248,18 +1255,24 @@ def refit_fingers(
         model.skeleton, kin, fit.root[sel], fit.u[sel], pick(flexion_deg), pick(abduction_deg)
     )
     nf, nk = hyp.shape[1:3]
-    owner = np.repeat(sel, nf * nk)
+    # scored on every ``stride``-th observed point (the ranking needs fewer than the fit), the
+    # fit's own pose first so that the comparison uses the same points
+    stride = max(1, obs.points.shape[1] // max(int(score_points or 0), 1)) if score_points else 1
+    sub = FrameObservations(
+        obs.points[:, ::stride], obs.valid[:, ::stride], obs.depth, obs.nearest, obs.boxes
+    )
+    owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
+    flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
     energy = np.empty(len(owner))
-    flat = hyp.reshape((-1,) + hyp.shape[3:])
     for a in range(0, len(owner), _HYPOTHESIS_CHUNK):
         r = owner[a : a + _HYPOTHESIS_CHUNK]
         energy[a : a + len(r)] = _energy(
-            model, kin, fit.root[r], flat[a : a + len(r)], obs.take(r), camera, w,
+            model, kin, fit.root[r], flat[a : a + len(r)], sub.take(r), camera, w,
             None if priors is None else priors.take(r), False, False,
         )[0]  # fmt: skip
-    energy = energy.reshape(len(sel), nf, nk)
+    current, energy = energy[: len(sel)], energy[len(sel) :].reshape(len(sel), nf, nk)
     best = np.argmin(energy, axis=2)  # (m,F)
-    better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < fit.energy[sel, None]
+    better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < current[:, None]
     hit = np.flatnonzero(np.any(better, axis=1))
     if len(hit) == 0:
         return fit

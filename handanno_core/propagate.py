@@ -169,6 +169,9 @@ class PropagationSettings:
     #: new fit is kept only if its energy is lower (README, hand model section)
     finger_hypotheses: bool = True
     finger_level: float = 1.5
+    #: a fit above ``model_fail_ratio`` that the hypotheses bring below it is kept only below
+    #: this many times the references' level (:func:`_fit_failed`)
+    finger_rescue_level: float = 2.0
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -643,6 +646,20 @@ def _model_fits(ctx: _Context, items: list[_ModelInput]) -> list[tuple[np.ndarra
     return out
 
 
+def _fit_failed(st: PropagationSettings, plain: float, fitted: float) -> bool:
+    """The guard: a fit whose data + free-space level (relative to the references') is above
+    ``model_fail_ratio`` failed. A plain fit above it that the finger hypotheses bring below it
+    passes only below ``finger_rescue_level`` (fingers rearranged over another surface lower the
+    level 2-4x: a ball in the tests drops from 10-30x to 4-8x; real hands rescued on the tune
+    part reach about 1x). ``plain``/``fitted``: the level before/after the hypotheses."""
+    if st.model_fail_ratio <= 0:
+        return False
+    limit = st.model_fail_ratio
+    if st.finger_hypotheses and plain > limit:
+        limit = min(limit, st.finger_rescue_level)
+    return bool(fitted > limit)
+
+
 def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     """:func:`_model_fits` for frames of one hand model ``ctx.hand_models[h]``."""
     st = ctx.settings
@@ -701,9 +718,10 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         priors=pri_f.take(owner[best]),
         kin=kin,
     )
+    # the plain fit's level (data + free space relative to the references'), per fitted row
+    lvl = (fit.terms["data"] + fit.terms["free_space"]) / ctx.model_levels[h]
     if st.finger_hypotheses:
         # each fitted row's fingers also tried at the angles of its frame's every start
-        lvl = (fit.terms["data"] + fit.terms["free_space"]) / ctx.model_levels[h]
         flex, abd = hm.finger_targets(ctx.skeleton, starts, owner, len(items))
         fit = hm.refit_fingers(
             model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
@@ -720,10 +738,10 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         k = rows[int(np.argmin(fit.energy[rows]))]
         x[i], root[i], u[i] = fit.joints_mm[k], fit.root[k], fit.u[k]
         level[i] = fit.terms["data"][k] + fit.terms["free_space"][k]
-        rejected[i] = (
-            st.model_fail_ratio > 0 and level[i] > st.model_fail_ratio * ctx.model_levels[h]
-        )
+        rejected[i] = _fit_failed(st, lvl[k], level[i] / ctx.model_levels[h])
         if rejected[i]:
+            # the evidence: the level of the fit the guard judged (before any hypotheses)
+            level[i] = max(level[i], lvl[k] * ctx.model_levels[h])
             # the fit does not explain the frame's depth: keep the flowed pose
             x[i] = x_flow[i]
             r1, u1 = kin.fit(x_flow[i][None])

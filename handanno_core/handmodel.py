@@ -1152,7 +1152,7 @@ def finger_targets(
 
 
 def _rotate(v: np.ndarray, axis: np.ndarray, deg: np.ndarray) -> np.ndarray:
-    """Unit vectors ``v`` (..., 3) turned by ``deg`` (...) about unit ``axis`` (..., 3) (Rodrigues)."""
+    """Unit ``v`` (..., 3) turned by ``deg`` (...) about unit ``axis`` (..., 3) (Rodrigues)."""
     t = np.radians(deg)[..., None]
     c, s = np.cos(t), np.sin(t)
     return v * c + _cross(axis, v) * s + axis * np.sum(axis * v, axis=-1, keepdims=True) * (1 - c)

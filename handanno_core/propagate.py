@@ -170,7 +170,7 @@ class PropagationSettings:
     finger_hypotheses: bool = True
     finger_level: float = 1.5
     #: a fit above ``model_fail_ratio`` that the hypotheses bring below it is kept only below
-    #: this many times the references' level (:func:`_fit_failed`)
+    #: this many times the references' level (:func:`_guard`)
     finger_rescue_level: float = 3.0
 
     @classmethod
@@ -646,21 +646,24 @@ def _model_fits(ctx: _Context, items: list[_ModelInput]) -> list[tuple[np.ndarra
     return out
 
 
-def _fit_failed(st: PropagationSettings, plain: float, fitted: float) -> bool:
+def _guard(st: PropagationSettings, plain: float, fitted: float, ref: float) -> tuple[bool, float]:
     """The guard: a fit whose data + free-space level (relative to the references') is above
     ``model_fail_ratio`` failed. A plain fit above it that the finger hypotheses bring below it
     passes only below ``finger_rescue_level``: fingers rearranged over another surface lower the
     level 2-4x (a 35-55 mm ball in the tests: from 9-33x to 4.1-8x), so without this limit the
     guard would accept a hand fitted over an object. It costs accuracy where real hands were
     rescued to 3-5x (tune-icvl, 5 % uniform, final mean: 4.33 mm without the limit, 5.03 with
-    2 or 3; tune-shape-fast 5.92 with 3, 6.17 with 2). ``plain``/``fitted``: the level
-    before/after the hypotheses."""
+    2 or 3; tune-shape-fast 5.92 with 3, 6.17 with 2). ``plain``: the level before the
+    hypotheses (relative); ``fitted``: the data + free-space energy after them; ``ref``: the
+    references' level. Returns (failed, the energy the evidence reports: the judged plain fit's
+    where a rescue was refused)."""
     if st.model_fail_ratio <= 0:
-        return False
+        return False, fitted
     limit = st.model_fail_ratio
     if st.finger_hypotheses and plain > limit:
         limit = min(limit, st.finger_rescue_level)
-    return bool(fitted > limit)
+    failed = bool(fitted > limit * ref)
+    return failed, max(fitted, plain * ref) if failed and st.finger_hypotheses else fitted
 
 
 def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
@@ -741,10 +744,8 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         k = rows[int(np.argmin(fit.energy[rows]))]
         x[i], root[i], u[i] = fit.joints_mm[k], fit.root[k], fit.u[k]
         level[i] = fit.terms["data"][k] + fit.terms["free_space"][k]
-        rejected[i] = _fit_failed(st, lvl[k], level[i] / ctx.model_levels[h])
+        rejected[i], level[i] = _guard(st, lvl[k], level[i], ctx.model_levels[h])
         if rejected[i]:
-            # the evidence: the level of the fit the guard judged (before any hypotheses)
-            level[i] = max(level[i], lvl[k] * ctx.model_levels[h])
             # the fit does not explain the frame's depth: keep the flowed pose
             x[i] = x_flow[i]
             r1, u1 = kin.fit(x_flow[i][None])

@@ -45,6 +45,13 @@ one ``np.bincount``) and mapped to θ once (:func:`_assemble`). The joint-angle 
 differentiated forward over the tangent parameters of the bones its violated angles depend on
 (:func:`angle_jacobian`, shared with :mod:`handanno_core.refine`). A step is accepted per frame
 only if it lowers that frame's energy. Cost: ``benchmarks/bench_handmodel.py`` (README).
+
+**Per-finger hypotheses** (:func:`refit_fingers`, the classic remedy of model-based trackers for a
+finger stuck in the wrong basin, curled where the depth shows it extended): the energy is nearly
+separable per finger, so each finger of a fitted pose is set in turn to a grid of flexions
+(:data:`FINGER_FLEXIONS`, fractions of the joints' limits) and to the angles of caller-given
+poses (:func:`finger_targets`), scored by the same energy; the best of each finger are
+recombined and refitted once, and the result is kept only where its energy is lower.
 """
 
 from __future__ import annotations
@@ -70,9 +77,14 @@ __all__ = [
     "build_model",
     "estimate_radii",
     "fit_frames",
+    "finger_chains",
+    "finger_hypotheses",
+    "finger_targets",
     "frame_energy",
+    "grid_flexions",
     "observe",
     "personalize",
+    "refit_fingers",
 ]
 
 
@@ -185,8 +197,10 @@ class _AngleMeter:
         self.parents = par[joints]
         self.parent_pos = np.array([pos.get(int(p), -1) for p in self.parents], dtype=np.int64)
 
-    def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand)."""
+    def __call__(self, poses: np.ndarray, axes: bool = False):
+        """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand);
+        with ``axes`` also the flexion axes (..., A, 3) (unit; flexion turns a joint's child
+        bone about its axis, right-handed)."""
         x = np.asarray(poses, dtype=np.float64)
         normal = self.skeleton.palm_normal(x)[..., None, :]
         a_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
@@ -211,7 +225,7 @@ class _AngleMeter:
             abd[..., idx] = np.degrees(
                 np.arctan2(np.sum(b * lateral, axis=-1), np.hypot(along, towards))
             )
-        return flex, abd
+        return (flex, abd, lat_all) if axes else (flex, abd)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -228,12 +242,16 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 _METERS: dict[int, _AngleMeter] = {}
 
 
-def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
-    """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
+def _meter(skeleton: Skeleton) -> _AngleMeter:
     meter = _METERS.get(id(skeleton))
     if meter is None or meter.skeleton is not skeleton:
         meter = _METERS[id(skeleton)] = _AngleMeter(skeleton)
-    flex, abd = meter(x)
+    return meter
+
+
+def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
+    """(..., 2A) degrees outside the flexion/abduction limits of ``skeleton.angle_limits()``."""
+    flex, abd = _meter(skeleton)(x)
     fl, al = skeleton.angle_limits()
     v = np.concatenate(
         [
@@ -1071,6 +1089,218 @@ def fit_frames(
     )
     ev = fit.evaluation
     return FitResult(ev.x, ev.cost, first.cost.copy(), ev.terms, *fit.x, fit.iterations)
+
+
+#: flexions a finger is set to by :func:`refit_fingers`: (first joint, each further joint) as
+#: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``), from extended to curled
+FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.3, 0.55, 0.8) for b in (0.05, 0.3, 0.55, 0.8))
+
+#: observed points per frame the hypotheses are ranked on (:func:`refit_fingers`; the nearest
+#: capsule of every point is most of the cost)
+FINGER_SCORE_POINTS = 256
+
+#: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
+_HYPOTHESIS_CHUNK = 256
+
+
+def finger_chains(skeleton: Skeleton) -> list[np.ndarray]:
+    """Per finger (chain below a child of the root), the positions in ``skeleton.angle_joints`` of
+    its angle joints, proximal first (fingers without angle joints are left out)."""
+    par = skeleton.parent_array
+    groups: dict[int, list[tuple[int, int]]] = {}
+    for i, k in enumerate(skeleton.angle_joints):
+        q, depth = int(k), 0
+        while par[q] != skeleton.root and par[q] >= 0:
+            q, depth = int(par[q]), depth + 1
+        groups.setdefault(q, []).append((depth, i))
+    return [np.array([i for _, i in sorted(g)], dtype=np.int64) for _, g in sorted(groups.items())]
+
+
+def grid_flexions(skeleton: Skeleton, fractions=FINGER_FLEXIONS) -> np.ndarray:
+    """(K, A) flexion targets, degrees: per ``(first, further)`` pair of ``fractions`` of each
+    joint's flexion range, the first joint of every finger at ``first``, the others at
+    ``further``."""
+    fl, _ = skeleton.angle_limits()
+    first = np.zeros(len(fl), dtype=bool)
+    first[[int(c[0]) for c in finger_chains(skeleton)]] = True
+    q = np.asarray(fractions, dtype=np.float64).reshape(-1, 2)
+    frac = np.where(first[None], q[:, :1], q[:, 1:])
+    return fl[:, 0] + frac * (fl[:, 1] - fl[:, 0])
+
+
+def finger_targets(
+    skeleton: Skeleton, poses: np.ndarray, owner: np.ndarray, n: int, fractions=FINGER_FLEXIONS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hypotheses of :func:`refit_fingers` for ``n`` frames: flexion and abduction targets (n,K,A)
+    degrees, the grid :func:`grid_flexions` (abduction kept: NaN) followed by the angles of each
+    frame's own candidate poses ``poses`` (S,J,3) (``owner`` (S,): the frame each belongs to;
+    e.g. the references before and after it); a frame with fewer poses than the most gets NaN
+    (keep: the fit itself) in the remaining slots."""
+    g = grid_flexions(skeleton, fractions)
+    owner = np.asarray(owner, dtype=np.int64)
+    counts = np.bincount(owner, minlength=n)
+    k = int(counts.max()) if len(owner) else 0
+    fl_p, ab_p = _meter(skeleton)(np.asarray(poses, dtype=np.float64))
+    order = np.argsort(owner, kind="stable")
+    slot = np.arange(len(owner)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[owner[order]]
+    pf = np.full((n, k, g.shape[1]), np.nan)
+    pa = np.full_like(pf, np.nan)
+    pf[owner[order], slot] = fl_p[order]
+    pa[owner[order], slot] = ab_p[order]
+    flex = np.concatenate([np.broadcast_to(g, (n,) + g.shape), pf], axis=1)
+    return flex, np.concatenate([np.full((n,) + g.shape, np.nan), pa], axis=1)
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, deg: np.ndarray) -> np.ndarray:
+    """Unit ``v`` (..., 3) turned by ``deg`` (...) about unit ``axis`` (..., 3) (Rodrigues)."""
+    t = np.radians(deg)[..., None]
+    c, s = np.cos(t), np.sin(t)
+    return v * c + _cross(axis, v) * s + axis * np.sum(axis * v, axis=-1, keepdims=True) * (1 - c)
+
+
+def finger_hypotheses(
+    skeleton: Skeleton,
+    kin: Kinematics,
+    root: np.ndarray,
+    u: np.ndarray,
+    flexion_deg: np.ndarray,
+    abduction_deg: np.ndarray | None = None,
+) -> np.ndarray:
+    """Bone directions (n, F, K, B, 3) of the poses (root (n,3), u (n,B,3)) with one finger ``F``
+    (:func:`finger_chains`) at a time set to the flexions ``flexion_deg`` (K, A) or (n, K, A)
+    degrees (:meth:`Skeleton.joint_angles`' angle joints; NaN: keep) and, at the finger's first
+    joint, the abductions ``abduction_deg`` (same shape; None or NaN: keep). The subtree below
+    each of the finger's angle joints is turned about that joint's flexion axis, distal joints
+    first, then the first joint's about its abduction axis (the other fingers and the root
+    unchanged; bones stay exact; the resulting angles match the targets up to the coupling of
+    flexion and abduction)."""
+    n = len(u)
+    x = kin.joints(root, u)
+    flex, abd, lateral = _meter(skeleton)(x, axes=True)
+    par = skeleton.parent_array
+    aj = skeleton.angle_joints
+    incoming = _unit(x[:, aj] - x[:, par[aj]])  # (n,A,3)
+    normal = _cross(lateral, incoming)  # flexion direction: abduction turns about it
+    tf = np.broadcast_to(flexion_deg, (n,) + np.shape(flexion_deg)[-2:])
+    ta = None if abduction_deg is None else np.broadcast_to(abduction_deg, tf.shape)
+    chains = finger_chains(skeleton)
+    children = skeleton.angle_children
+    out = np.broadcast_to(u[:, None, None], (n, len(chains), tf.shape[1]) + u.shape[1:]).copy()
+    below = {}
+    for pos in range(len(aj)):  # bones in the subtree below each angle joint
+        sub = [int(children[pos])]
+        for k in skeleton.topological_order:
+            if par[k] in sub:
+                sub.append(int(k))
+        below[pos] = kin.bone_of_child[np.asarray(sub)]
+    for f, chain in enumerate(chains):
+        view = out[:, f]  # (n,K,B,3), a view
+        for i in range(len(chain) - 1, -1, -1):
+            pos = int(chain[i])
+            bones = below[pos]
+            delta = np.nan_to_num(tf[:, :, pos] - flex[:, None, pos])  # (n,K)
+            view[:, :, bones] = _rotate(
+                view[:, :, bones], lateral[:, None, None, pos], delta[..., None]
+            )
+            if i == 0 and ta is not None:
+                d_ab = np.nan_to_num(ta[:, :, pos] - abd[:, None, pos])
+                view[:, :, bones] = _rotate(
+                    view[:, :, bones], normal[:, None, None, pos], -d_ab[..., None]
+                )
+    return out
+
+
+def refit_fingers(
+    model: HandModel,
+    fit: FitResult,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    *,
+    weights: FitWeights | None = None,
+    priors: Priors | None = None,
+    kin: Kinematics | None = None,
+    flexion_deg: np.ndarray | None = None,
+    abduction_deg: np.ndarray | None = None,
+    rows: np.ndarray | None = None,
+    score_points: int | None = FINGER_SCORE_POINTS,
+) -> FitResult:
+    """Per-finger hypotheses for fits ``fit`` of ``n`` frames stuck in a finger's local minimum
+    (a finger curled where the depth shows it extended, or the reverse).
+
+    The hand energy is nearly separable per finger (each finger's capsules explain their own
+    points): every finger of every frame is set in turn to each hypothesis
+    (:func:`finger_hypotheses`; ``flexion_deg`` (K,A) or (n,K,A), default
+    :func:`grid_flexions`, with ``abduction_deg`` alike) and scored by the frame's energy (same
+    weights and priors as the fit); each finger takes its best hypothesis where that lowers the
+    frame's energy below the fit's, the fingers are recombined into one pose, and one more
+    Levenberg-Marquardt fit (:func:`fit_frames`) runs from it. A frame keeps its new fit only
+    if that fit's energy is lower than ``fit.energy``, else it keeps ``fit`` unchanged (rows
+    are independent, as in :func:`fit_frames`). Hypotheses are ranked on about
+    ``score_points`` of the observed points (None: all), the refit uses all of them.
+    ``rows``: the frames to try (None: all); ``obs``
+    and ``priors`` are those of all ``n`` frames. Returns the merged :class:`FitResult`
+    (``energy_start`` and ``iterations`` of ``fit``)."""
+    w = weights or FitWeights()
+    kin = kin or Kinematics(model.skeleton, model.bone_lengths_mm)
+    sel = np.arange(len(fit.energy)) if rows is None else np.asarray(rows, dtype=np.int64)
+    chains = finger_chains(model.skeleton)
+    if len(sel) == 0 or not chains:
+        return fit
+    flexion_deg = grid_flexions(model.skeleton) if flexion_deg is None else flexion_deg
+
+    def pick(a):
+        return a if a is None or np.ndim(a) == 2 else np.asarray(a)[sel]
+
+    hyp = finger_hypotheses(
+        model.skeleton, kin, fit.root[sel], fit.u[sel], pick(flexion_deg), pick(abduction_deg)
+    )
+    nf, nk = hyp.shape[1:3]
+    # scored on every ``stride``-th observed point (the ranking needs fewer than the fit), the
+    # fit's own pose first so that the comparison uses the same points
+    stride = max(1, obs.points.shape[1] // max(int(score_points or 0), 1)) if score_points else 1
+    sub = FrameObservations(
+        obs.points[:, ::stride], obs.valid[:, ::stride], obs.depth, obs.nearest, obs.boxes
+    )
+    owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
+    flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
+    energy = np.empty(len(owner))
+    for a in range(0, len(owner), _HYPOTHESIS_CHUNK):
+        r = owner[a : a + _HYPOTHESIS_CHUNK]
+        energy[a : a + len(r)] = _energy(
+            model, kin, fit.root[r], flat[a : a + len(r)], sub.take(r), camera, w,
+            None if priors is None else priors.take(r), False, False,
+        )[0]  # fmt: skip
+    current, energy = energy[: len(sel)], energy[len(sel) :].reshape(len(sel), nf, nk)
+    best = np.argmin(energy, axis=2)  # (m,F)
+    better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < current[:, None]
+    hit = np.flatnonzero(np.any(better, axis=1))
+    if len(hit) == 0:
+        return fit
+    todo = sel[hit]
+    u = fit.u[todo].copy()
+    for f, chain in enumerate(chains):
+        bones = kin.bone_of_child[model.skeleton.angle_children[chain]]
+        take = better[hit, f]
+        chosen = hyp[hit, f, best[hit, f]]  # (h,B,3)
+        u[np.ix_(take, bones)] = chosen[np.ix_(take, bones)]
+    again = fit_frames(
+        model, kin.joints(fit.root[todo], u), obs.take(todo), camera, weights=w,
+        priors=None if priors is None else priors.take(todo), kin=kin,
+    )  # fmt: skip
+    keep = again.energy < fit.energy[todo]
+    rows_k = todo[keep]
+    out = FitResult(
+        fit.joints_mm.copy(), fit.energy.copy(), fit.energy_start,
+        {k: v.copy() for k, v in fit.terms.items()}, fit.root.copy(), fit.u.copy(),
+        fit.iterations,
+    )  # fmt: skip
+    out.joints_mm[rows_k] = again.joints_mm[keep]
+    out.energy[rows_k] = again.energy[keep]
+    for k in out.terms:
+        out.terms[k][rows_k] = again.terms[k][keep]
+    out.root[rows_k] = again.root[keep]
+    out.u[rows_k] = again.u[keep]
+    return out
 
 
 @dataclass

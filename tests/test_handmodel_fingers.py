@@ -1,0 +1,113 @@
+"""Tests of the per-finger hypotheses of the hand-model fit (handmodel.refit_fingers): a finger
+started in the wrong flexion basin stays there under the plain fit and is recovered by trying
+each finger curled and extended; depth rendered from the capsule model itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_handmodel import CAM, _model, _observe, _pose, _rot
+
+from handanno_core import handmodel as hm
+from handanno_core.skeleton import MSRA21
+
+
+@pytest.fixture(scope="module")
+def scene():
+    x = _pose("open")
+    model = _model(x)
+    return x, model, _observe(model, [x])
+
+
+def _flex_finger(x: np.ndarray, finger: int, deg: float) -> np.ndarray:
+    """``x`` with finger ``finger`` (:func:`hm.finger_chains`) turned by ``deg/2`` at each of its
+    first two angle joints (MCP and PIP) about their flexion axes (``deg`` in all)."""
+    sk = MSRA21
+    par = sk.parent_array
+    out = x.copy()
+    normal = sk.palm_normal(x)
+    for pos in hm.finger_chains(sk)[finger][:2]:
+        k = int(sk.angle_joints[pos])
+        lateral = np.cross(out[k] - out[par[k]], normal)
+        sub = [int(sk.children(k)[0])]
+        for q in sk.topological_order:
+            if par[q] in sub:
+                sub.append(int(q))
+        out[sub] = (out[sub] - out[k]) @ _rot(lateral, deg / 2).T + out[k]
+    return out
+
+
+def test_finger_chains_are_the_five_fingers_proximal_first():
+    chains = hm.finger_chains(MSRA21)
+    assert len(chains) == 5
+    aj = MSRA21.angle_joints
+    for c in chains:
+        assert len(c) == 3
+        # each angle joint's parent is the previous one: a chain from the palm outwards
+        assert np.all(MSRA21.parent_array[aj[c[1:]]] == aj[c[:-1]])
+        assert MSRA21.parent_array[aj[c[0]]] == MSRA21.root
+
+
+def test_finger_hypotheses_set_the_requested_flexion(scene):
+    x, model, _ = scene
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    root, u = kin.fit(x[None])
+    targets = hm.grid_flexions(MSRA21)  # (K, A)
+    hyp = hm.finger_hypotheses(MSRA21, kin, root, u, targets)  # (1, F, K, B, 3)
+    chains = hm.finger_chains(MSRA21)
+    assert hyp.shape == (1, len(chains), len(targets), len(MSRA21.bones), 3)
+    flex0, abd0 = MSRA21.joint_angles(x)
+    for f, chain in enumerate(chains):
+        xs = kin.joints(np.repeat(root, len(targets), 0), hyp[0, f])
+        flex, abd = MSRA21.joint_angles(xs)
+        assert np.allclose(flex[:, chain], targets[:, chain], atol=1.0)
+        others = np.setdiff1d(np.arange(len(flex0)), chain)
+        assert np.allclose(flex[:, others], flex0[others], atol=1e-6)
+        assert np.allclose(abd[:, chain[0]], abd0[chain[0]], atol=2.0)
+        assert np.allclose(MSRA21.bone_lengths(xs), model.bone_lengths_mm, atol=1e-6)
+
+
+@pytest.mark.parametrize("finger,deg", [(2, 60.0), (0, 60.0), (1, -60.0)])
+def test_hypotheses_recover_a_finger_the_plain_fit_leaves_stuck(scene, finger, deg):
+    """One finger flexed 60 degrees away from the rendered pose: the plain fit stays stuck (its
+    tip > 15 mm off); with the per-finger hypotheses every joint comes back to <= 2 mm."""
+    x, model, obs = scene
+    start = _flex_finger(x, finger, deg)
+    pri = hm.Priors(pose=start[None], pose_w=np.ones((1, len(x))))
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    fit = hm.fit_frames(model, start[None], obs, CAM, priors=pri, kin=kin)
+    stuck = np.linalg.norm(fit.joints_mm[0] - x, axis=1)
+    assert stuck.max() > 15.0, np.round(stuck, 1)
+    out = hm.refit_fingers(model, fit, obs, CAM, priors=pri, kin=kin)
+    err = np.linalg.norm(out.joints_mm[0] - x, axis=1)
+    assert err.max() <= 2.0, np.round(err, 2)
+    assert out.energy[0] < fit.energy[0]
+
+
+def test_frames_not_tried_or_not_improved_keep_their_fit_exactly(scene):
+    x, model, obs = scene
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    starts = np.stack([_flex_finger(x, 2, 60.0), x])
+    obs2 = obs.take([0, 0])
+    pri = hm.Priors(pose=starts, pose_w=np.ones(starts.shape[:2]))
+    fit = hm.fit_frames(model, starts, obs2, CAM, priors=pri, kin=kin)
+    only_second = hm.refit_fingers(model, fit, obs2, CAM, priors=pri, kin=kin, rows=np.array([1]))
+    # row 0 was not tried; row 1 sits at the true pose, where no hypothesis is lower
+    assert np.array_equal(only_second.joints_mm, fit.joints_mm)
+    assert np.array_equal(only_second.energy, fit.energy)
+    both = hm.refit_fingers(model, fit, obs2, CAM, priors=pri, kin=kin)
+    assert np.array_equal(both.joints_mm[1], fit.joints_mm[1])
+    assert both.energy[0] < fit.energy[0]
+
+
+def test_finger_targets_append_each_frames_own_poses():
+    rng = np.random.default_rng(0)
+    poses = np.stack([_pose(g) for g in ("open", "fist", "open")]) + rng.normal(0, 2, (3, 21, 3))
+    flex, abd = hm.finger_targets(MSRA21, poses, np.array([1, 0, 1]), 3)
+    g = hm.grid_flexions(MSRA21)
+    assert flex.shape == abd.shape == (3, len(g) + 2, len(MSRA21.angle_joints))
+    assert np.allclose(flex[:, : len(g)], g) and np.all(np.isnan(abd[:, : len(g)]))
+    f_ref, a_ref = MSRA21.joint_angles(poses)
+    assert np.allclose(flex[0, len(g)], f_ref[1]) and np.allclose(abd[0, len(g)], a_ref[1])
+    assert np.allclose(flex[1, len(g) :], f_ref[[0, 2]])
+    assert np.all(np.isnan(flex[0, len(g) + 1])) and np.all(np.isnan(flex[2, len(g) :]))

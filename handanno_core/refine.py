@@ -131,6 +131,8 @@ class RefineWeights:
     appearance_visible_only: bool = True
     acceleration: float = 1.0
     acceleration_huber_mm: float = 15.0
+    acceleration_speed_mm: float | None = 7.0
+    acceleration_factor_range: tuple[float, float] = (0.25, 16.0)
     temporal: float = 0.0
     temporal_huber_mm: float = 15.0
     reprojection: float = 20.0
@@ -241,6 +243,27 @@ class _Evaluation:
         return sum(self.terms.values())
 
 
+def acceleration_factor(init_mm: np.ndarray, pair_ok: np.ndarray, w: RefineWeights) -> float:
+    """The factor on ``w.acceleration`` for a sequence whose initialization ``init_mm`` (N, J, 3)
+    mm moves its joints by a median of ``v`` mm per frame (consecutive pairs ``pair_ok`` (N-1,)
+    bool, not across a break): ``(w.acceleration_speed_mm / v)²`` within
+    ``w.acceleration_factor_range``; 1 with ``acceleration_speed_mm`` None or nothing to measure.
+
+    A constant-velocity prior's spread should grow with the motion it smooths (for motion of
+    similar frequencies the acceleration scales with the speed): one weight over-smoothed fast
+    motion and under-smoothed slow motion (tune part, README)."""
+    if w.acceleration_speed_mm is None or len(init_mm) < 2:
+        return 1.0
+    step = np.linalg.norm(np.diff(np.asarray(init_mm, dtype=np.float64), axis=0), axis=-1)
+    step = step[np.asarray(pair_ok, dtype=bool)]
+    step = step[np.isfinite(step)]
+    if not len(step):
+        return 1.0
+    v = max(float(np.median(step)), 1e-3)
+    lo, hi = w.acceleration_factor_range
+    return float(np.clip((w.acceleration_speed_mm / v) ** 2, lo, hi))
+
+
 class _Problem:
     def __init__(
         self,
@@ -284,6 +307,7 @@ class _Problem:
             if 0 < b < n:
                 pair_ok[b - 1] = False
         self.pair_ok = pair_ok
+        self.acceleration = weights.acceleration * acceleration_factor(init_mm, pair_ok, weights)
 
         # references: projection targets and appearance templates
         refs = np.asarray(sorted(set(int(r) for r in reference_frames)), dtype=np.int64)
@@ -506,12 +530,13 @@ class _Problem:
         """Constant-velocity prior (Huber on the per-joint second difference, not across a break);
         its IRLS weights (N-2, J)."""
         w = self.w
-        if self.n <= 2 or w.acceleration <= 0:
+        lam = self.acceleration
+        if self.n <= 2 or lam <= 0:
             return 0.0, None
         acc = x[2:] - 2.0 * x[1:-1] + x[:-2]
         cost, wa = _huber(np.linalg.norm(acc, axis=-1), w.acceleration_huber_mm)
         scale = (self.pair_ok[:-1] & self.pair_ok[1:]).astype(np.float64)[:, None]
-        wa = w.acceleration * wa * scale
+        wa = lam * wa * scale
         eye = np.eye(3)
         hd[:-2] += wa[..., None, None] * eye
         hd[1:-1] += 4.0 * wa[..., None, None] * eye
@@ -519,7 +544,7 @@ class _Problem:
         gx[:-2] += wa[..., None] * acc
         gx[1:-1] -= 2.0 * wa[..., None] * acc
         gx[2:] += wa[..., None] * acc
-        return w.acceleration * float(np.sum(cost * scale)), wa
+        return lam * float(np.sum(cost * scale)), wa
 
     def _angles(self, x) -> tuple[float, tuple | None]:
         """Joint-angle limits: energy and ``(frames, violations)`` of the frames outside them

@@ -226,6 +226,38 @@ def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
     assert err(vel.joints_mm) > 5.0 * max(err(acc.joints_mm), 0.5)
 
 
+def test_acceleration_weight_follows_the_sequences_own_speed():
+    """The constant-velocity prior is weighted by the initialization's median joint speed v:
+    (speed / v)² within the range, so slow sequences are smoothed more and fast ones less; a jump
+    across a sequence break is not motion; a static sequence takes the top of the range."""
+    from handanno_core.refine import acceleration_factor
+
+    w = RefineWeights()
+    lo, hi = w.acceleration_factor_range
+    rng = np.random.default_rng(0)
+    n, j = 40, MSRA21.num_joints
+    still = 300.0 + rng.normal(0.0, 0.05, (n, j, 3))
+    ok = np.ones(n - 1, dtype=bool)
+    assert acceleration_factor(still, ok, w) == hi
+    moving = still + (np.arange(n) * 10.0)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    assert acceleration_factor(moving, ok, w) == pytest.approx(
+        (w.acceleration_speed_mm / 10.0) ** 2, rel=0.02
+    )
+    fast = still + (np.arange(n) * 40.0)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    assert acceleration_factor(fast, ok, w) == lo
+    # two still recordings joined at a break: the jump between them is not counted
+    joined = still.copy()
+    joined[20:] += 200.0
+    assert acceleration_factor(joined, ok, w) == hi
+    cut = ok.copy()
+    cut[19] = False
+    joined[1::2, :, 0] += 5.0  # now 5 mm per frame everywhere but across the break
+    assert acceleration_factor(joined, cut, w) == pytest.approx(
+        (w.acceleration_speed_mm / 5.0) ** 2, rel=0.05
+    )
+    assert acceleration_factor(moving, ok, RefineWeights(acceleration_speed_mm=None)) == 1.0
+
+
 @pytest.mark.parametrize("second", [False, True])
 def test_banded_storage_matches_dense(second):
     rng = np.random.default_rng(1)

@@ -16,8 +16,25 @@ from handanno_core.session import Session, atomic_save_npz
 N = 20
 
 
+@pytest.fixture(scope="module", autouse=True)
+def plain_model_fit():
+    """The module's propagations without the per-finger hypotheses: on this 20-frame sequence
+    they repair the forward chain's fingers, and then no frame keeps the backward chain, which is
+    what the tests need (``test_propagate`` does the same for its both-ways test)."""
+    from handanno_core.propagate import PropagationSettings
+
+    make = PropagationSettings.from_session.__func__
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(
+            PropagationSettings,
+            "from_session",
+            classmethod(lambda cls, s, **o: make(cls, s, **({"finger_hypotheses": False} | o))),
+        )
+        yield
+
+
 @pytest.fixture(scope="module")
-def fast_session(tmp_path_factory):
+def fast_session(tmp_path_factory, plain_model_fit):
     """A session on a fast-motion sequence (the suite's fast speed, as ``test_propagate.fast_data``)
     with references 0 and N-1, the selection's forest the forward chain, lifted joints from ground
     truth, propagated with the hand model both ways (forward and backward candidates)."""

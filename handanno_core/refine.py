@@ -106,7 +106,11 @@ class RefineWeights:
       ``temporal`` (1.0 before), which on real fast motion dragged every frame between two
       references towards their average pose and made refinement worse than its initialization;
       chosen on the benchmark suite's tune part (``benchmarks/bench_refine_temporal.py``, figures
-      in ``benchmarks/results/refine_temporal_tune.json`` and the README).
+      in ``benchmarks/results/refine_temporal_tune.json`` and the README). The weight is
+      multiplied per solve by :func:`acceleration_factor`: ``(acceleration_speed_mm / v)²``
+      (7 mm), within ``acceleration_factor_range`` (0.25-16), ``v`` the initialization's median
+      joint step per frame, so slow motion is smoothed more and fast motion less (chosen on the
+      tune part, stop 28 in the README); ``acceleration_speed_mm=None``: the constant weight.
     * ``temporal`` (per mm² per joint and consecutive-frame pair, Huber ``temporal_huber_mm``):
       0, the velocity prior, kept for comparison.
     * ``reprojection`` (per px² on the references' annotated 2D): 20, used when the references

@@ -726,13 +726,13 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     )
     # the plain fit's level (data + free space relative to the references'), per fitted row
     lvl = (fit.terms["data"] + fit.terms["free_space"]) / ctx.model_levels[h]
-    if st.finger_hypotheses:
+    tried = np.flatnonzero(lvl > st.finger_level) if st.finger_hypotheses else []
+    if len(tried):
         # each fitted row's fingers also tried at the angles of its frame's every start
         flex, abd = hm.finger_targets(ctx.skeleton, starts, owner, len(items))
         fit = hm.refit_fingers(
             model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
-            kin=kin, flexion_deg=flex[owner[best]], abduction_deg=abd[owner[best]],
-            rows=np.flatnonzero(lvl > st.finger_level),
+            kin=kin, flexion_deg=flex[owner[best]], abduction_deg=abd[owner[best]], rows=tried,
         )  # fmt: skip
     x = np.empty((len(items), j, 3))
     root = np.empty((len(items), 3))

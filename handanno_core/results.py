@@ -91,7 +91,11 @@ def read_results(
     """
     path = Path(path)
     out = {
-        k: np.full(result_shape(k, frames, joints), NO_SOURCE if k == "source" else np.nan)
+        k: np.full(
+            result_shape(k, frames, joints),
+            NO_SOURCE if k == "source" else np.nan,
+            dtype=result_dtype(k),
+        )
         for k in RESULT_KEYS
     }
     if not path.exists():
@@ -157,10 +161,9 @@ def describe_sources(source: np.ndarray, parent: np.ndarray) -> str:
 
 
 def describe_frame(frame: int, source: np.ndarray, parent: np.ndarray, stage: int) -> str:
-    """One line on ``frame``: a reference, or (with its best :class:`Stage` ``stage``) not
-    propagated or
-    the frame its result was propagated from (``source``), naming the selection's ``parent``
-    when the result kept another chain."""
+    """One line on ``frame``: a reference; or, with its best :class:`Stage` ``stage``, either not
+    propagated or the frame its result was propagated from (``source``), naming the selection's
+    ``parent`` when the result kept another chain."""
     p, s, what = int(parent[frame]), int(source[frame]), Stage(stage).name.lower()
     if p == -1:
         return f"frame {frame}: reference"

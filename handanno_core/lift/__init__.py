@@ -94,14 +94,14 @@ template scaled to the annotated frames and are re-estimated from all lifted ref
 round lifts every reference with *soft* bones (a penalty towards the current estimate instead of
 hard equalities), so a frame whose 2D/depth evidence cannot be met with the current length
 stretches or shrinks the bone; the new estimate is the median over frames where both of the
-bone's joints are annotated, or, for a bone *seen* in ``min_bone_votes`` references or more (both
-ends visible with a reading the lift kept, the bone not foreshortened: the sine of its angle to
-the image below 0.7), over those references only (a hidden joint's soft length is its start
-length again, so its vote is the prior's, not data) (at least ``min_bone_votes`` references; a bone with fewer keeps the
+bone's joints are annotated (at least ``min_bone_votes`` references; a bone with fewer keeps the
 template times the global scale of the re-estimated bones, so a partially annotated hand of any
-size gets all its bones). Rounds stop when no bone moves by more than 0.1 mm; a final lift uses
-the estimate as hard constraints, from both the last soft solution and the cold start, keeping
-the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
+size gets all its bones). A bone *seen* in ``min_bone_votes`` references or more (both ends
+visible with a reading the lift kept, the bone not foreshortened: the sine of its angle to the
+image below 0.7) takes the median over those references only: a hidden joint's soft length is its
+start length again, so its vote is the prior's, not data. Rounds stop when no bone moves by more
+than 0.1 mm; a final lift uses the estimate as hard constraints, from both the last soft solution
+and the cold start, keeping the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
 
 Surface offsets are self-calibrated per session (:func:`surface_correction`): once the bones have
 converged, the median over annotated visible joints of ``z_lifted - (D + o + s)`` per joint group

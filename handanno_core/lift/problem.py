@@ -150,7 +150,9 @@ class _Problem(_AngleRows):
     def with_surface_extra(self, extra_mm: np.ndarray, hidden: bool = False) -> _Problem:
         """The problem (this one is left unchanged) with visible joints' surface target and upper
         depth bound moved ``extra_mm`` (J,) mm deeper than the offsets say (an inclined finger's
-        surface, :func:`handanno_core.lift.surface.inclined_surface_extra_mm`)."""
+        surface, :func:`handanno_core.lift.surface.inclined_surface_extra_mm`). ``hidden``: the
+        hidden joints' lower depth bounds move ``max(extra_mm, 0)`` deeper too (replacing the
+        extra this problem already had), a joint covered by its own inclined segment."""
         p = copy.copy(self)
         p._cache = {}
         delta = np.where(self.surf_mask, np.asarray(extra_mm, dtype=np.float64), 0.0)

@@ -416,7 +416,9 @@ def lift(
 
     ``refit`` (default: the session's ``lift_refit``) refits the lifted references with the
     personalized hand model (:mod:`handanno_core.lift.model_refit`), trusting the clicks by
-    ``click_noise_px`` (default: the session's ``click_noise_px``, else estimated).
+    ``click_noise_px`` (default: the session's ``click_noise_px``, else estimated). Where that noise
+    is at least the session's ``lift_denoise_min_px``, the bone lengths are estimated again from
+    the clicks moved towards the refit, and the references lifted and refitted with them.
 
     With several hands (``session.model.hands``) the references of each hand are lifted together
     and give that hand's bone lengths; a hand without an annotated reference gets the mean of
@@ -479,9 +481,13 @@ def lift(
             sets.setdefault(bones[names[hand[f]]].tobytes(), []).append(f)
         crop_data = ensure_crops(session, quiet=quiet, workers=workers)
         for frames in sets.values():
-            _refit_with_model(
+            noise = _refit_with_model(
                 session, crop_data, frames, annotations, joints_mm, bones[names[hand[frames[0]]]],
                 quiet, click_noise_px,
+            )  # fmt: skip
+            _bones_from_denoised_clicks(
+                session, sequence, crop_data, frames, annotations, joints_mm, bones, noise,
+                workers, scheduler, quiet,
             )  # fmt: skip
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
@@ -510,11 +516,60 @@ def lift(
     return joints_mm
 
 
+def _bones_from_denoised_clicks(
+    session: Session, sequence, crop_data: tuple, frames: list[int], annotations: dict,
+    joints_mm: dict[int, np.ndarray], bones: dict[str, np.ndarray], noise_px: float,
+    workers: int, scheduler: str | None, quiet: bool,
+) -> None:  # fmt: skip
+    """Where the click noise ``noise_px`` reaches the session's ``lift_denoise_min_px`` (and the
+    bones are not pinned): estimate
+    each hand's bone lengths again (into ``bones``) from its references' clicks moved towards
+    their refit (:func:`handanno_core.lift.model_refit.denoised_clicks`), lift them with those
+    bones and refit them again (into ``joints_mm``). The refit explains each reference's whole
+    depth, a click only its pixel: noisy clicks spread and lengthen the bones measured from them."""
+    from .lift import lift_references
+    from .lift.model_refit import denoised_clicks
+
+    least = session.model.settings.lift_denoise_min_px
+    pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
+    if pinned or least is None or noise_px <= 0.0 or noise_px < least:
+        return
+    _log(
+        f"lift: click noise {noise_px:.2f} px >= {least:g} px: bone lengths estimated again "
+        "from the clicks moved towards the refit",
+        quiet,
+    )
+    hand = session.hand_of_frame()
+    names = session.hand_names
+    for h in sorted({hand[f] for f in frames}):
+        own = [f for f in frames if hand[f] == h]
+        again = lift_references(
+            denoised_clicks(
+                {f: annotations[f] for f in own},
+                {f: joints_mm[f] for f in own},
+                session.camera,
+                noise_px,
+            ),
+            sequence.depth,
+            sequence.camera,
+            sequence.skeleton,
+            eps_mm=session.model.settings.eps_mm,
+            angle_limits=session.model.settings.angle_limits,
+            workers=workers,
+            scheduler=scheduler,
+        )
+        bones[names[h]] = np.asarray(again.bone_lengths_mm, dtype=np.float64)
+        joints_mm.update(again.joints_mm)
+        _refit_with_model(
+            session, crop_data, own, annotations, joints_mm, bones[names[h]], quiet, noise_px
+        )
+
+
 def _refit_with_model(
     session: Session, crop_data: tuple, frames: list[int], annotations: dict,
     joints_mm: dict[int, np.ndarray], bone_lengths_mm: np.ndarray, quiet: bool,
     click_noise_px: float | None,
-) -> None:  # fmt: skip
+) -> float:  # fmt: skip
     """Replace ``joints_mm[f]`` of the lifted references ``frames`` (one set of bones) by their
     refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`);
     ``crop_data`` = :func:`ensure_crops`' ``(crops, centres, boxes)``."""
@@ -544,6 +599,7 @@ def _refit_with_model(
         f"model (click noise {refit.noise_px:.2f} px, {source})",
         quiet,
     )
+    return refit.noise_px
 
 
 def _hand_model_on(session: Session, use_model: bool | None, stage: str, quiet: bool) -> bool:

@@ -88,6 +88,31 @@ def estimate_click_noise(residual_px: np.ndarray, settings: RefitSettings | None
     return float(np.sqrt(max(s2 - st.probe_floor_px**2, 0.0)) / st.probe_slope)
 
 
+def denoised_clicks(
+    annotations: dict[int, FrameAnnotation],
+    joints_mm: dict[int, np.ndarray],
+    camera: CameraIntrinsics,
+    noise_px: float,
+    settings: RefitSettings | None = None,
+) -> dict[int, FrameAnnotation]:
+    """The clicks of ``annotations`` moved towards the projections of the refitted ``joints_mm``
+    (frame -> (J, 3) mm): the precision-weighted mean of a click (variance ``noise_px²``) and
+    the model's projection (variance ``model_px²``, :class:`RefitSettings`), per joint with 2D.
+    Exact clicks (``noise_px`` 0) are returned unchanged; a frame without finite joints keeps
+    its clicks."""
+    st = settings or RefitSettings()
+    move = float(noise_px) ** 2 / (float(noise_px) ** 2 + st.model_px**2)
+    out = {}
+    for f, a in annotations.items():
+        x = np.asarray(joints_mm.get(f, np.full((a.num_joints, 3), np.nan)), dtype=np.float64)
+        if move <= 0.0 or not np.all(np.isfinite(x)):
+            out[f] = a
+            continue
+        uv = np.where(a.has_2d[:, None], a.uv_px + move * (camera.project(x) - a.uv_px), np.nan)
+        out[f] = replace(a, uv_px=uv)
+    return out
+
+
 def click_priors(
     pose_mm: np.ndarray, annotations: list[FrameAnnotation], placed_pose_w: float = 1.0
 ) -> hm.Priors:

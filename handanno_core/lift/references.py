@@ -86,26 +86,68 @@ def _better(a: LiftResult, b: LiftResult) -> LiftResult:
 
 def _reestimate_bones(bones: np.ndarray, soft_lengths: np.ndarray, voted: np.ndarray,
                       tmpl: np.ndarray | None, seen: np.ndarray | None = None,
-                      min_seen: int = 3) -> np.ndarray:  # fmt: skip
+                      min_seen: int = 3, shrink: bool = False) -> np.ndarray:  # fmt: skip
     """New bone lengths ``(B,)`` mm: the median over the references of ``soft_lengths`` (F, B)
     for the ``voted`` bones; the others the template ``tmpl`` times the voted bones' median ratio
     to it (unchanged without a template or a voted bone). ``seen`` (F, B) bool: references where
     the bone was seen (:func:`_seen_bones`); a bone seen in ``min_seen`` references or more takes
-    the median over those only (a hidden joint's soft length is its start length again: no data)."""
+    the median over those only (a hidden joint's soft length is its start length again: no data).
+    ``shrink``: each voted bone's median is pulled towards the template's proportion by how
+    uncertain it is (:func:`shrink_to_template`)."""
     new = bones.copy()
     if np.any(voted):
-        new[voted] = np.nanmedian(soft_lengths[:, voted], axis=0)
+        samples = np.where(voted, soft_lengths, np.nan)
         if seen is not None:
             by_seen = voted & (seen.sum(axis=0) >= min_seen)
-            if np.any(by_seen):
-                new[by_seen] = np.nanmedian(
-                    np.where(seen[:, by_seen], soft_lengths[:, by_seen], np.nan), axis=0
-                )
+            samples[:, by_seen] = np.where(seen[:, by_seen], soft_lengths[:, by_seen], np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a voted bone without a finite sample
+            new[voted] = np.nanmedian(samples[:, voted], axis=0)
+        if tmpl is not None and shrink:
+            new = shrink_to_template(new, samples, voted, tmpl)
         if tmpl is not None and not np.all(voted):
             # bones without enough evidence: template times the global scale
             scale = float(np.median(new[voted] / tmpl[voted]))
             new[~voted] = tmpl[~voted] * scale
     return new
+
+
+def shrink_to_template(
+    medians: np.ndarray,
+    samples: np.ndarray,
+    voted: np.ndarray,
+    tmpl: np.ndarray,
+    min_samples: int = 3,
+    min_bones: int = 4,
+) -> np.ndarray:
+    """Bone lengths ``(B,)`` mm: each voted bone's median ``medians`` pulled towards the template
+    ``tmpl`` (B,) mm times the hand's scale, by how uncertain the median is (empirical Bayes).
+
+    ``samples`` (F, B) mm are the per-reference lengths the medians were taken over (NaN: not a
+    sample). In log length, a bone's median has the sampling variance ``s²`` (its standard error,
+    1.4826 MAD / sqrt(n), relative) and the hand's proportions differ from the template's by a
+    variance ``τ²`` that is estimated from the same bones: the mean squared log ratio of the
+    medians to the scaled template, less the mean ``s²``. The estimate is the precision-weighted
+    mean ``w log(median) + (1 - w) log(scaled template)``, ``w = τ² / (τ² + s²)``: exact clicks
+    (small ``s``) keep their medians, noisy clicks on a hand shaped like the template move
+    towards it, and a hand shaped unlike the template (large ``τ``) keeps its own proportions.
+    Nothing changes with fewer than ``min_bones`` bones of ``min_samples`` samples."""
+    out = medians.copy()
+    n = np.sum(np.isfinite(samples), axis=0)
+    idx = np.flatnonzero(voted & (n >= min_samples) & np.isfinite(medians) & (medians > 0))
+    if len(idx) < min_bones:
+        return out
+    x = samples[:, idx]
+    med = medians[idx]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mad = np.nanmedian(np.abs(x - med), axis=0)
+    s2 = (1.4826 * mad / np.sqrt(n[idx]) / med) ** 2
+    prior = np.log(tmpl[idx] * float(np.median(med / tmpl[idx])))
+    tau2 = max(float(np.mean((np.log(med) - prior) ** 2) - np.mean(s2)), 1e-6)
+    w = tau2 / (tau2 + s2)
+    out[idx] = np.exp(w * np.log(med) + (1.0 - w) * prior)
+    return out
 
 
 def _seen_bones(
@@ -177,6 +219,7 @@ def lift_references(
     max_calibrations: int = 3,
     stretch_tolerance: float = 0.2,
     seen_votes: bool = True,
+    shrink_bones: bool = True,
     **lift_kwargs,
 ) -> LiftSet:
     """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
@@ -191,7 +234,8 @@ def lift_references(
     ``min_bone_votes`` references; the others keep the template times the global scale of the
     re-estimated ones (median ratio to the template). seen_votes: a bone seen in
     ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
-    the median over those only (module docstring). calibrate_surface: re-estimate the depth of
+    the median over those only (module docstring). shrink_bones: each median pulled towards the
+    template's proportions by its own uncertainty (:func:`shrink_to_template`). calibrate_surface: re-estimate the depth of
     joint centres below the observed surface per joint group in every round
     (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
@@ -259,7 +303,7 @@ def lift_references(
                 new = _reestimate_bones(
                     bones, soft_lengths, voted, tmpl,
                     _seen_bones([anns[f] for f in frames], res, sk) if seen_votes else None,
-                    min_bone_votes,
+                    min_bone_votes, shrink_bones,
                 )  # fmt: skip
                 change = float(np.max(np.abs(new - bones)))
                 bones = new

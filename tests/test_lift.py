@@ -9,6 +9,7 @@ from handanno_core.annotation import AnnotationError, FrameAnnotation
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.lift import initial_pose, lift_frame, lift_references, observed_depth
 from handanno_core.lift.problem import _Problem
+from handanno_core.lift.references import shrink_to_template
 from handanno_core.skeleton import MSRA21
 
 SK = MSRA21
@@ -347,6 +348,34 @@ def test_bone_lengths_estimated_from_exact_data():
     # measured 2.04 mm with the soft learned ranges (the poses are drawn inside the narrower
     # anatomical limits, which hard walls enforced exactly: < 2.0 mm)
     assert e < 2.2
+
+
+def test_uncertain_bones_shrink_towards_the_templates_proportions():
+    """Empirical Bayes: a bone's median moves towards the scaled template by its own sampling
+    uncertainty against the spread of the hand's proportions around the template."""
+    rng = np.random.default_rng(3)
+    tmpl = np.asarray(SK.template_bone_lengths_mm)
+    voted = np.ones(len(tmpl), dtype=bool)
+    # a hand shaped like the template, 8 references measuring every bone with 6 % noise
+    true = tmpl * 1.1
+    samples = true * (1.0 + rng.normal(0.0, 0.06, (8, len(tmpl))))
+    med = np.median(samples, axis=0)
+    out = shrink_to_template(med, samples, voted, tmpl)
+    assert np.abs(out - true).mean() < 0.5 * np.abs(med - true).mean()
+    # exact measurements (no spread across references): nothing to shrink
+    exact = np.tile(tmpl * rng.uniform(0.8, 1.2, len(tmpl)), (8, 1))
+    np.testing.assert_allclose(shrink_to_template(exact[0], exact, voted, tmpl), exact[0])
+    # a hand shaped unlike the template, measured with 1 % noise, keeps its own proportions
+    odd = tmpl * rng.uniform(0.8, 1.2, len(tmpl))
+    s = odd * (1.0 + rng.normal(0.0, 0.01, (8, len(tmpl))))
+    m = np.median(s, axis=0)
+    o = shrink_to_template(m, s, voted, tmpl)
+    assert np.max(np.abs(o - m) / m) < 0.005
+    assert np.max(np.abs(o - odd) / odd) < 0.02
+    # too few bones with enough samples to tell the spreads apart: unchanged
+    few = np.full_like(samples, np.nan)
+    few[:, :3] = samples[:, :3]
+    np.testing.assert_array_equal(shrink_to_template(med, few, voted, tmpl), med)
 
 
 def test_impossible_depth_reading_is_dropped(frames):

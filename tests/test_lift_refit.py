@@ -8,7 +8,12 @@ import pytest
 
 from handanno_core.annotation import FrameAnnotation
 from handanno_core.crops import crop_boxes, crop_depth
-from handanno_core.lift.model_refit import RefitSettings, estimate_click_noise, refit_references
+from handanno_core.lift.model_refit import (
+    RefitSettings,
+    denoised_clicks,
+    estimate_click_noise,
+    refit_references,
+)
 from handanno_core.skeleton import MSRA21, SKELETONS
 from tests.test_handmodel import CAM, _model, _pose, _render
 
@@ -67,6 +72,37 @@ def test_refit_moves_lifted_references_towards_the_truth(sigma):
         assert exact.uv_weight > res.uv_weight
 
 
+def test_denoised_clicks_move_towards_the_refit_by_the_click_noise():
+    x = _pose("open")
+    a = FrameAnnotation.empty(21)
+    a.uv_px[:] = CAM.project(x) + np.array([3.0, -2.0])
+    a.uv_px[5] = np.nan
+    a.visible[7] = False
+    a.depth_order[7] = 1
+    clicks = a.uv_px.copy()
+    # exact clicks are the best evidence: unchanged
+    assert denoised_clicks({4: a}, {4: x}, CAM, 0.0)[4] is a
+    out = denoised_clicks({4: a}, {4: x}, CAM, 2.0)[4]
+    move = 4.0 / (4.0 + RefitSettings().model_px ** 2)
+    has = a.has_2d
+    np.testing.assert_allclose(
+        out.uv_px[has], clicks[has] + move * (CAM.project(x)[has] - clicks[has])
+    )
+    assert np.isnan(out.uv_px[5]).all()
+    np.testing.assert_array_equal(a.uv_px, clicks)  # the annotation itself is not touched
+    assert not out.visible[7] and out.depth_order[7] == 1
+    # more noise, closer to the refit
+    far = denoised_clicks({4: a}, {4: x}, CAM, 4.0)[4]
+    assert np.all(
+        np.linalg.norm(far.uv_px[has] - CAM.project(x)[has], axis=1)
+        < np.linalg.norm(out.uv_px[has] - CAM.project(x)[has], axis=1)
+    )
+    # a reference without a finite refit keeps its clicks
+    broken = x.copy()
+    broken[3] = np.nan
+    assert denoised_clicks({4: a}, {4: broken}, CAM, 2.0)[4] is a
+
+
 def test_refit_keeps_placed_joints_and_lifts_that_would_break_a_depth_order():
     truth, model, crops, boxes, centres, anns, lifted = _frames(0.0)
     # frame 0: the index tip placed in 3D 6 mm off the truth stays where it was placed
@@ -113,7 +149,12 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     errors, logs = {}, {}
     for name, extra in [
         ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
+        ("bones once", []),
     ]:  # fmt: skip
+        if name == "bones once":
+            with Session.open(sessions / "s") as session:
+                session.model.settings.lift_denoise_min_px = None
+                session.save()
         capsys.readouterr()
         assert main([*base, "lift", "s", *extra]) == 0
         logs[name] = capsys.readouterr().out
@@ -127,3 +168,8 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     # clicks as exact
     assert errors["estimated"] < errors["plain"], errors
     assert errors["estimated"] < errors["given"], errors
+    # 2 px >= lift_denoise_min_px: the bones are estimated again from the denoised clicks, which
+    # beats one estimate from the clicks themselves (measured 1.56 against 1.93 mm)
+    assert "bone lengths estimated again" in logs["estimated"]
+    assert "estimated again" not in logs["given"] + logs["bones once"]
+    assert errors["estimated"] < 0.9 * errors["bones once"], errors

@@ -481,13 +481,13 @@ def lift(
             sets.setdefault(bones[names[hand[f]]].tobytes(), []).append(f)
         crop_data = ensure_crops(session, quiet=quiet, workers=workers)
         for frames in sets.values():
-            noise = _refit_with_model(
+            first = _refit_with_model(
                 session, crop_data, frames, annotations, joints_mm, bones[names[hand[frames[0]]]],
                 quiet, click_noise_px,
             )  # fmt: skip
             _bones_from_denoised_clicks(
-                session, sequence, crop_data, frames, annotations, joints_mm, bones, noise,
-                workers, scheduler, quiet,
+                session, sequence, crop_data, frames, annotations, joints_mm, bones, first,
+                click_noise_px, workers, scheduler, quiet,
             )  # fmt: skip
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
@@ -518,61 +518,85 @@ def lift(
 
 def _bones_from_denoised_clicks(
     session: Session, sequence, crop_data: tuple, frames: list[int], annotations: dict,
-    joints_mm: dict[int, np.ndarray], bones: dict[str, np.ndarray], noise_px: float,
-    workers: int, scheduler: str | None, quiet: bool,
+    joints_mm: dict[int, np.ndarray], bones: dict[str, np.ndarray], first,
+    click_noise_px: float | None, workers: int, scheduler: str | None, quiet: bool,
 ) -> None:  # fmt: skip
-    """Where the click noise ``noise_px`` reaches the session's ``lift_denoise_min_px`` (and the
-    bones are not pinned): estimate
-    each hand's bone lengths again (into ``bones``) from its references' clicks moved towards
-    their refit (:func:`handanno_core.lift.model_refit.denoised_clicks`), lift them with those
-    bones and refit them again (into ``joints_mm``). The refit explains each reference's whole
-    depth, a click only its pixel: noisy clicks spread and lengthen the bones measured from them."""
+    """A second estimate of each hand's bone lengths for noisy clicks, kept where the hand model
+    explains the references' depth better with it.
+
+    ``first`` is the refit (:class:`handanno_core.lift.model_refit.RefitResult`) of the
+    references ``frames`` lifted with one estimate from the clicks as they are. Where its click
+    noise reaches the session's ``lift_denoise_min_px`` (and the bones are not pinned), each
+    hand's references are lifted again with the bone medians shrunk towards the template by their
+    uncertainty (:func:`handanno_core.lift.references.shrink_to_template`) and refitted; the bones
+    are then estimated once more from the clicks moved towards that refit
+    (:func:`handanno_core.lift.model_refit.denoised_clicks`: noisy clicks spread and lengthen the
+    bones measured from them; the refit explains a reference's whole depth, a click only its
+    pixel), and the references lifted and refitted with them. The candidate replaces the first
+    estimate in ``bones`` and ``joints_mm`` only if its refit's mean depth energy (data + free
+    space) over the references is lower: the hand model's own misfit also shows as click noise
+    (on a hand unlike the model's, exact clicks are estimated at 0.7-1.5 px)."""
     from .lift import lift_references
     from .lift.model_refit import denoised_clicks
 
     least = session.model.settings.lift_denoise_min_px
     pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
-    if pinned or least is None or noise_px <= 0.0 or noise_px < least:
+    noise = first.noise_px
+    if pinned or least is None or noise <= 0.0 or noise < least:
         return
-    _log(
-        f"lift: click noise {noise_px:.2f} px >= {least:g} px: bone lengths estimated again "
-        "from the clicks moved towards the refit",
-        quiet,
-    )
+    row = {f: i for i, f in enumerate(frames)}
     hand = session.hand_of_frame()
     names = session.hand_names
+    kw = dict(
+        eps_mm=session.model.settings.eps_mm,
+        angle_limits=session.model.settings.angle_limits,
+        workers=workers,
+        scheduler=scheduler,
+        shrink_bones=True,
+    )
     for h in sorted({hand[f] for f in frames}):
         own = [f for f in frames if hand[f] == h]
-        again = lift_references(
-            denoised_clicks(
-                {f: annotations[f] for f in own},
-                {f: joints_mm[f] for f in own},
-                session.camera,
-                noise_px,
-            ),
-            sequence.depth,
-            sequence.camera,
-            sequence.skeleton,
-            eps_mm=session.model.settings.eps_mm,
-            angle_limits=session.model.settings.angle_limits,
-            workers=workers,
-            scheduler=scheduler,
+        shrunk = lift_references({f: annotations[f] for f in own}, sequence.depth,
+                                 sequence.camera, sequence.skeleton, **kw)  # fmt: skip
+        joints = dict(shrunk.joints_mm)
+        probe = _refit_with_model(
+            session, crop_data, own, annotations, joints, shrunk.bone_lengths_mm, True,
+            click_noise_px,
+        )  # fmt: skip
+        denoised = denoised_clicks(
+            {f: annotations[f] for f in own}, joints, session.camera, probe.noise_px
         )
-        bones[names[h]] = np.asarray(again.bone_lengths_mm, dtype=np.float64)
-        joints_mm.update(again.joints_mm)
-        _refit_with_model(
-            session, crop_data, own, annotations, joints_mm, bones[names[h]], quiet, noise_px
+        again = lift_references(denoised, sequence.depth, sequence.camera, sequence.skeleton, **kw)
+        joints.update(again.joints_mm)
+        final = _refit_with_model(
+            session, crop_data, own, annotations, joints, again.bone_lengths_mm, True,
+            probe.noise_px,
+        )  # fmt: skip
+        before = first.depth_energy[[row[f] for f in own]]
+        after = final.depth_energy
+        both = np.isfinite(before) & np.isfinite(after)
+        better = bool(both.any() and np.mean(after[both]) < np.mean(before[both]))
+        _log(
+            f"lift: click noise {noise:.2f} px >= {least:g} px: bones estimated again from "
+            f"denoised clicks; the model's depth energy {np.mean(before[both]) if both.any() else np.nan:.3g}"
+            f" -> {np.mean(after[both]) if both.any() else np.nan:.3g}: "
+            + ("kept" if better else "not kept"),
+            quiet,
         )
+        if better:
+            bones[names[h]] = np.asarray(again.bone_lengths_mm, dtype=np.float64)
+            joints_mm.update(joints)
 
 
 def _refit_with_model(
     session: Session, crop_data: tuple, frames: list[int], annotations: dict,
     joints_mm: dict[int, np.ndarray], bone_lengths_mm: np.ndarray, quiet: bool,
     click_noise_px: float | None,
-) -> float:  # fmt: skip
+):  # fmt: skip
     """Replace ``joints_mm[f]`` of the lifted references ``frames`` (one set of bones) by their
     refit with the personalized hand model (:mod:`handanno_core.lift.model_refit`);
-    ``crop_data`` = :func:`ensure_crops`' ``(crops, centres, boxes)``."""
+    ``crop_data`` = :func:`ensure_crops`' ``(crops, centres, boxes)``. Returns the
+    :class:`handanno_core.lift.model_refit.RefitResult`."""
     from .lift.model_refit import refit_references
 
     index = np.asarray(frames, dtype=np.int64)
@@ -599,7 +623,7 @@ def _refit_with_model(
         f"model (click noise {refit.noise_px:.2f} px, {source})",
         quiet,
     )
-    return refit.noise_px
+    return refit
 
 
 def _hand_model_on(session: Session, use_model: bool | None, stage: str, quiet: bool) -> bool:

@@ -149,12 +149,7 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     errors, logs = {}, {}
     for name, extra in [
         ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
-        ("bones once", []),
     ]:  # fmt: skip
-        if name == "bones once":
-            with Session.open(sessions / "s") as session:
-                session.model.settings.lift_denoise_min_px = None
-                session.save()
         capsys.readouterr()
         assert main([*base, "lift", "s", *extra]) == 0
         logs[name] = capsys.readouterr().out
@@ -168,8 +163,36 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     # clicks as exact
     assert errors["estimated"] < errors["plain"], errors
     assert errors["estimated"] < errors["given"], errors
-    # 2 px >= lift_denoise_min_px: the bones are estimated again from the denoised clicks, which
-    # beats one estimate from the clicks themselves (measured 1.56 against 1.93 mm)
-    assert "bone lengths estimated again" in logs["estimated"]
-    assert "estimated again" not in logs["given"] + logs["bones once"]
-    assert errors["estimated"] < 0.9 * errors["bones once"], errors
+    # 2 px >= lift_denoise_min_px: a second bone estimate was tried (here the model's depth
+    # energy did not favour it); clicks given as exact never try one
+    assert "bones estimated again from denoised clicks" in logs["estimated"]
+    assert "estimated again" not in logs["given"]
+
+
+def test_noisy_clicks_get_a_second_bone_estimate_kept_where_the_depth_favours_it(tmp_path, capsys):
+    from app.cli import main
+    from handanno_core.datasets import open_sequence
+    from handanno_core.session import Session
+
+    data, sessions = tmp_path / "data", tmp_path / "sessions"
+    assert main(["synth", str(data), "--frames", "30", "--seed", "4", "--workers", "1"]) == 0
+    base = ["--sessions-dir", str(sessions)]
+    assert main([*base, "new", "s", str(data)]) == 0
+    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.25"]) == 0
+    assert main([*base, "annotate-from-gt", "s", "--noise-px", "2"]) == 0
+    gt = open_sequence(data).ground_truth.joints_mm
+    errors, logs = {}, {}
+    for least in (1.0, None):
+        with Session.open(sessions / "s") as session:
+            session.model.settings.lift_denoise_min_px = least
+            session.save()
+        capsys.readouterr()
+        assert main([*base, "lift", "s"]) == 0
+        logs[least] = capsys.readouterr().out
+        with Session.open(sessions / "s") as session:
+            refs = session.reference_frames
+            lifted = session.load_results()["lifted_mm"][refs]
+        errors[least] = float(np.linalg.norm(lifted - gt[refs], axis=-1).mean())
+    assert ": kept" in logs[1.0] and "estimated again" not in logs[None]
+    # measured 1.50 against 2.14 mm
+    assert errors[1.0] < 0.85 * errors[None], errors

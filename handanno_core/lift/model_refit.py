@@ -64,12 +64,15 @@ class RefitSettings:
 class RefitResult:
     """``joints_mm`` (K, J, 3) mm refitted references (rows that kept their lift included);
     ``kept`` (K,) bool: the reference kept its lift; ``noise_px`` the click noise used (estimated
-    unless given); ``uv_weight`` the final fit's 2D weight per px²."""
+    unless given); ``uv_weight`` the final fit's 2D weight per px²; ``depth_energy`` (K,) the
+    final fit's data + free-space terms (how well the model explains the reference's depth; NaN
+    where the reference kept its lift)."""
 
     joints_mm: np.ndarray
     kept: np.ndarray
     noise_px: float
     uv_weight: float
+    depth_energy: np.ndarray | None = None
 
 
 def estimate_click_noise(residual_px: np.ndarray, settings: RefitSettings | None = None) -> float:
@@ -172,7 +175,7 @@ def refit_references(
     kept = np.ones(k, dtype=bool)
     ok = np.flatnonzero(np.all(np.isfinite(x0), axis=(1, 2)))
     if len(ok) == 0:
-        return RefitResult(out, kept, float(noise_px or 0.0), 0.0)
+        return RefitResult(out, kept, float(noise_px or 0.0), 0.0, np.full(k, np.nan))
     base = replace(fit_weights or hm.FitWeights(), pose=st.pose)
     model, obs = hm.personalize_from_crops(
         skeleton, bone_lengths_mm, x0[ok], crops[ok], np.asarray(boxes)[ok],
@@ -182,26 +185,29 @@ def refit_references(
     # pose_w multiplies FitWeights.pose: a placed joint's weight is placed_pose per mm²
     priors = click_priors(x0[ok], anns, st.placed_pose / base.pose)
 
-    def fit(uv_weight: float) -> np.ndarray:
+    def fit(uv_weight: float) -> tuple[np.ndarray, np.ndarray]:
         w = replace(base, uv=uv_weight)
-        parts = []
+        parts, depth = [], []
         for a in range(0, len(ok), st.chunk):
             rows = np.arange(a, min(a + st.chunk, len(ok)))
             res = hm.fit_frames(
                 model, x0[ok][rows], obs.take(rows), camera, weights=w, priors=priors.take(rows)
             )
             parts.append(res.joints_mm)
-        return np.concatenate(parts)
+            depth.append(res.terms["data"] + res.terms["free_space"])
+        return np.concatenate(parts), np.concatenate(depth)
 
     if noise_px is None:
-        probe = fit(st.probe_uv)
+        probe, _ = fit(st.probe_uv)
         has = priors.uv_w > 0
         residual = np.linalg.norm(camera.project(probe) - priors.uv, axis=-1)[has]
         noise_px = estimate_click_noise(residual, st)
     uv_weight = st.uv_gain / (float(noise_px) ** 2 + st.model_px**2)
-    fitted = fit(uv_weight)
+    fitted, depth = fit(uv_weight)
     parents = skeleton.parent_array
     broken = _orders_broken(fitted, anns, parents) & ~_orders_broken(x0[ok], anns, parents)
     out[ok[~broken]] = fitted[~broken]
     kept[ok[~broken]] = False
-    return RefitResult(out, kept, float(noise_px), float(uv_weight))
+    depth_energy = np.full(k, np.nan)
+    depth_energy[ok[~broken]] = depth[~broken]
+    return RefitResult(out, kept, float(noise_px), float(uv_weight), depth_energy)

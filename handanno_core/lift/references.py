@@ -219,7 +219,7 @@ def lift_references(
     max_calibrations: int = 3,
     stretch_tolerance: float = 0.2,
     seen_votes: bool = True,
-    shrink_bones: bool = True,
+    shrink_bones: bool = False,
     **lift_kwargs,
 ) -> LiftSet:
     """Lift every annotated reference frame; estimate the bone lengths and surface offsets.

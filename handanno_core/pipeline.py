@@ -8,6 +8,7 @@ Stages never call each other behind the user's back except :func:`ensure_crops`,
 from __future__ import annotations
 
 import time
+import warnings
 import zlib
 from collections.abc import Callable
 from pathlib import Path
@@ -556,17 +557,23 @@ def _bones_from_denoised_clicks(
     )
     for h in sorted({hand[f] for f in frames}):
         own = [f for f in frames if hand[f] == h]
-        shrunk = lift_references({f: annotations[f] for f in own}, sequence.depth,
-                                 sequence.camera, sequence.skeleton, **kw)  # fmt: skip
-        joints = dict(shrunk.joints_mm)
-        probe = _refit_with_model(
-            session, crop_data, own, annotations, joints, shrunk.bone_lengths_mm, True,
-            click_noise_px,
-        )  # fmt: skip
-        denoised = denoised_clicks(
-            {f: annotations[f] for f in own}, joints, session.camera, probe.noise_px
-        )
-        again = lift_references(denoised, sequence.depth, sequence.camera, sequence.skeleton, **kw)
+        with warnings.catch_warnings():
+            # the first pass already warned about stretched references; the candidate's
+            # confidences are not used
+            warnings.simplefilter("ignore", UserWarning)
+            shrunk = lift_references({f: annotations[f] for f in own}, sequence.depth,
+                                     sequence.camera, sequence.skeleton, **kw)  # fmt: skip
+            joints = dict(shrunk.joints_mm)
+            probe = _refit_with_model(
+                session, crop_data, own, annotations, joints, shrunk.bone_lengths_mm, True,
+                click_noise_px,
+            )  # fmt: skip
+            denoised = denoised_clicks(
+                {f: annotations[f] for f in own}, joints, session.camera, probe.noise_px
+            )
+            again = lift_references(
+                denoised, sequence.depth, sequence.camera, sequence.skeleton, **kw
+            )
         joints.update(again.joints_mm)
         final = _refit_with_model(
             session, crop_data, own, annotations, joints, again.bone_lengths_mm, True,
@@ -575,11 +582,11 @@ def _bones_from_denoised_clicks(
         before = first.depth_energy[[row[f] for f in own]]
         after = final.depth_energy
         both = np.isfinite(before) & np.isfinite(after)
-        better = bool(both.any() and np.mean(after[both]) < np.mean(before[both]))
+        e0, e1 = (float(np.mean(e[both])) if both.any() else np.nan for e in (before, after))
+        better = bool(e1 < e0)
         _log(
             f"lift: click noise {noise:.2f} px >= {least:g} px: bones estimated again from "
-            f"denoised clicks; the model's depth energy {np.mean(before[both]) if both.any() else np.nan:.3g}"
-            f" -> {np.mean(after[both]) if both.any() else np.nan:.3g}: "
+            f"denoised clicks; the model's depth energy {e0:.3g} -> {e1:.3g}: "
             + ("kept" if better else "not kept"),
             quiet,
         )

@@ -235,9 +235,9 @@ def lift_references(
     re-estimated ones (median ratio to the template). seen_votes: a bone seen in
     ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
     the median over those only (module docstring). shrink_bones: each median pulled towards the
-    template's proportions by its own uncertainty (:func:`shrink_to_template`). calibrate_surface: re-estimate the depth of
-    joint centres below the observed surface per joint group in every round
-    (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
+    template's proportions by its own uncertainty (:func:`shrink_to_template`). calibrate_surface:
+    re-estimate the depth of joint centres below the observed surface per joint group in every
+    round (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
     ``stretch_tolerance`` (fraction, and > 3 mm, and > 4 robust standard deviations of that
     bone's spread over the references) longer or shorter than the final estimate is reported

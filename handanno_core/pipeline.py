@@ -473,6 +473,7 @@ def lift(
         confidence_of.update(result.confidence)
         bones[names[h]] = np.asarray(result.bone_lengths_mm, dtype=np.float64)
     refit = session.model.settings.lift_refit if refit is None else refit
+    noises: list[float] = []  # the click noise each refit used (none without a refit)
     if refit and not session.skeleton.has_finger_segments:
         _log(f"lift: no hand-model refit for the {session.skeleton.name} layout", quiet)
     elif refit:
@@ -486,10 +487,13 @@ def lift(
                 session, crop_data, frames, annotations, joints_mm, bones[names[hand[frames[0]]]],
                 quiet, click_noise_px,
             )  # fmt: skip
+            noises.append(first.noise_px)
             _bones_from_denoised_clicks(
                 session, sequence, crop_data, frames, annotations, joints_mm, bones, first,
                 click_noise_px, workers, scheduler, quiet,
             )  # fmt: skip
+    given = click_noise_px is not None or session.model.settings.click_noise_px is not None
+    session.set_click_noise(max(noises) if noises else None, given=given)
     results = session.load_results()
     lifted = np.full_like(results["lifted_mm"], np.nan)
     confidence = results["confidence"]

@@ -441,7 +441,14 @@ def test_runner_lifts_first_when_the_session_has_no_bone_lengths(session):
         assert calls == [1]  # ... so the next full run does not lift again
         assert runner.start_lift() and runner.wait_idle(10)  # "Lift all" always lifts
         assert calls == [1, 1] and phases.count("propagate") == 2
-        assert runner.status.text().startswith("done: references lifted")
+        assert runner.status.text() == "done: references lifted, bone lengths estimated"
+        # a lift that estimated the annotators' click noise says so
+        session.set_click_noise(1.84)
+        assert runner.start_lift() and runner.wait_idle(10)
+        assert runner.status.text() == (
+            "done: references lifted, bone lengths estimated; "
+            "clicks: 1.8 px noise (estimated by the last lift)"
+        )
 
         def failing(s, **kw):
             raise SessionError("sess: no annotated reference frames to lift")

@@ -146,7 +146,7 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.25"]) == 0
     assert main([*base, "annotate-from-gt", "s", "--noise-px", "2"]) == 0
     gt = open_sequence(data).ground_truth.joints_mm
-    errors, logs = {}, {}
+    errors, logs, noise, infos = {}, {}, {}, {}
     for name, extra in [
         ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
     ]:  # fmt: skip
@@ -156,7 +156,10 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
         with Session.open(sessions / "s") as session:
             refs = session.reference_frames
             lifted = session.load_results()["lifted_mm"][refs]
+            noise[name] = (session.model.lift_click_noise_px, session.model.lift_click_noise_given)
         errors[name] = float(np.linalg.norm(lifted - gt[refs], axis=-1).mean())
+        assert main([*base, "info", "s"]) == 0
+        infos[name] = capsys.readouterr().out
     assert "refitted" not in logs["plain"]
     assert "estimated" in logs["estimated"] and "(click noise 0.00 px, given)" in logs["given"]
     # 2 px clicks: the refit with the estimated noise beats the plain lift and trusting the
@@ -167,6 +170,13 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
     # energy did not favour it); clicks given as exact never try one
     assert "bones estimated again from denoised clicks" in logs["estimated"]
     assert "estimated again" not in logs["given"]
+    # the session records the click noise the last lift used, and `handanno info` shows it
+    assert noise["plain"] == (None, False) and "clicks:" not in infos["plain"]
+    estimated, given = noise["estimated"]
+    assert 1.0 < estimated < 3.0 and not given
+    assert f"clicks: {estimated:.1f} px noise (estimated by the last lift)" in infos["estimated"]
+    assert noise["given"] == (0.0, True)
+    assert "clicks: 0.0 px noise (given to the last lift)" in infos["given"]
 
 
 def test_noisy_clicks_get_a_second_bone_estimate_kept_where_the_depth_favours_it(tmp_path, capsys):

@@ -593,7 +593,11 @@ class ReviewRunner:
     def _job(self, kind: str, corrections: dict[int, int]) -> None:
         if kind == "lift":
             self._lift_all()
-            self._finish("done", "done: references lifted, bone lengths estimated")
+            noise = self.session.click_noise_text()
+            self._finish(
+                "done",
+                "done: references lifted, bone lengths estimated" + (f"; {noise}" if noise else ""),
+            )
             return
         if kind == "full" and self.needs_lift():
             self._lift_all()

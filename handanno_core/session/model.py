@@ -87,6 +87,10 @@ class SessionModel(BaseModel):
     #: the mean over the hands' lengths (what the app shows; stages use ``hand_bone_lengths_mm``)
     bone_lengths_mm: list[float] | None = None
     bones_pinned: bool = False
+    #: the annotators' click noise (px) the last lift's refit used: estimated from the clicks
+    #: (``lift_click_noise_given`` False) or given; None before a lift with the refit
+    lift_click_noise_px: float | None = None
+    lift_click_noise_given: bool = False
     #: one hand label per sequence (``len(sequence_breaks) + 1`` entries): sequences with the same
     #: label are one person's hand and share bone lengths; empty = one hand for the whole session
     hands: list[str] = Field(default_factory=list)

@@ -610,6 +610,21 @@ class Session:
                 self.model.bones_pinned = pinned
             self.save()
 
+    def set_click_noise(self, noise_px: float | None, given: bool = False) -> None:
+        """Record the click noise (px) the last lift's refit used (``given``: not estimated)."""
+        with self.lock:
+            self.model.lift_click_noise_px = None if noise_px is None else float(noise_px)
+            self.model.lift_click_noise_given = bool(given)
+            self.save()
+
+    def click_noise_text(self) -> str | None:
+        """``"clicks: 1.8 px noise (estimated by the last lift)"``, or None before one."""
+        noise = self.model.lift_click_noise_px
+        if noise is None:
+            return None
+        how = "given to" if self.model.lift_click_noise_given else "estimated by"
+        return f"clicks: {noise:.1f} px noise ({how} the last lift)"
+
     # ------------------------------------------------------------------ hands
     @property
     def hand_names(self) -> list[str]:
@@ -765,6 +780,9 @@ class Session:
                 f"  hands: {len(names)} ({', '.join(names[:10])}{' ...' if len(names) > 10 else ''}), "
                 f"own bone lengths per hand{'' if self.model.hand_bone_lengths_mm else ' after the lift'}"
             )
+        noise = self.click_noise_text()
+        if noise:
+            lines.append(f"  {noise}")
         return "\n".join(lines)
 
     def __enter__(self) -> Session:

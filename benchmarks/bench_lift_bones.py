@@ -28,7 +28,12 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import annotated_session, stage_bench_parser, suite_base_sessions
+from handanno_core.bench import (
+    annotated_session,
+    print_means_by_noise,
+    stage_bench_parser,
+    suite_base_sessions,
+)
 from handanno_core.evaluate import error_summary
 
 
@@ -82,10 +87,7 @@ def main() -> None:
             )
             Path(args.json).write_text(json.dumps(rows, indent=1))
             session.close()
-    for key in ("once", "default"):
-        for noise in noises:
-            sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]
-            print(f"{key:>8} noise {noise:3.1f}: mean of means {np.mean(sel):.3f} mm ({len(sel)})")
+    print_means_by_noise(rows, ("once", "default"), noises)
 
 
 if __name__ == "__main__":

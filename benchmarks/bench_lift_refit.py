@@ -21,10 +21,13 @@ import re
 import time
 from pathlib import Path
 
-import numpy as np
-
 from handanno_core import pipeline
-from handanno_core.bench import annotated_session, stage_bench_parser, suite_base_sessions
+from handanno_core.bench import (
+    annotated_session,
+    print_means_by_noise,
+    stage_bench_parser,
+    suite_base_sessions,
+)
 from handanno_core.evaluate import error_summary
 
 
@@ -64,10 +67,7 @@ def main() -> None:
             )
             Path(args.json).write_text(json.dumps(rows, indent=1))
             session.close()
-    for key in ("lift", "refit"):
-        for noise in noises:
-            sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]
-            print(f"{key:>6} noise {noise:3.1f}: mean of means {np.mean(sel):.3f} mm ({len(sel)})")
+    print_means_by_noise(rows, ("lift", "refit"), noises)
 
 
 if __name__ == "__main__":

@@ -85,6 +85,15 @@ def stage_bench_parser(description: str) -> argparse.ArgumentParser:
     return ap
 
 
+def print_means_by_noise(rows: list[dict], keys: tuple[str, ...], noises: list[float]) -> None:
+    """The stage benchmarks' last lines: per variant ``key`` and click noise, the mean over the
+    sequences of ``row[key]["mean_mm"]`` (rows carry ``noise_px``)."""
+    for key in keys:
+        for noise in noises:
+            sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]
+            print(f"{key:>8} noise {noise:3.1f}: mean of means {np.mean(sel):.3f} mm ({len(sel)})")
+
+
 def suite_base_sessions(
     suite: str | Path, part: str, prefix: str
 ) -> Iterator[tuple[str, Session, np.ndarray, Path]]:

@@ -134,18 +134,27 @@ def test_only_layouts_with_finger_segments_are_refitted():
     }  # fmt: skip
 
 
-def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
+def _noisy_cli_session(tmp_path, frames: int, seed: int):
+    """A synthetic sequence, a session "s" with a quarter of its frames as references, annotated
+    with 2 px clicks, all through the CLI: ``(CLI base args, sessions folder, ground truth)``."""
     from app.cli import main
     from handanno_core.datasets import open_sequence
-    from handanno_core.session import Session
 
     data, sessions = tmp_path / "data", tmp_path / "sessions"
-    assert main(["synth", str(data), "--frames", "24", "--seed", "2", "--workers", "1"]) == 0
+    synth = ["synth", str(data), "--frames", str(frames), "--seed", str(seed), "--workers", "1"]
+    assert main(synth) == 0
     base = ["--sessions-dir", str(sessions)]
     assert main([*base, "new", "s", str(data)]) == 0
     assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.25"]) == 0
     assert main([*base, "annotate-from-gt", "s", "--noise-px", "2"]) == 0
-    gt = open_sequence(data).ground_truth.joints_mm
+    return base, sessions, open_sequence(data).ground_truth.joints_mm
+
+
+def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
+    from app.cli import main
+    from handanno_core.session import Session
+
+    base, sessions, gt = _noisy_cli_session(tmp_path, frames=24, seed=2)
     errors, logs, noise, infos = {}, {}, {}, {}
     for name, extra in [
         ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
@@ -181,16 +190,9 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
 
 def test_noisy_clicks_get_a_second_bone_estimate_kept_where_the_depth_favours_it(tmp_path, capsys):
     from app.cli import main
-    from handanno_core.datasets import open_sequence
     from handanno_core.session import Session
 
-    data, sessions = tmp_path / "data", tmp_path / "sessions"
-    assert main(["synth", str(data), "--frames", "30", "--seed", "4", "--workers", "1"]) == 0
-    base = ["--sessions-dir", str(sessions)]
-    assert main([*base, "new", "s", str(data)]) == 0
-    assert main([*base, "select", "s", "--strategy", "uniform", "--ref-fraction", "0.25"]) == 0
-    assert main([*base, "annotate-from-gt", "s", "--noise-px", "2"]) == 0
-    gt = open_sequence(data).ground_truth.joints_mm
+    base, sessions, gt = _noisy_cli_session(tmp_path, frames=30, seed=4)
     errors, logs = {}, {}
     for least in (1.0, None):
         with Session.open(sessions / "s") as session:

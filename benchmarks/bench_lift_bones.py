@@ -28,66 +28,54 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import pipeline
-from handanno_core.bench import (
-    annotated_session,
-    print_means_by_noise,
-    stage_bench_parser,
-    suite_base_sessions,
-)
+from handanno_core.bench import noisy_stage_sessions, print_means_by_noise, stage_bench_parser
 from handanno_core.evaluate import error_summary
 
 
 def main() -> None:
-    ap = stage_bench_parser(__doc__.splitlines()[0])
-    ap.add_argument("--noise", default="0,1,2")
-    args = ap.parse_args()
-    noises = [float(x) for x in args.noise.split(",")]
+    args = stage_bench_parser(__doc__.splitlines()[0], noise="0,1,2").parse_args()
     rows = []
-    for name, base, gt, tmp in suite_base_sessions(args.suite, args.part, "bench-lift-bones-"):
-        for noise in noises:
-            session = annotated_session(
-                base, tmp / "run", args.strategy, args.ref_fraction, noise_px=noise
+    for name, noise, session, gt in noisy_stage_sessions(args, "bench-lift-bones-"):
+        refs = session.reference_frames
+        sk = session.skeleton
+        true_bones = np.median(sk.bone_lengths(gt), axis=0)
+        row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
+        default = session.model.settings.lift_denoise_min_px
+        for key, least in (("once", None), ("default", default)):
+            session.model.settings.lift_denoise_min_px = least
+            session.save()
+            log = io.StringIO()
+            t = time.perf_counter()
+            with contextlib.redirect_stdout(log):
+                pipeline.lift(session)
+            row[f"lift_s_{key}"] = round(time.perf_counter() - t, 2)
+            lifted = session.load_results()["lifted_mm"][refs]
+            row[key] = error_summary(lifted, gt[refs])
+            bones = np.asarray(session.model.bone_lengths_mm)
+            row[f"bone_rel_error_{key}"] = round(
+                float(np.mean(np.abs(bones - true_bones) / true_bones)), 4
             )
-            refs = session.reference_frames
-            sk = session.skeleton
-            true_bones = np.median(sk.bone_lengths(gt), axis=0)
-            row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
-            default = session.model.settings.lift_denoise_min_px
-            for key, least in (("once", None), ("default", default)):
-                session.model.settings.lift_denoise_min_px = least
-                session.save()
-                log = io.StringIO()
-                t = time.perf_counter()
-                with contextlib.redirect_stdout(log):
-                    pipeline.lift(session)
-                row[f"lift_s_{key}"] = round(time.perf_counter() - t, 2)
-                lifted = session.load_results()["lifted_mm"][refs]
-                row[key] = error_summary(lifted, gt[refs])
-                bones = np.asarray(session.model.bone_lengths_mm)
-                row[f"bone_rel_error_{key}"] = round(
-                    float(np.mean(np.abs(bones - true_bones) / true_bones)), 4
+            text = log.getvalue()
+            found = re.findall(r"click noise ([0-9.]+) px, estimated", text)
+            row["click_noise_estimated_px"] = [float(x) for x in found][:1]
+            if key == "default":
+                row["second_estimate"] = (
+                    "kept" if ": kept" in text else "not kept" if "not kept" in text else "-"
                 )
-                text = log.getvalue()
-                found = re.findall(r"click noise ([0-9.]+) px, estimated", text)
-                row["click_noise_estimated_px"] = [float(x) for x in found][:1]
-                if key == "default":
-                    row["second_estimate"] = (
-                        "kept" if ": kept" in text else "not kept" if "not kept" in text else "-"
-                    )
-            row["load_avg_1m"] = round(os.getloadavg()[0], 2)
-            rows.append(row)
-            print(
-                f"{name:>28} noise {noise:3.1f}  once {row['once']['mean_mm']:6.3f} / "
-                f"{row['once']['max_mm']:6.1f}  default {row['default']['mean_mm']:6.3f} / "
-                f"{row['default']['max_mm']:6.1f} mm  bones {row['bone_rel_error_once']:.3f} -> "
-                f"{row['bone_rel_error_default']:.3f}  est {row['click_noise_estimated_px']} "
-                f"second {row['second_estimate']} ({row['lift_s_once']:.1f} / "
-                f"{row['lift_s_default']:.1f} s, load {row['load_avg_1m']:.1f})",
-                flush=True,
-            )
-            Path(args.json).write_text(json.dumps(rows, indent=1))
-            session.close()
-    print_means_by_noise(rows, ("once", "default"), noises)
+        row["load_avg_1m"] = round(os.getloadavg()[0], 2)
+        rows.append(row)
+        print(
+            f"{name:>28} noise {noise:3.1f}  once {row['once']['mean_mm']:6.3f} / "
+            f"{row['once']['max_mm']:6.1f}  default {row['default']['mean_mm']:6.3f} / "
+            f"{row['default']['max_mm']:6.1f} mm  bones {row['bone_rel_error_once']:.3f} -> "
+            f"{row['bone_rel_error_default']:.3f}  est {row['click_noise_estimated_px']} "
+            f"second {row['second_estimate']} ({row['lift_s_once']:.1f} / "
+            f"{row['lift_s_default']:.1f} s, load {row['load_avg_1m']:.1f})",
+            flush=True,
+        )
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+        session.close()
+    print_means_by_noise(rows, ("once", "default"))
 
 
 if __name__ == "__main__":

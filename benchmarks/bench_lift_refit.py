@@ -22,52 +22,40 @@ import time
 from pathlib import Path
 
 from handanno_core import pipeline
-from handanno_core.bench import (
-    annotated_session,
-    print_means_by_noise,
-    stage_bench_parser,
-    suite_base_sessions,
-)
+from handanno_core.bench import noisy_stage_sessions, print_means_by_noise, stage_bench_parser
 from handanno_core.evaluate import error_summary
 
 
 def main() -> None:
-    ap = stage_bench_parser(__doc__.splitlines()[0])
-    ap.add_argument("--noise", default="0,2")
-    args = ap.parse_args()
-    noises = [float(x) for x in args.noise.split(",")]
+    args = stage_bench_parser(__doc__.splitlines()[0], noise="0,2").parse_args()
     rows = []
-    for name, base, gt, tmp in suite_base_sessions(args.suite, args.part, "bench-lift-refit-"):
-        for noise in noises:
-            session = annotated_session(
-                base, tmp / "run", args.strategy, args.ref_fraction, noise_px=noise
-            )
-            refs = session.reference_frames
-            row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
-            for refit in (False, True):
-                log = io.StringIO()
-                t = time.perf_counter()
-                with contextlib.redirect_stdout(log):
-                    pipeline.lift(session, refit=refit)
-                row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
-                lifted = session.load_results()["lifted_mm"][refs]
-                row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])
-                found = re.findall(r"click noise ([0-9.]+) px", log.getvalue())
-                if refit and found:
-                    row["click_noise_estimated_px"] = [float(x) for x in found]
-            row["load_avg_1m"] = round(os.getloadavg()[0], 2)
-            rows.append(row)
-            print(
-                f"{name:>28} noise {noise:3.1f}  lift {row['lift']['mean_mm']:6.3f} / "
-                f"{row['lift']['max_mm']:6.1f}  refit {row['refit']['mean_mm']:6.3f} / "
-                f"{row['refit']['max_mm']:6.1f} mm  est {row.get('click_noise_estimated_px')} "
-                f"({row['lift_s_off']:.1f} / "
-                f"{row['lift_s_on']:.1f} s, load {row['load_avg_1m']:.1f})",
-                flush=True,
-            )
-            Path(args.json).write_text(json.dumps(rows, indent=1))
-            session.close()
-    print_means_by_noise(rows, ("lift", "refit"), noises)
+    for name, noise, session, gt in noisy_stage_sessions(args, "bench-lift-refit-"):
+        refs = session.reference_frames
+        row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
+        for refit in (False, True):
+            log = io.StringIO()
+            t = time.perf_counter()
+            with contextlib.redirect_stdout(log):
+                pipeline.lift(session, refit=refit)
+            row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
+            lifted = session.load_results()["lifted_mm"][refs]
+            row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])
+            found = re.findall(r"click noise ([0-9.]+) px", log.getvalue())
+            if refit and found:
+                row["click_noise_estimated_px"] = [float(x) for x in found]
+        row["load_avg_1m"] = round(os.getloadavg()[0], 2)
+        rows.append(row)
+        print(
+            f"{name:>28} noise {noise:3.1f}  lift {row['lift']['mean_mm']:6.3f} / "
+            f"{row['lift']['max_mm']:6.1f}  refit {row['refit']['mean_mm']:6.3f} / "
+            f"{row['refit']['max_mm']:6.1f} mm  est {row.get('click_noise_estimated_px')} "
+            f"({row['lift_s_off']:.1f} / "
+            f"{row['lift_s_on']:.1f} s, load {row['load_avg_1m']:.1f})",
+            flush=True,
+        )
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+        session.close()
+    print_means_by_noise(rows, ("lift", "refit"))
 
 
 if __name__ == "__main__":

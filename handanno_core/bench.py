@@ -72,22 +72,39 @@ def annotated_session(
     return session
 
 
-def stage_bench_parser(description: str) -> argparse.ArgumentParser:
+def noisy_stage_sessions(args, prefix: str) -> Iterator[tuple[str, float, Session, np.ndarray]]:
+    """For every sequence of the suite part and every click noise of ``args.noise`` (px,
+    comma-separated; :func:`stage_bench_parser` with ``noise``): ``(name, noise, session with its
+    references selected and annotated at that noise, ground truth (N, J, 3) mm)``."""
+    noises = [float(x) for x in args.noise.split(",")]
+    for name, base, gt, tmp in suite_base_sessions(args.suite, args.part, prefix):
+        for noise in noises:
+            session = annotated_session(
+                base, tmp / "run", args.strategy, args.ref_fraction, noise_px=noise
+            )
+            yield name, noise, session, gt
+
+
+def stage_bench_parser(description: str, noise: str | None = None) -> argparse.ArgumentParser:
     """The arguments every stage benchmark over a suite part takes (``benchmarks/bench_lift_refit
     .py``, ``bench_refine_model.py``): the suite folder, ``--part``, ``--ref-fraction``,
-    ``--strategy``, ``--json``; the script adds its own."""
+    ``--strategy``, ``--json``, and ``--noise`` (default ``noise``) where given; the script adds
+    its own."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("suite")
     ap.add_argument("--part", default="tune", choices=["tune", "report", "all"])
     ap.add_argument("--ref-fraction", type=float, default=0.05)
     ap.add_argument("--strategy", default="uniform")
     ap.add_argument("--json", required=True)
+    if noise is not None:
+        ap.add_argument("--noise", default=noise, help="click noises (px), comma-separated")
     return ap
 
 
-def print_means_by_noise(rows: list[dict], keys: tuple[str, ...], noises: list[float]) -> None:
+def print_means_by_noise(rows: list[dict], keys: tuple[str, ...]) -> None:
     """The stage benchmarks' last lines: per variant ``key`` and click noise, the mean over the
     sequences of ``row[key]["mean_mm"]`` (rows carry ``noise_px``)."""
+    noises = sorted({r["noise_px"] for r in rows})
     for key in keys:
         for noise in noises:
             sel = [r[key]["mean_mm"] for r in rows if r["noise_px"] == noise]

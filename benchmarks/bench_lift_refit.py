@@ -40,7 +40,7 @@ def main() -> None:
             row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
             lifted = session.load_results()["lifted_mm"][refs]
             row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])
-            found = re.findall(r"click noise ([0-9.]+) px", log.getvalue())
+            found = re.findall(r"click noise ([0-9.]+) px, (?:estimated|given)", log.getvalue())
             if refit and found:
                 row["click_noise_estimated_px"] = [float(x) for x in found]
         row["load_avg_1m"] = round(os.getloadavg()[0], 2)

@@ -48,11 +48,12 @@ class Settings(BaseModel):
     lift_refit: bool = True
     #: the annotators' click noise (px) the refit trusts the clicks by; None: estimated per lift
     click_noise_px: float | None = None
-    #: where the click noise (given or estimated) is at least this many px, the lift estimates the
-    #: bone lengths again from the clicks moved towards the refit's joints, then refits
-    #: (``lift.model_refit.denoised_clicks``); None: never. Below about 1 px the hand model's own
-    #: misfit (0.7-0.8 px estimated from exact clicks on the tune part's FPHA hands) cannot be told
-    #: from click noise; chosen on the tune part (README, "Bone lengths from noisy clicks")
+    #: where the click noise (given or estimated) is at least this many px, the lift tries a second
+    #: bone estimate (shrunk, from the clicks moved towards the refit's joints) and keeps it where
+    #: the hand model explains the references' depth better (``pipeline._bones_from_denoised_
+    #: clicks``); None: never. Exact clicks on the tune part's FPHA hands are estimated at up to
+    #: 0.81 px (the model's own misfit); chosen on the tune part (README, "Stop 29: bone lengths
+    #: from noisy clicks")
     lift_denoise_min_px: float | None = 1.0
     #: fit the personalized hand model to every frame in propagation and refinement (issue 13; on
     #: since it lowers the mean on every tune sequence and raises no max by more than 2 mm, README;

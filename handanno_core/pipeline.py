@@ -428,7 +428,6 @@ def lift(
     ``workers`` local processes or ``scheduler`` (``"tcp://HOST:PORT"``, a Dask cluster) lift the
     references in parallel. ``progress(done, total)`` is called after every frame of every
     bone-estimation round."""
-    from .lift import lift_references
 
     sequence = session.open_sequence()
     annotations = {  # a reference whose every joint was undone or cleared has nothing to lift
@@ -436,7 +435,7 @@ def lift(
     }
     if not annotations:
         raise SessionError(f"{session.folder}: no annotated reference frames to lift")
-    pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
+    pinned = _bones_pinned(session)
     hand = session.hand_of_frame()
     names = session.hand_names
     groups = {h: {f: a for f, a in annotations.items() if hand[f] == h} for h in range(len(names))}
@@ -455,19 +454,11 @@ def lift(
             def report(d, t, _off=done, _n=size, _left=left):
                 progress(_off + d, _off + t + round(_left * t / max(_n, 1)))
 
-        result = lift_references(
-            group,
-            sequence.depth,
-            sequence.camera,
-            sequence.skeleton,
+        result = _lift_group(
+            session, sequence, group, workers, scheduler,
             bone_lengths_mm=np.asarray(session.model.bone_lengths_mm) if pinned else None,
-            pin_bone_lengths=pinned,
-            eps_mm=session.model.settings.eps_mm,
-            angle_limits=session.model.settings.angle_limits,
-            workers=workers,
-            scheduler=scheduler,
-            progress=report,
-        )
+            pin_bone_lengths=pinned, progress=report,
+        )  # fmt: skip
         done += len(group)
         joints_mm.update(result.joints_mm)
         confidence_of.update(result.confidence)
@@ -521,6 +512,26 @@ def lift(
     return joints_mm
 
 
+def _bones_pinned(session: Session) -> bool:
+    """The session's bone lengths are pinned (given, never re-estimated by a lift)."""
+    return session.model.bones_pinned and session.model.bone_lengths_mm is not None
+
+
+def _lift_group(
+    session: Session, sequence, annotations: dict, workers: int, scheduler: str | None, **kw
+):
+    """:func:`handanno_core.lift.lift_references` of ``annotations`` (frame ->
+    :class:`FrameAnnotation`) on ``sequence`` with the session's lift settings; ``kw`` adds the
+    call's own (pinned bones, progress, shrinkage)."""
+    from .lift import lift_references
+
+    s = session.model.settings
+    return lift_references(
+        annotations, sequence.depth, sequence.camera, sequence.skeleton,
+        eps_mm=s.eps_mm, angle_limits=s.angle_limits, workers=workers, scheduler=scheduler, **kw,
+    )  # fmt: skip
+
+
 def _bones_from_denoised_clicks(
     session: Session, sequence, crop_data: tuple, frames: list[int], annotations: dict,
     joints_mm: dict[int, np.ndarray], bones: dict[str, np.ndarray], first,
@@ -541,32 +552,25 @@ def _bones_from_denoised_clicks(
     estimate in ``bones`` and ``joints_mm`` only if its refit's mean depth energy (data + free
     space) over the references is lower: the hand model's own misfit also shows as click noise
     (on a hand unlike the model's, exact clicks are estimated at 0.7-1.5 px)."""
-    from .lift import lift_references
     from .lift.model_refit import denoised_clicks
 
     least = session.model.settings.lift_denoise_min_px
-    pinned = session.model.bones_pinned and session.model.bone_lengths_mm is not None
     noise = first.noise_px
-    if pinned or least is None or noise <= 0.0 or noise < least:
+    if _bones_pinned(session) or least is None or noise <= 0.0 or noise < least:
         return
     row = {f: i for i, f in enumerate(frames)}
     hand = session.hand_of_frame()
     names = session.hand_names
-    kw = dict(
-        eps_mm=session.model.settings.eps_mm,
-        angle_limits=session.model.settings.angle_limits,
-        workers=workers,
-        scheduler=scheduler,
-        shrink_bones=True,
-    )
     for h in sorted({hand[f] for f in frames}):
         own = [f for f in frames if hand[f] == h]
         with warnings.catch_warnings():
             # the first pass already warned about stretched references; the candidate's
             # confidences are not used
             warnings.simplefilter("ignore", UserWarning)
-            shrunk = lift_references({f: annotations[f] for f in own}, sequence.depth,
-                                     sequence.camera, sequence.skeleton, **kw)  # fmt: skip
+            shrunk = _lift_group(
+                session, sequence, {f: annotations[f] for f in own}, workers, scheduler,
+                shrink_bones=True,
+            )  # fmt: skip
             joints = dict(shrunk.joints_mm)
             probe = _refit_with_model(
                 session, crop_data, own, annotations, joints, shrunk.bone_lengths_mm, True,
@@ -575,9 +579,7 @@ def _bones_from_denoised_clicks(
             denoised = denoised_clicks(
                 {f: annotations[f] for f in own}, joints, session.camera, probe.noise_px
             )
-            again = lift_references(
-                denoised, sequence.depth, sequence.camera, sequence.skeleton, **kw
-            )
+            again = _lift_group(session, sequence, denoised, workers, scheduler, shrink_bones=True)
         joints.update(again.joints_mm)
         final = _refit_with_model(
             session, crop_data, own, annotations, joints, again.bone_lengths_mm, True,

@@ -101,7 +101,10 @@ visible with a reading the lift kept, the bone not foreshortened: the sine of it
 image below 0.7) takes the median over those references only: a hidden joint's soft length is its
 start length again, so its vote is the prior's, not data. Rounds stop when no bone moves by more
 than 0.1 mm; a final lift uses the estimate as hard constraints, from both the last soft solution
-and the cold start, keeping the lower objective (the soft rounds can drift into the mirrored mode of a hidden finger).
+and the cold start, keeping the lower objective (the soft rounds can drift into the mirrored mode
+of a hidden finger). With ``shrink_bones`` each median is pulled towards the template's
+proportions by its own uncertainty (:func:`references.shrink_to_template`); ``handanno lift`` uses
+it only in its second estimate for noisy clicks (``pipeline.lift``).
 
 Surface offsets are self-calibrated per session (:func:`surface_correction`): once the bones have
 converged, the median over annotated visible joints of ``z_lifted - (D + o + s)`` per joint group

@@ -72,7 +72,7 @@ class RefitResult:
     kept: np.ndarray
     noise_px: float
     uv_weight: float
-    depth_energy: np.ndarray | None = None
+    depth_energy: np.ndarray
 
 
 def estimate_click_noise(residual_px: np.ndarray, settings: RefitSettings | None = None) -> float:

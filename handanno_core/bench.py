@@ -299,7 +299,8 @@ def _propagate_and_refine(
 ) -> dict:
     """Propagate and refine the lifted session in ``folder`` (hand model ``use_model``, stored as
     the session's setting; None: the session default) and return its run: ``fields`` + errors, ``timings`` + stage times, and
-    with ``with_model_keys`` ``"model"`` and ``"kept_initialization"``."""
+    with ``with_model_keys`` ``"model"``, ``"kept_initialization"`` and ``"recovered"`` (frames
+    the hand model could not explain that refinement fitted again, :mod:`handanno_core.recover`)."""
     session = Session.open(folder)
     if use_model is not None:  # the session's setting, so that review rounds use it too
         with session.lock:
@@ -326,6 +327,7 @@ def _propagate_and_refine(
     if with_model_keys:
         run["model"] = bool(session.model.settings.hand_model)
         run["kept_initialization"] = len(refined.info.get("kept_initialization", []))
+        run["recovered"] = len(refined.info.get("recovered", []))
     session.close()
     return run
 

@@ -79,6 +79,8 @@ __all__ = [
     "fit_frames",
     "finger_chains",
     "finger_hypotheses",
+    "finger_grid",
+    "reference_level",
     "finger_targets",
     "frame_energy",
     "grid_flexions",
@@ -1128,6 +1130,30 @@ def grid_flexions(skeleton: Skeleton, fractions=FINGER_FLEXIONS) -> np.ndarray:
     return fl[:, 0] + frac * (fl[:, 1] - fl[:, 0])
 
 
+#: fractions of the first finger joints' abduction ranges tried with every flexion pair by
+#: :func:`finger_grid` (a finger that slid onto its neighbour is an abduction away from its points)
+FINGER_ABDUCTIONS = (0.1, 0.5, 0.9)
+
+
+def finger_grid(
+    skeleton: Skeleton, flexions=FINGER_FLEXIONS, abductions=FINGER_ABDUCTIONS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hypotheses of :func:`refit_fingers` over flexion and abduction: flexion targets (K, A) and
+    abduction targets (K, A) degrees, every :func:`grid_flexions` row with every finger's first
+    joint at each of ``abductions`` (fractions of its abduction range; the other joints' abduction
+    NaN: kept). K = len(flexions) * len(abductions)."""
+    g = grid_flexions(skeleton, flexions)
+    _, ab = skeleton.angle_limits()
+    first = np.array([int(c[0]) for c in finger_chains(skeleton)], dtype=np.int64)
+    flex, abd = [], []
+    for a in abductions:
+        t = np.full_like(g, np.nan)
+        t[:, first] = ab[first, 0] + float(a) * (ab[first, 1] - ab[first, 0])
+        flex.append(g)
+        abd.append(t)
+    return np.concatenate(flex), np.concatenate(abd)
+
+
 def finger_targets(
     skeleton: Skeleton, poses: np.ndarray, owner: np.ndarray, n: int, fractions=FINGER_FLEXIONS
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1411,3 +1437,16 @@ def personalize_from_crops(
         obs,
     )
     return model, obs
+
+
+def reference_level(
+    model: HandModel, joints_mm: np.ndarray, obs: FrameObservations, camera: CameraIntrinsics
+) -> float:
+    """How well the model explains verified poses: the median over the references (K,J,3) mm of
+    the data + free-space energy (:func:`frame_energy`) at their poses. A fitted frame far above
+    it is a fit that failed (hand on the wrong surface, wrong minimum)."""
+    kin = Kinematics(model.skeleton, model.bone_lengths_mm)
+    _, terms, _, _ = frame_energy(
+        model, kin, *kin.fit(joints_mm), obs, camera, FitWeights(), diagnostics=False
+    )
+    return float(np.median(terms["data"] + terms["free_space"]))

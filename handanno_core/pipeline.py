@@ -820,9 +820,22 @@ def refine(
 
     init, problem = refine_inputs(session, quiet)
     result = run_refine(init, progress=progress, hand_model=use_model, threads=threads, **problem)
+    _log_recovered(result.info.get("recovered", []), quiet)
     if save:
         session.save_results(final_mm=result.joints_mm)
     return result
+
+
+def _log_recovered(frames, quiet: bool) -> None:
+    """Say which frames refinement fitted again because the hand model could not explain them."""
+    if len(frames):
+        shown = ", ".join(str(int(f)) for f in list(frames)[:10])
+        more = f" and {len(frames) - 10} more" if len(frames) > 10 else ""
+        _log(
+            f"refine: {len(frames)} frames the hand model could not explain were fitted again "
+            f"and replaced (frames {shown}{more})",
+            quiet,
+        )
 
 
 def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:

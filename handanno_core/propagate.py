@@ -147,7 +147,8 @@ class PropagationSettings:
     model_scale_mm: float = 4.0  #: confidence scale of a bone's mean point-to-model residual
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
     #: the fit failed when its data + free-space energy exceeds this many times the references'
-    #: (median over the lifted references, :func:`_model_levels`): the frame keeps its flowed pose
+    #: (median over the lifted references, :func:`handmodel.reference_level`): the frame keeps
+    #: its flowed pose
     model_fail_ratio: float = 5.0
     #: with the hand model, a session's propagation (:func:`handanno_core.pipeline.propagate`)
     #: also carries every frame between two references from both of them in time
@@ -1285,7 +1286,7 @@ def _hand_models(
 ) -> tuple[list[hm.HandModel], np.ndarray] | None:  # fmt: skip
     """The hand models to fit, one per row of ``bones.lengths`` (``hand_model=True``: each
     personalized from the usable references with those bones, else from all of them), and each
-    one's reference level (:func:`_model_levels`; inf without references)."""
+    one's reference level (:func:`handmodel.reference_level`; inf without references)."""
     if hand_model is False or hand_model is None:
         return None
     refs = sorted(f for f in known if f in reference_joints)
@@ -1317,21 +1318,8 @@ def _hand_models(
             else hm.personalize(skeleton, lengths, ref_joints[own], obs.take(own))
         )
         models.append(model)
-        levels.append(_model_levels(model, ref_joints[own], obs.take(own), camera))
+        levels.append(hm.reference_level(model, ref_joints[own], obs.take(own), camera))
     return models, np.asarray(levels)
-
-
-def _model_levels(
-    model: hm.HandModel, joints_mm: np.ndarray, obs: hm.FrameObservations, camera
-) -> float:
-    """How well the model explains verified poses: the median over the references (K,J,3) mm of
-    the data + free-space energy (:func:`handmodel.frame_energy`) at their lifted poses. A fitted
-    frame far above it is a fit that failed (hand on the wrong surface, wrong minimum)."""
-    kin = hm.Kinematics(model.skeleton, model.bone_lengths_mm)
-    _, terms, _, _ = hm.frame_energy(
-        model, kin, *kin.fit(joints_mm), obs, camera, hm.FitWeights(), diagnostics=False
-    )
-    return float(np.median(terms["data"] + terms["free_space"]))
 
 
 @contextmanager

@@ -740,6 +740,7 @@ def refine(
     fit_weights: hmod.FitWeights | None = None,
     threads: int = 1,
     hold_references: bool = True,
+    recover: bool = True,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
 
@@ -774,6 +775,9 @@ def refine(
         lift), scales the temporal weight down where the initialization moves fast, and keeps a
         frame's initialization where refinement raised its model energy; a
         :class:`handmodel.HandModel` is used as given; ``False`` is the model-free energy.
+    recover : with the hand model, frames it cannot explain after the solve are fitted again
+        from their neighbours' estimates and per-finger hypotheses and replaced where the model
+        explains them far better (:mod:`handanno_core.recover`).
     threads : threads evaluating the per-frame terms (the hand model's above all) in chunks of
         frames; the result does not depend on it (:meth:`_Problem.map_chunks`).
 
@@ -784,6 +788,7 @@ def refine(
     """
     t0 = time.perf_counter()
     w = weights or RefineWeights()
+    sequence_breaks = [int(b) for b in sequence_breaks]
     init = np.array(init_mm, dtype=np.float64)
     if init.ndim != 3 or init.shape[2] != 3 or init.shape[1] != skeleton.num_joints:
         raise ValueError(f"init_mm must be (N, {skeleton.num_joints}, 3), got {init.shape}")
@@ -855,6 +860,11 @@ def refine(
     viol = float(np.max(np.abs(skeleton.bone_lengths(joints) - kin.lengths))) if n else 0.0
     joints[fixed] = np.asarray(init_mm, dtype=np.float64)[fixed]
     joints[kept] = init[kept]
+    recovered = np.zeros(0, dtype=np.int64)
+    if problem.model is not None and recover:
+        joints, recovered = _recover(
+            problem, joints, init, fixed | held, fit_weights, centres_mm, sequence_breaks
+        )
     return RefineResult(
         joints_mm=joints,
         energy_history=fit.history,
@@ -863,8 +873,33 @@ def refine(
         iterations=fit.iterations,
         converged=fit.converged,
         time_s=time.perf_counter() - t0,
-        info={"lambda": fit.lam, "log": fit.log, "kept_initialization": kept.tolist()},
+        info={
+            "lambda": fit.lam,
+            "log": fit.log,
+            "kept_initialization": kept.tolist(),
+            "recovered": recovered.tolist(),
+        },
     )
+
+
+def _recover(problem: _Problem, joints: np.ndarray, init: np.ndarray, keep: np.ndarray,
+             fit_weights: hmod.FitWeights | None, centres_mm: np.ndarray,
+             sequence_breaks) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The refined ``joints`` (N, J, 3) mm with the frames the hand model cannot explain fitted
+    again (:func:`handanno_core.recover.recover_frames`; ``keep`` (N,) bool frames unchanged);
+    the references' level is that of their initialization (their lift). Returns the joints and
+    the recovered frames."""
+    from .recover import recover_frames
+
+    refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
+    if len(refs) == 0:
+        return joints, np.zeros(0, dtype=np.int64)
+    level = hmod.reference_level(problem.model, init[refs], problem.obs.take(refs), problem.cam)
+    res = recover_frames(
+        problem.model, joints, problem.obs, np.asarray(centres_mm), problem.cam, level,
+        keep=keep, sequence_breaks=list(sequence_breaks), fit_weights=fit_weights,
+    )  # fmt: skip
+    return res.joints_mm, res.recovered
 
 
 @contextmanager

@@ -256,7 +256,7 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
     moved = _perturb_joints(x, 15.0, signs)
     c0, c1 = x.mean(axis=0), moved.mean(axis=0)
     ref_crop = _noisy_crop(_render(model, x), c0, rng)
-    level = prop._model_levels(
+    level = hm.reference_level(
         model, x[None], hm.observe(ref_crop[None], crop_boxes(c0, CAM)[None], c0[None], CAM), CAM
     )
     hand_crop = _noisy_crop(_render(model, moved), c1, rng)

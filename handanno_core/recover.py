@@ -1,0 +1,195 @@
+"""Recover frames whose estimate the hand model cannot explain: :func:`recover_frames`.
+
+Refinement is local: a frame whose propagated pose sits in the wrong basin (fingers shifted onto
+their neighbours, a finger curled where the depth shows it extended) stays there, and its
+neighbours' temporal terms hold it. The personalized hand model sees such a frame: its data +
+free-space energy (its *level*, relative to the references', :func:`handmodel.reference_level`)
+is many times the references' where the pose is right.
+
+For every frame above ``fail_level`` (not a reference, not fixed) the model is fitted again
+(:func:`handmodel.fit_frames`, a weak pose prior to the frame's current estimate so that what the
+depth does not show, a hidden finger, stays where it was) from several starts: the frame's own
+estimate and the estimates of the ``neighbours`` nearest well-explained frames before and after
+it within its sequence segment (moved by the difference of the crop centres). The start that
+fits best then gets the per-finger hypotheses (:func:`handmodel.refit_fingers`) over a grid of
+flexions *and* abductions (:func:`handmodel.finger_grid`: a finger that slid onto its neighbour
+is an abduction away from its own points). The new fit replaces the estimate only where it
+explains the depth ``min_gain`` times better and no worse than ``accept_level`` times the
+references (a fit the model still cannot explain is no evidence). Frames that became well
+explained are starts for their neighbours in the next pass (at most ``passes``; a frame is tried
+again only when its nearest well-explained frames changed).
+
+The model cannot see hidden fingers and its level rises on frames it explains poorly for other
+reasons (an egocentric forearm): hence the large ``min_gain``. Constants chosen on the benchmark
+suite's tune part (README, "Recovering frames the hand model cannot explain").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from . import handmodel as hm
+from .camera import CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class RecoverySettings:
+    """When a frame is tried and when its new fit is kept (levels relative to the references').
+
+    ``fail_level``: frames above it are tried (the propagation's ``candidate_level``);
+    ``accept_level``: a new fit above it is not kept (the propagation's ``finger_rescue_level``);
+    ``min_gain``: the new level must be at most the old one divided by this;
+    ``neighbours``: well-explained frames taken as starts on each side; ``passes``: at most.
+    ``pose``: weight per mm² of the prior to the frame's current estimate (the hand model's
+    :class:`handmodel.FitWeights` ``pose``, Huber at its ``pose_huber_mm``)."""
+
+    fail_level: float = 2.0
+    accept_level: float = 3.0
+    min_gain: float = 3.0
+    neighbours: int = 2
+    fits: int = 0
+    passes: int = 3
+    pose: float = 0.02
+
+
+@dataclass
+class RecoveryResult:
+    """``joints_mm`` (N, J, 3) mm (recovered frames replaced); ``recovered`` (R,) the frames
+    replaced; ``tried`` (T,) the frames above ``fail_level``; ``level_before`` / ``level_after``
+    (N,) each frame's level (relative to the references') before and after."""
+
+    joints_mm: np.ndarray
+    recovered: np.ndarray
+    tried: np.ndarray
+    level_before: np.ndarray
+    level_after: np.ndarray
+
+
+def _segment_ids(n: int, breaks) -> np.ndarray:
+    """(n,) int: the sequence segment of every frame (a break starts a new one)."""
+    cuts = np.zeros(n, dtype=np.int64)
+    for b in breaks or ():
+        if 0 < int(b) < n:
+            cuts[int(b)] = 1
+    return np.cumsum(cuts)
+
+
+def _nearest_good(f: int, good: np.ndarray, seg: np.ndarray, k: int) -> tuple[int, ...]:
+    """The ``k`` frames of ascending ``good`` nearest before and after frame ``f`` in its segment."""
+    lo, hi = int(np.searchsorted(good, f, "left")), int(np.searchsorted(good, f, "right"))
+    before = [int(g) for g in good[max(lo - k, 0) : lo] if seg[g] == seg[f]]
+    after = [int(g) for g in good[hi : hi + k] if seg[g] == seg[f]]
+    return tuple(before + after)
+
+
+def recover_frames(
+    model: hm.HandModel,
+    joints_mm: np.ndarray,
+    obs: hm.FrameObservations,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    reference_level: float,
+    *,
+    keep: np.ndarray | None = None,
+    sequence_breaks=(),
+    settings: RecoverySettings | None = None,
+    fit_weights: hm.FitWeights | None = None,
+) -> RecoveryResult:
+    """Fit the frames the model cannot explain again (module docstring).
+
+    Parameters
+    ----------
+    model : the personalized hand model (bones and radii).
+    joints_mm : (N, J, 3) mm current estimates (finite).
+    obs : the N frames' observations (:func:`handmodel.observe`); centres_mm (N, 3) their crops'
+        centres (a neighbour's start is moved by the difference).
+    reference_level : the references' level (:func:`handmodel.reference_level`), > 0.
+    keep : (N,) bool frames never changed (references, fixed frames).
+    sequence_breaks : frames where an unrelated sequence starts (no start crosses one).
+    fit_weights : the model fit's weights (default :class:`handmodel.FitWeights`); its ``pose``
+        is replaced by ``settings.pose``.
+    """
+    st = settings or RecoverySettings()
+    x = np.array(joints_mm, dtype=np.float64)
+    n = len(x)
+    keep = np.zeros(n, dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    centres = np.asarray(centres_mm, dtype=np.float64)
+    w = replace(fit_weights or hm.FitWeights(), pose=st.pose)
+    kin = hm.Kinematics(model.skeleton, model.bone_lengths_mm)
+    empty = np.zeros(0, dtype=np.int64)
+    finite = np.all(np.isfinite(x), axis=(1, 2))
+    if n == 0 or not np.isfinite(reference_level) or reference_level <= 0 or not finite.any():
+        lv = np.full(n, np.nan)
+        return RecoveryResult(x, empty, empty, lv, lv.copy())
+
+    def levels(poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        root, u = kin.fit(poses)
+        _, terms, _, _ = hm.frame_energy(
+            model, kin, root, u, obs.take(rows), camera, w, None, diagnostics=False
+        )
+        return (terms["data"] + terms["free_space"]) / reference_level
+
+    rows_all = np.flatnonzero(finite)
+    level = np.full(n, np.nan)
+    level[rows_all] = levels(x[rows_all], rows_all)
+    before = level.copy()
+    tried = np.flatnonzero(finite & ~keep & (level > st.fail_level))
+    seg = _segment_ids(n, sequence_breaks)
+    flex, abd = hm.finger_grid(model.skeleton)
+    recovered: set[int] = set()
+    seen: dict[int, tuple[int, ...]] = {}
+    for _ in range(st.passes):
+        good = np.flatnonzero(finite & ((level <= st.fail_level) | keep))
+        todo, starts, owner = [], [], []
+        for f in np.flatnonzero(finite & ~keep & (level > st.fail_level)):
+            near = _nearest_good(int(f), good, seg, st.neighbours)
+            if seen.get(int(f)) == near:
+                continue  # nothing new to start from
+            seen[int(f)] = near
+            todo.append(int(f))
+            starts.append(x[f])
+            starts += [x[g] + (centres[f] - centres[g]) for g in near]
+            owner += [int(f)] * (1 + len(near))
+        if not todo:
+            break
+        owner_a = np.asarray(owner, dtype=np.int64)
+        starts_a = np.stack(starts)
+        if st.fits > 0:  # fit only each frame's ``fits`` starts of lowest energy
+            e0 = hm.frame_energy(
+                model, kin, *kin.fit(starts_a), obs.take(owner_a), camera, w,
+                hm.Priors(pose=x[owner_a], pose_w=np.ones(starts_a.shape[:2])), diagnostics=False,
+            )[0]  # fmt: skip
+            pick = np.concatenate(
+                [
+                    np.flatnonzero(owner_a == f)[np.argsort(e0[owner_a == f])[: st.fits]]
+                    for f in todo
+                ]
+            )
+            owner_a, starts_a = owner_a[pick], starts_a[pick]
+        prior = hm.Priors(pose=x[owner_a], pose_w=np.ones(starts_a.shape[:2]))
+        fit = hm.fit_frames(
+            model, starts_a, obs.take(owner_a), camera, weights=w, priors=prior, kin=kin
+        )
+        depth = fit.terms["data"] + fit.terms["free_space"]
+        best = np.array(
+            [np.flatnonzero(owner_a == f)[np.argmin(depth[owner_a == f])] for f in todo]
+        )
+        fit = hm.refit_fingers(
+            model, fit, obs.take(owner_a), camera, weights=w, priors=prior, kin=kin,
+            flexion_deg=flex, abduction_deg=abd, rows=best,
+        )  # fmt: skip
+        new = (fit.terms["data"] + fit.terms["free_space"]) / reference_level
+        changed = 0
+        for f in todo:
+            rows = np.flatnonzero(owner_a == f)
+            k = rows[int(np.argmin(new[rows]))]
+            if new[k] <= st.accept_level and new[k] * st.min_gain <= level[f]:
+                x[f] = fit.joints_mm[k]
+                level[f] = new[k]
+                recovered.add(f)
+                changed += 1
+        if not changed:
+            break
+    return RecoveryResult(x, np.asarray(sorted(recovered), dtype=np.int64), tried, before, level)

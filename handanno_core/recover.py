@@ -41,7 +41,8 @@ class RecoverySettings:
     ``fail_level``: frames above it are tried (the propagation's ``candidate_level``);
     ``accept_level``: a new fit above it is not kept (the propagation's ``finger_rescue_level``);
     ``min_gain``: the new level must be at most the old one divided by this;
-    ``neighbours``: well-explained frames taken as starts on each side; ``passes``: at most.
+    ``neighbours``: well-explained frames taken as starts on each side; ``passes``: at most;
+    ``chunk``: fits (starts) evaluated at once (memory: their observations).
     ``pose``: weight per mm² of the prior to the frame's current estimate (the hand model's
     :class:`handmodel.FitWeights` ``pose``, Huber at its ``pose_huber_mm``)."""
 
@@ -49,8 +50,8 @@ class RecoverySettings:
     accept_level: float = 3.0
     min_gain: float = 3.0
     neighbours: int = 2
-    fits: int = 0
     passes: int = 3
+    chunk: int = 160
     pose: float = 0.02
 
 
@@ -125,11 +126,39 @@ def recover_frames(
         return RecoveryResult(x, empty, empty, lv, lv.copy())
 
     def levels(poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        root, u = kin.fit(poses)
-        _, terms, _, _ = hm.frame_energy(
-            model, kin, root, u, obs.take(rows), camera, w, None, diagnostics=False
+        out = np.empty(len(rows))
+        for a in range(0, len(rows), st.chunk):
+            r = rows[a : a + st.chunk]
+            _, terms, _, _ = hm.frame_energy(
+                model, kin, *kin.fit(poses[a : a + st.chunk]), obs.take(r), camera, w, None,
+                diagnostics=False,
+            )  # fmt: skip
+            out[a : a + len(r)] = (terms["data"] + terms["free_space"]) / reference_level
+        return out
+
+    flex, abd = hm.finger_grid(model.skeleton)
+
+    def refit(frames: list[int], near: dict[int, tuple[int, ...]]) -> tuple[np.ndarray, np.ndarray]:
+        """The best new fit (K, J, 3) mm of ``frames`` (K of them) and its level (K,)."""
+        starts, owner = [], []
+        for f in frames:
+            starts += [x[f]] + [x[g] + (centres[f] - centres[g]) for g in near[f]]
+            owner += [f] * (1 + len(near[f]))
+        owner_a = np.asarray(owner, dtype=np.int64)
+        prior = hm.Priors(pose=x[owner_a], pose_w=np.ones((len(owner_a), x.shape[1])))
+        seen_by = obs.take(owner_a)
+        fit = hm.fit_frames(
+            model, np.stack(starts), seen_by, camera, weights=w, priors=prior, kin=kin
         )
-        return (terms["data"] + terms["free_space"]) / reference_level
+        rows = [np.flatnonzero(owner_a == f) for f in frames]
+        depth = fit.terms["data"] + fit.terms["free_space"]
+        fit = hm.refit_fingers(
+            model, fit, seen_by, camera, weights=w, priors=prior, kin=kin, flexion_deg=flex,
+            abduction_deg=abd, rows=np.array([r[np.argmin(depth[r])] for r in rows]),
+        )  # fmt: skip
+        new = (fit.terms["data"] + fit.terms["free_space"]) / reference_level
+        pick = np.array([r[np.argmin(new[r])] for r in rows])
+        return fit.joints_mm[pick], new[pick]
 
     rows_all = np.flatnonzero(finite)
     level = np.full(n, np.nan)
@@ -137,59 +166,27 @@ def recover_frames(
     before = level.copy()
     tried = np.flatnonzero(finite & ~keep & (level > st.fail_level))
     seg = _segment_ids(n, sequence_breaks)
-    flex, abd = hm.finger_grid(model.skeleton)
     recovered: set[int] = set()
     seen: dict[int, tuple[int, ...]] = {}
     for _ in range(st.passes):
         good = np.flatnonzero(finite & ((level <= st.fail_level) | keep))
-        todo, starts, owner = [], [], []
+        near: dict[int, tuple[int, ...]] = {}
         for f in np.flatnonzero(finite & ~keep & (level > st.fail_level)):
-            near = _nearest_good(int(f), good, seg, st.neighbours)
-            if seen.get(int(f)) == near:
-                continue  # nothing new to start from
-            seen[int(f)] = near
-            todo.append(int(f))
-            starts.append(x[f])
-            starts += [x[g] + (centres[f] - centres[g]) for g in near]
-            owner += [int(f)] * (1 + len(near))
-        if not todo:
-            break
-        owner_a = np.asarray(owner, dtype=np.int64)
-        starts_a = np.stack(starts)
-        if st.fits > 0:  # fit only each frame's ``fits`` starts of lowest energy
-            e0 = hm.frame_energy(
-                model, kin, *kin.fit(starts_a), obs.take(owner_a), camera, w,
-                hm.Priors(pose=x[owner_a], pose_w=np.ones(starts_a.shape[:2])), diagnostics=False,
-            )[0]  # fmt: skip
-            pick = np.concatenate(
-                [
-                    np.flatnonzero(owner_a == f)[np.argsort(e0[owner_a == f])[: st.fits]]
-                    for f in todo
-                ]
-            )
-            owner_a, starts_a = owner_a[pick], starts_a[pick]
-        prior = hm.Priors(pose=x[owner_a], pose_w=np.ones(starts_a.shape[:2]))
-        fit = hm.fit_frames(
-            model, starts_a, obs.take(owner_a), camera, weights=w, priors=prior, kin=kin
-        )
-        depth = fit.terms["data"] + fit.terms["free_space"]
-        best = np.array(
-            [np.flatnonzero(owner_a == f)[np.argmin(depth[owner_a == f])] for f in todo]
-        )
-        fit = hm.refit_fingers(
-            model, fit, obs.take(owner_a), camera, weights=w, priors=prior, kin=kin,
-            flexion_deg=flex, abduction_deg=abd, rows=best,
-        )  # fmt: skip
-        new = (fit.terms["data"] + fit.terms["free_space"]) / reference_level
+            nb = _nearest_good(int(f), good, seg, st.neighbours)
+            if seen.get(int(f)) != nb:  # else nothing new to start from
+                near[int(f)] = seen[int(f)] = nb
+        todo = sorted(near)
+        # a frame's starts are fitted together, frames in chunks (memory: their observations)
+        per = max(1, st.chunk // (1 + 2 * st.neighbours))
         changed = 0
-        for f in todo:
-            rows = np.flatnonzero(owner_a == f)
-            k = rows[int(np.argmin(new[rows]))]
-            if new[k] <= st.accept_level and new[k] * st.min_gain <= level[f]:
-                x[f] = fit.joints_mm[k]
-                level[f] = new[k]
-                recovered.add(f)
-                changed += 1
+        for a in range(0, len(todo), per):
+            frames = todo[a : a + per]
+            joints, new = refit(frames, near)
+            ok = (new <= st.accept_level) & (new * st.min_gain <= level[frames])
+            for f, xj, lv in zip(np.asarray(frames)[ok], joints[ok], new[ok], strict=True):
+                x[f], level[f] = xj, lv
+                recovered.add(int(f))
+            changed += int(ok.sum())
         if not changed:
             break
     return RecoveryResult(x, np.asarray(sorted(recovered), dtype=np.int64), tried, before, level)

@@ -203,6 +203,10 @@ WRIST_SHIFT = 0.5
 DEPTH_SHARE = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
+#: a piece of surface ending next to the hand (:func:`_with_ending_pieces`) may lie this many grid
+#: nodes from it in the image (a sensor's shadow or ragged edge between a finger and the one it
+#: occludes: the same gap as a hand seen past an arm's far end).
+PIECE_GAP_NODES = 2
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
 HAND_LENGTH_MM = 200.0
 #: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
@@ -803,6 +807,9 @@ def hand_geometry(
         hand = behind
     hand = _with_unreached(pts, hand, attach, region & ~np.isfinite(g))
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
+    hand = _with_ending_pieces(
+        pts, node_area, rr, cc, (zs, vs, win), edges, hand, region & np.isfinite(g)
+    )
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
         z_far = float(
@@ -851,6 +858,88 @@ def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) 
         front = pts[cand[near]]
         cand = cand[~near]
     return hand
+
+
+def _with_ending_pieces(
+    pts: np.ndarray,
+    node_area: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    grid_zvw: tuple[np.ndarray, np.ndarray, np.ndarray],
+    edges: np.ndarray,
+    hand: np.ndarray,
+    arm: np.ndarray,
+) -> np.ndarray:
+    """``hand`` ``(M,)`` bool plus the surface pieces next to it in the image that end there
+    (the safety net after steps 1-4): fingers pointing at or away from the camera show depth
+    steps larger than the surface graph's and ``ATTACH_MM`` between neighbouring pixels (one
+    finger occluding another, a fingertip beyond a knuckle), so a finger's last segment can be
+    left out of the hand while the crop has room for it.
+
+    A piece is a connected surface (links of the surface graph ``edges`` ``(E, 2)``) of window
+    nodes that are neither hand nor ``arm`` ``(M,)`` bool (the surface the attachment reaches).
+    It is hand when it *ends*: none of its nodes lies on the image border or where the surface
+    leaves the depth window (grid ``zs``, ``vs``, ``win`` ``(h, w)``), it is not linked to the
+    arm's surface, it is no larger than a hand (``MAX_HAND_AREA_MM2``) and every node lies
+    within a hand's length (``HAND_LENGTH_MM``, 3D) of the hand; and when it lies within
+    ``PIECE_GAP_NODES`` grid nodes (in the image: a sensor's shadow or ragged edge may separate
+    it) of the hand or of a piece taken before (a finger cut into several pieces). Only the
+    pieces that reach past the hand's ray-angle box are taken: they are what a crop would cut
+    (a patch of background seen between the fingers changes nothing). ``node_area`` ``(M,)``:
+    each node's metric area (mm^2); ``grid_zvw``: the grid's depth, valid and window masks.
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    zs, vs, win = grid_zvw
+    h, w = zs.shape
+    n = len(pts)
+    arm = arm & ~hand
+    cand = ~hand & ~arm
+    if not cand.any() or not hand.any():
+        return hand
+    s, d = edges[:, 0], edges[:, 1]
+    inner = cand[s] & cand[d]
+    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
+    k, lab = connected_components(sub, directed=False)
+    bad = np.zeros(k, bool)
+    node_bad = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
+    node_bad |= _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
+    to_arm = (cand[s] & arm[d]) | (arm[s] & cand[d])
+    node_bad[np.where(cand[s[to_arm]], s[to_arm], d[to_arm])] = True
+    idx = np.flatnonzero(cand)
+    far = ~np.isfinite(cKDTree(pts[hand]).query(pts[idx], distance_upper_bound=HAND_LENGTH_MM)[0])
+    node_bad[idx[far]] = True
+    bad[np.unique(lab[cand & node_bad])] = True
+    area = np.bincount(lab[idx], weights=node_area[idx], minlength=k)
+    ok = ~bad & (area <= MAX_HAND_AREA_MM2)
+    ok_node = cand & ok[lab]
+    if not ok_node.any():
+        return hand
+    taken = np.zeros(n, bool)
+    grid = np.zeros((h, w), np.uint8)
+    grid[rr[hand], cc[hand]] = 1
+    ker = np.ones((2 * PIECE_GAP_NODES + 1,) * 2, np.uint8)
+    for _ in range(n):
+        near = (cv2.dilate(grid, ker) > 0)[rr, cc] & ok_node & ~taken
+        if not near.any():
+            break
+        new = ok_node & np.isin(lab, np.unique(lab[near]))
+        taken |= new
+        grid[rr[new], cc[new]] = 1
+    if not taken.any():
+        return hand
+    ang = pts[:, :2] / pts[:, 2:3]
+    a_lo, a_hi = ang[hand].min(axis=0), ang[hand].max(axis=0)
+    past = taken & np.any((ang < a_lo) | (ang > a_hi), axis=1)
+    if not past.any():
+        return hand
+    # the taken pieces, as groups connected in the image: those that reach past the hand's box
+    tg = np.zeros((h, w), np.uint8)
+    tg[rr[taken], cc[taken]] = 1
+    gl = cv2.connectedComponents(tg, connectivity=8)[1][rr, cc]
+    keep = taken & np.isin(gl, np.unique(gl[past]))
+    return hand | keep
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,16 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
    surface, palm and fingers); its extent is that of the points within
    ``FREE_EXTENT_RADIUS_MM`` (fixed radii: an extent that grew with the cube grew the cube again).
+5. **Safety net** (:func:`_with_ending_pieces`, after an arm end is found): fingers pointing at
+   or away from the camera show depth steps of 30-60 mm between neighbouring pixels (one finger
+   occluding another, a fingertip beyond a knuckle), more than the graph's ``EDGE_STEP_MM`` and
+   ``ATTACH_MM``, often with a sensor's shadow (no depth) between, so the last finger segment can
+   be left out of the hand. Surface pieces within ``PIECE_GAP_NODES`` grid nodes of the hand in
+   the image that *end* there (not on the image border, not leaving the depth window, not linked
+   to the arm's surface, at most a hand's area ``MAX_HAND_AREA_MM2``, every point within a hand's
+   length ``HAND_LENGTH_MM`` of it) are hand, where they reach past the hand's ray-angle box: the
+   box grows to hold them, so the centre moves (using the slack on the arm's side) or the
+   frame's own box grows (:func:`frame_cubes_mm`).
 
 The centre (:func:`_box_of`) is the middle of the hand's extent in ray angle (so the crop, a
 projection, holds its outermost pixels) and in depth, moved back if needed so that the cube's
@@ -92,7 +102,11 @@ tune cases and 15 tune-side sequences rendered with the report part's Kinect 320
 (``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5). Fifth round
 (``BEHIND_SHARE``, ``REGION_HAND_MM2``, the vote before the near-range rim, ``FRONT_MARGIN_MM``,
 the per-frame box :func:`frame_cubes_mm`): the same tune side plus the suite's tune part at
-frames-scale 1.0.
+frames-scale 1.0. Seventh round (the safety net, step 5): no new tuned bound (a hand's area and
+length, the 2-node gap of the hand seen past an arm's end); checked on the same tune side plus
+the suite's tune part at frames-scale 1.0 with tune-icvl and 7 more tune-side replicas
+(report-like SR300 top-down + sleeve, ICVL with a sleeve, varied hands, one more FPHA Subject_1
+sequence; seeds 141-147).
 
 A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
 not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and
@@ -109,7 +123,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.csgraph import connected_components, dijkstra
 
 from .camera import CameraIntrinsics
 from .cropspec import DEFAULT_CROP
@@ -888,7 +902,6 @@ def _with_ending_pieces(
     (a patch of background seen between the fingers changes nothing). ``node_area`` ``(M,)``:
     each node's metric area (mm^2); ``grid_zvw``: the grid's depth, valid and window masks.
     """
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     zs, vs, win = grid_zvw

@@ -1,4 +1,4 @@
-"""The safety net after localization (``localize._with_ending_pieces``): a finger's last segment
+"""The safety net after localization (``localize._ending_pieces``): a finger's last segment
 behind a depth step larger than the surface graph links (a finger pointing away from the
 camera, its tip beyond a knuckle) is in the crop; surface that does not end next to the hand
 (it runs to the image border, or is larger than a hand) does not grow it. Constructed scenes
@@ -52,28 +52,26 @@ def test_a_finger_segment_behind_a_depth_step_is_in_the_crop(monkeypatch):
     assert len(tip) > 50
     assert _inside(depth, tip).all()
     g = hand_geometry(depth, CAM)
-    assert g[1] * 390.0 <= -160.0  # the hand's box reaches the segment's far end
-    monkeypatch.setattr(localize, "_with_ending_pieces", lambda pts, *a: a[-2])
+    assert g[1] > -160.0 / 390.0 and g[16] * 390.0 <= -160.0  # held, not the hand's own box
+    monkeypatch.setattr(localize, "_ending_pieces", lambda pts, *a: np.zeros(len(pts), bool))
     assert not _inside(depth, tip).all()
 
 
 def test_surface_that_does_not_end_next_to_the_hand_does_not_grow_its_box():
     """Must not trigger: a strip 50 mm behind the palm running from its side past the arm to
     the image's bottom border (a body or an object behind the hand, not a finger), or a plate
-    larger than a hand there: the hand's box is the one without them. The same strip ending
-    short of the border, or a plate within a hand's area, ends next to the hand: it is taken."""
-    base = hand_geometry(_scene(_ARM, _PALM, _FINGER), CAM)
+    larger than a hand there: nothing to hold but the hand. The same strip ending short of the
+    border, or a plate within a hand's area, ends next to the hand: it is held."""
     bottom = CAM.cy / CAM.fy * 480.0  # the image's bottom border at 480 mm
     to_border = (55.0, 71.0, -20.0, bottom + 100.0, 480.0)
-    g = hand_geometry(_scene(_ARM, _PALM, _FINGER, to_border), CAM)
-    np.testing.assert_allclose(g[:4], base[:4])
-    short = (55.0, 71.0, -20.0, bottom - 40.0, 480.0)
-    g = hand_geometry(_scene(_ARM, _PALM, _FINGER, short), CAM)
-    assert g[3] * 480.0 >= bottom - 45.0 and g[2] * 480.0 >= 66.0
     tall = 1.2 * MAX_HAND_AREA_MM2 / 150.0  # a plate 150 mm wide with 1.2 x a hand's area
     plate = (55.0, 205.0, -0.5 * tall, 0.5 * tall, 480.0)
-    g = hand_geometry(_scene(_ARM, _PALM, _FINGER, plate), CAM)
-    np.testing.assert_allclose(g[:4], base[:4])
+    for part in (to_border, plate):
+        g = hand_geometry(_scene(_ARM, _PALM, _FINGER, part), CAM)
+        assert np.all(np.isnan(g[15:19]))
+    short = (55.0, 71.0, -20.0, bottom - 40.0, 480.0)
+    g = hand_geometry(_scene(_ARM, _PALM, _FINGER, short), CAM)
+    assert g[18] * 480.0 >= bottom - 45.0 and g[17] * 480.0 >= 66.0
     small = (55.0, 105.0, -80.0, -30.0, 480.0)
     g = hand_geometry(_scene(_ARM, _PALM, _FINGER, small), CAM)
-    assert g[2] * 480.0 >= 100.0
+    assert g[17] * 480.0 >= 100.0

@@ -791,16 +791,18 @@ def hand_geometry(
     # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
     # image border) are not taken for the hand's far end
     g = dijkstra(graph, directed=False, indices=np.flatnonzero(attach), min_only=True)
-    ok = region & np.isfinite(g)
+    near_narrow = np.zeros(len(pts), bool)
     if narrow.any():
-        g_narrow = dijkstra(
-            graph,
-            directed=False,
-            indices=np.flatnonzero(narrow),
-            min_only=True,
-            limit=NARROW_END_MM,
+        near_narrow = np.isfinite(
+            dijkstra(
+                graph,
+                directed=False,
+                indices=np.flatnonzero(narrow),
+                min_only=True,
+                limit=NARROW_END_MM,
+            )
         )
-        ok &= ~np.isfinite(g_narrow)
+    ok = region & np.isfinite(g) & ~near_narrow
     if not ok.any():
         return _free_blob(z, mask, camera, front_mm, scene)
     g_end = np.percentile(g[ok], 99.5)
@@ -825,6 +827,7 @@ def hand_geometry(
     pieces = _ending_pieces(
         pts, node_area, rr, cc, (zs, vs, win), edges, hand, region & np.isfinite(g)
     )
+    pieces |= _linked(edges, hand, near_narrow & (g >= g_end - END_PART_MM) & region & ~hand)
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
         z_far = float(
@@ -961,6 +964,25 @@ def _ending_pieces(
     tg[rr[taken], cc[taken]] = 1
     gl = cv2.connectedComponents(tg, connectivity=8)[1][rr, cc]
     return taken & np.isin(gl, np.unique(gl[past]))
+
+
+def _linked(edges: np.ndarray, hand: np.ndarray, zone: np.ndarray) -> np.ndarray:
+    """The parts ``(M,)`` bool of ``zone`` ``(M,)`` bool (connected by the surface graph's
+    ``edges`` ``(E, 2)`` within it) that the surface links to ``hand`` ``(M,)`` bool. The zone kept
+    out of the far end near a narrow contact, in the hand's end part (``END_PART_MM`` from its far
+    end, where the fingers are; not an arm grazing the border on the wrist's side), is a
+    fingertip touching the image border when the surface links it to the hand: the crop holds it
+    (step 5)."""
+    n = len(hand)
+    if not zone.any():
+        return np.zeros(n, bool)
+    s, d = edges[:, 0], edges[:, 1]
+    inner = zone[s] & zone[d]
+    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
+    lab = connected_components(sub, directed=False)[1]
+    touch = (zone[s] & hand[d]) | (hand[s] & zone[d])
+    ends = np.where(zone[s[touch]], s[touch], d[touch])
+    return zone & np.isin(lab, np.unique(lab[ends]))
 
 
 @dataclass(frozen=True)

@@ -75,3 +75,16 @@ def test_surface_that_does_not_end_next_to_the_hand_does_not_grow_its_box():
     small = (55.0, 105.0, -80.0, -30.0, 480.0)
     g = hand_geometry(_scene(_ARM, _PALM, _FINGER, small), CAM)
     assert g[17] * 480.0 >= 100.0
+
+
+def test_a_finger_touching_the_image_border_is_in_the_crop(monkeypatch):
+    """A finger running out of the image's top border (a narrow contact: kept out of the arm's
+    far end) is linked to the hand in its end part: the crop holds it to the border, with the
+    margin beyond. Without that (as on main) its last 40 mm are cut."""
+    top = -CAM.cy / CAM.fy * 435.0  # the image's top border at 435 mm
+    finger = (-9.0, 9.0, top - 50.0, -80.0, 435.0)
+    depth = _scene(_ARM, _PALM, finger)
+    pixels = _pixels(depth, finger)
+    assert _inside(depth, pixels).all()
+    monkeypatch.setattr(localize, "_linked", lambda edges, hand, zone: np.zeros(len(hand), bool))
+    assert _inside(depth, pixels).mean() < 0.9

@@ -69,6 +69,8 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    the image that *end* there (not on the image border, not leaving the depth window, not linked
    to the arm's surface, at most a hand's area ``MAX_HAND_AREA_MM2``, every point within a hand's
    length ``HAND_LENGTH_MM`` of it) are hand, where they reach past the hand's ray-angle box.
+   So is a finger running out of the image (:func:`_linked`): the surface kept out of the far
+   end near a narrow contact, in the hand's end part (``END_PART_MM``), linked to the hand.
    The crop holds them (:func:`_box_of`): where they run past it the centre moves towards them
    (using the slack on the other side, the arm's), else the frame's own box grows
    (:func:`frame_cubes_mm`); a crop that holds them already does not move.
@@ -104,10 +106,11 @@ tune cases and 15 tune-side sequences rendered with the report part's Kinect 320
 (``BEHIND_SHARE``, ``REGION_HAND_MM2``, the vote before the near-range rim, ``FRONT_MARGIN_MM``,
 the per-frame box :func:`frame_cubes_mm`): the same tune side plus the suite's tune part at
 frames-scale 1.0. Seventh round (the safety net, step 5): no new tuned bound (a hand's area and
-length, the 2-node gap of the hand seen past an arm's end); checked on the same tune side plus
-the suite's tune part at frames-scale 1.0 with tune-icvl and 7 more tune-side replicas
-(report-like SR300 top-down + sleeve, ICVL with a sleeve, varied hands, one more FPHA Subject_1
-sequence; seeds 141-147).
+length, the fingers' end part, the 2-node gap of the hand seen past an arm's end; 1-3 nodes
+give the same coverage); checked on the same tune side plus the suite's tune part at
+frames-scale 1.0 with tune-icvl and 14 more tune-side replicas (report-like SR300 top-down +
+sleeve, ICVL with a sleeve, varied hands, one more FPHA Subject_1 sequence, SR300 egocentric,
+shape-fast, Kinect 640 wrist + sleeve; seeds 141-157).
 
 A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
 not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and

@@ -88,3 +88,20 @@ def test_a_finger_touching_the_image_border_is_in_the_crop(monkeypatch):
     assert _inside(depth, pixels).all()
     monkeypatch.setattr(localize, "_linked", lambda edges, hand, zone: np.zeros(len(hand), bool))
     assert _inside(depth, pixels).mean() < 0.9
+
+
+def test_a_crop_that_already_holds_the_piece_does_not_move(monkeypatch):
+    """A piece past the hand's own box but inside the crop's margin is held without moving the
+    crop: the centre is the one without the net (only crops that would cut a piece move); the
+    half extent holds the piece (it sizes the cube and the frame's box)."""
+    piece = (55.0, 75.0, -60.0, -44.0, 480.0)
+    depth = _scene(_ARM, _PALM, _FINGER, piece)
+    g = hand_geometry(depth, CAM)
+    assert g[17] * 480.0 >= 70.0 and g[17] > g[2]  # held, past the hand's own box
+    loc = locate_hand_region(depth, CAM)
+    assert _inside(depth, _pixels(depth, piece)).all()
+    monkeypatch.setattr(localize, "_ending_pieces", lambda pts, *a: np.zeros(len(pts), bool))
+    off = locate_hand_region(depth, CAM)
+    np.testing.assert_allclose(loc.centre_mm, off.centre_mm)
+    assert loc.half_extent_mm[0] > off.half_extent_mm[0]
+    assert loc.centre_mm[0] + loc.half_extent_mm[0] >= 70.0 / 480.0 * loc.centre_mm[2]

@@ -61,6 +61,19 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    seed's nearest points refined by mean shift within ``MEAN_SHIFT_RADIUS_MM`` (the densest
    surface, palm and fingers); its extent is that of the points within
    ``FREE_EXTENT_RADIUS_MM`` (fixed radii: an extent that grew with the cube grew the cube again).
+5. **Safety net** (:func:`_ending_pieces`, after an arm end is found): fingers pointing at
+   or away from the camera show depth steps of 30-60 mm between neighbouring pixels (one finger
+   occluding another, a fingertip beyond a knuckle), more than the graph's ``EDGE_STEP_MM`` and
+   ``ATTACH_MM``, often with a sensor's shadow (no depth) between, so the last finger segment can
+   be left out of the hand. Surface pieces within ``PIECE_GAP_NODES`` grid nodes of the hand in
+   the image that *end* there (not on the image border, not leaving the depth window, not linked
+   to the arm's surface, at most a hand's area ``MAX_HAND_AREA_MM2``, every point within a hand's
+   length ``HAND_LENGTH_MM`` of it) are hand, where they reach past the hand's ray-angle box.
+   So is a finger running out of the image (:func:`_linked`): the surface kept out of the far
+   end near a narrow contact, in the hand's end part (``END_PART_MM``), linked to the hand.
+   The crop holds them (:func:`_box_of`): where they run past it the centre moves towards them
+   (using the slack on the other side, the arm's), else the frame's own box grows
+   (:func:`frame_cubes_mm`); a crop that holds them already does not move.
 
 The centre (:func:`_box_of`) is the middle of the hand's extent in ray angle (so the crop, a
 projection, holds its outermost pixels) and in depth, moved back if needed so that the cube's
@@ -92,7 +105,12 @@ tune cases and 15 tune-side sequences rendered with the report part's Kinect 320
 (``handanno_core.suite.SuiteSequence``, seeds 105-122, frames-scale 0.5). Fifth round
 (``BEHIND_SHARE``, ``REGION_HAND_MM2``, the vote before the near-range rim, ``FRONT_MARGIN_MM``,
 the per-frame box :func:`frame_cubes_mm`): the same tune side plus the suite's tune part at
-frames-scale 1.0.
+frames-scale 1.0. Seventh round (the safety net, step 5): no new tuned bound (a hand's area and
+length, the fingers' end part, the 2-node gap of the hand seen past an arm's end; 1-3 nodes
+give the same coverage); checked on the same tune side plus the suite's tune part at
+frames-scale 1.0 with tune-icvl and 14 more tune-side replicas (report-like SR300 top-down +
+sleeve, ICVL with a sleeve, varied hands, one more FPHA Subject_1 sequence, SR300 egocentric,
+shape-fast, Kinect 640 wrist + sleeve; seeds 141-157).
 
 A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
 not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and
@@ -109,7 +127,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.csgraph import connected_components, dijkstra
 
 from .camera import CameraIntrinsics
 from .cropspec import DEFAULT_CROP
@@ -203,6 +221,10 @@ WRIST_SHIFT = 0.5
 DEPTH_SHARE = 0.5
 #: the wrist of a large hand lies up to this far (mm) beyond the hand region's end.
 WRIST_ALLOWANCE_MM = 15.0
+#: a piece of surface ending next to the hand (:func:`_ending_pieces`) may lie this many grid
+#: nodes from it in the image (a sensor's shadow or ragged edge between a finger and the one it
+#: occludes: the same gap as a hand seen past an arm's far end).
+PIECE_GAP_NODES = 2
 #: geodesic length of the hand from its far end (fingertips or knuckles) to past the wrist (mm).
 HAND_LENGTH_MM = 200.0
 #: hand surface not linked to the region (a depth step) but within ATTACH_STEPS x ATTACH_MM
@@ -772,16 +794,18 @@ def hand_geometry(
     # step 4: the far end of the arm; ends at narrow contacts (a fingertip or an arm grazing the
     # image border) are not taken for the hand's far end
     g = dijkstra(graph, directed=False, indices=np.flatnonzero(attach), min_only=True)
-    ok = region & np.isfinite(g)
+    near_narrow = np.zeros(len(pts), bool)
     if narrow.any():
-        g_narrow = dijkstra(
-            graph,
-            directed=False,
-            indices=np.flatnonzero(narrow),
-            min_only=True,
-            limit=NARROW_END_MM,
+        near_narrow = np.isfinite(
+            dijkstra(
+                graph,
+                directed=False,
+                indices=np.flatnonzero(narrow),
+                min_only=True,
+                limit=NARROW_END_MM,
+            )
         )
-        ok &= ~np.isfinite(g_narrow)
+    ok = region & np.isfinite(g) & ~near_narrow
     if not ok.any():
         return _free_blob(z, mask, camera, front_mm, scene)
     g_end = np.percentile(g[ok], 99.5)
@@ -803,13 +827,23 @@ def hand_geometry(
         hand = behind
     hand = _with_unreached(pts, hand, attach, region & ~np.isfinite(g))
     hand = _with_attached_parts(pts, hand, ~(region & np.isfinite(g)))
+    pieces = _ending_pieces(
+        pts, node_area, rr, cc, (zs, vs, win), edges, hand, region & np.isfinite(g)
+    )
+    pieces |= _linked(edges, hand, near_narrow & (g >= g_end - END_PART_MM) & region & ~hand)
     z_far = None
     if behind is None:  # the wrist's surface, beyond the hand region, is inside the cube too
         z_far = float(
             np.percentile(pts[ok & (g >= g_end - hand_length_mm - WRIST_ZONE_MM), 2], 99.8)
         )
     return _hand_geometry(
-        pts[hand], "arm-end", wrist_mm=wrist, z_far_mm=z_far, scene=scene, own_box=both
+        pts[hand],
+        "arm-end",
+        wrist_mm=wrist,
+        z_far_mm=z_far,
+        scene=scene,
+        own_box=both,
+        hold=pts[hand | pieces] if pieces.any() else None,
     )
 
 
@@ -853,6 +887,107 @@ def _with_attached_parts(pts: np.ndarray, hand: np.ndarray, others: np.ndarray) 
     return hand
 
 
+def _ending_pieces(
+    pts: np.ndarray,
+    node_area: np.ndarray,
+    rr: np.ndarray,
+    cc: np.ndarray,
+    grid_zvw: tuple[np.ndarray, np.ndarray, np.ndarray],
+    edges: np.ndarray,
+    hand: np.ndarray,
+    arm: np.ndarray,
+) -> np.ndarray:
+    """The surface pieces ``(M,)`` bool next to ``hand`` ``(M,)`` bool in the image that end
+    there (the safety net after steps 1-4): fingers pointing at or away from the camera show depth
+    steps larger than the surface graph's and ``ATTACH_MM`` between neighbouring pixels (one
+    finger occluding another, a fingertip beyond a knuckle), so a finger's last segment can be
+    left out of the hand while the crop has room for it.
+
+    A piece is a connected surface (links of the surface graph ``edges`` ``(E, 2)``) of window
+    nodes that are neither hand nor ``arm`` ``(M,)`` bool (the surface the attachment reaches).
+    It is hand when it *ends*: none of its nodes lies on the image border or where the surface
+    leaves the depth window (grid ``zs``, ``vs``, ``win`` ``(h, w)``), it is not linked to the
+    arm's surface, it is no larger than a hand (``MAX_HAND_AREA_MM2``) and every node lies
+    within a hand's length (``HAND_LENGTH_MM``, 3D) of the hand; and when it lies within
+    ``PIECE_GAP_NODES`` grid nodes (in the image: a sensor's shadow or ragged edge may separate
+    it) of the hand or of a piece taken before (a finger cut into several pieces). Only the
+    pieces that reach past the hand's ray-angle box are taken: they are what a crop could cut
+    (a patch of background seen between the fingers changes nothing). The crop holds them
+    (:func:`_box_of`) without their changing the hand's own extent. ``node_area`` ``(M,)``:
+    each node's metric area (mm^2); ``grid_zvw``: the grid's depth, valid and window masks.
+    """
+    from scipy.spatial import cKDTree
+
+    zs, vs, win = grid_zvw
+    h, w = zs.shape
+    n = len(pts)
+    arm = arm & ~hand
+    cand = ~hand & ~arm
+    none = np.zeros(n, bool)
+    if not cand.any() or not hand.any():
+        return none
+    s, d = edges[:, 0], edges[:, 1]
+    inner = cand[s] & cand[d]
+    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
+    k, lab = connected_components(sub, directed=False)
+    bad = np.zeros(k, bool)
+    node_bad = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
+    node_bad |= _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
+    to_arm = (cand[s] & arm[d]) | (arm[s] & cand[d])
+    node_bad[np.where(cand[s[to_arm]], s[to_arm], d[to_arm])] = True
+    idx = np.flatnonzero(cand)
+    far = ~np.isfinite(cKDTree(pts[hand]).query(pts[idx], distance_upper_bound=HAND_LENGTH_MM)[0])
+    node_bad[idx[far]] = True
+    bad[np.unique(lab[cand & node_bad])] = True
+    area = np.bincount(lab[idx], weights=node_area[idx], minlength=k)
+    ok = ~bad & (area <= MAX_HAND_AREA_MM2)
+    ok_node = cand & ok[lab]
+    if not ok_node.any():
+        return none
+    taken = np.zeros(n, bool)
+    grid = np.zeros((h, w), np.uint8)
+    grid[rr[hand], cc[hand]] = 1
+    ker = np.ones((2 * PIECE_GAP_NODES + 1,) * 2, np.uint8)
+    for _ in range(n):
+        near = (cv2.dilate(grid, ker) > 0)[rr, cc] & ok_node & ~taken
+        if not near.any():
+            break
+        new = ok_node & np.isin(lab, np.unique(lab[near]))
+        taken |= new
+        grid[rr[new], cc[new]] = 1
+    if not taken.any():
+        return none
+    ang = pts[:, :2] / pts[:, 2:3]
+    a_lo, a_hi = ang[hand].min(axis=0), ang[hand].max(axis=0)
+    past = taken & np.any((ang < a_lo) | (ang > a_hi), axis=1)
+    if not past.any():
+        return none
+    # the taken pieces, as groups connected in the image: those that reach past the hand's box
+    tg = np.zeros((h, w), np.uint8)
+    tg[rr[taken], cc[taken]] = 1
+    gl = cv2.connectedComponents(tg, connectivity=8)[1][rr, cc]
+    return taken & np.isin(gl, np.unique(gl[past]))
+
+
+def _linked(edges: np.ndarray, hand: np.ndarray, zone: np.ndarray) -> np.ndarray:
+    """The parts ``(M,)`` bool of ``zone`` ``(M,)`` bool (connected by the surface graph's
+    ``edges`` ``(E, 2)`` within it) that the surface links to ``hand`` ``(M,)`` bool. The zone kept
+    out of the far end near a narrow contact, in the hand's end part (``END_PART_MM`` from its far
+    end, where the fingers are; not an arm grazing the border on the wrist's side), is a
+    fingertip touching the image border when the surface links it to the hand: the crop holds it
+    (step 5)."""
+    n = len(hand)
+    if not zone.any():
+        return np.zeros(n, bool)
+    s, d = edges[:, 0], edges[:, 1]
+    inner = zone[s] & zone[d]
+    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
+    lab = connected_components(sub, directed=False)[1]
+    touch = (zone[s] & hand[d]) | (hand[s] & zone[d])
+    ends = np.where(zone[s[touch]], s[touch], d[touch])
+    return zone & np.isin(lab, np.unique(lab[ends]))
+
+
 @dataclass(frozen=True)
 class _Scene:
     """The frame's visible surface on the grid: points ``(K, 3)`` mm and their metric areas
@@ -892,8 +1027,10 @@ def _hidden_depth(scene: _Scene | None, a_lo: np.ndarray, a_hi: np.ndarray, z_hi
 #: hand, :func:`_hidden_depth`); wrist side (3, mm, NaN: none); given centre (3, mm, NaN: the
 #: middle of the box); method (index in ``METHODS``; NaN: no hand); own box (1: the hand is two
 #: candidates held together, the arm's far end and the surface past it: the frame gets its own
-#: box, :func:`frame_cubes_mm`, and does not size the session's cube; else 0).
-GEOMETRY_LEN = 15
+#: box, :func:`frame_cubes_mm`, and does not size the session's cube; else 0); the ray-angle box
+#: the crop must hold, hand and the pieces ending next to it (:func:`_ending_pieces`), lo (2), hi
+#: (2) (NaN: none, the hand's box).
+GEOMETRY_LEN = 19
 METHODS = ("none", "arm-end", "free-blob")
 
 
@@ -905,12 +1042,15 @@ def _hand_geometry(
     z_far_mm: float | None = None,
     scene: _Scene | None = None,
     own_box: bool = False,
+    hold: np.ndarray | None = None,
 ) -> np.ndarray:
     """The cube-independent geometry ``(GEOMETRY_LEN,)`` of hand ``points`` ``(M, 3)`` mm as a
     crop sees it: their extent in ray angle (x/z, y/z), their depth range (0.2-99.8th
     percentiles; ``z_far_mm``, the wrist's surface beyond the hand region, extends it), the room
     behind them (:func:`_hidden_depth` over the frame's visible ``scene``), the wrist side and the
-    given centre (mean shift); :func:`_box_of` places the crop at any cube from it."""
+    given centre (mean shift), and the ray-angle extent of ``hold`` ``(K, 3)`` mm (optional: the
+    hand and the pieces ending next to it, :func:`_ending_pieces`); :func:`_box_of` places the
+    crop at any cube from it."""
     z = points[:, 2]
     ang = points[:, :2] / z[:, None]
     a_lo, a_hi = ang.min(axis=0), ang.max(axis=0)
@@ -929,8 +1069,15 @@ def _hand_geometry(
             *(nan3 if centre_mm is None else centre_mm),
             METHODS.index(method),
             float(own_box),
+            *(np.full(4, np.nan) if hold is None else _ray_box(hold)),
         ]
     )
+
+
+def _ray_box(points: np.ndarray) -> np.ndarray:
+    """Ray-angle extent ``(4,)`` (lo x/z, y/z, hi x/z, y/z) of ``points`` ``(K, 3)`` mm."""
+    ang = points[:, :2] / points[:, 2:3]
+    return np.concatenate([ang.min(axis=0), ang.max(axis=0)])
 
 
 def _no_geometry() -> np.ndarray:
@@ -966,6 +1113,10 @@ def _box_of(geometry: np.ndarray, cube_mm: float, box_cube_mm: float | None = No
     ``WRIST_ALLOWANCE_MM`` towards the wrist: the hand region ends ``HAND_LENGTH_MM`` from the
     fingertips, a large hand's wrist lies beyond): x, y in mm at the centre's depth (a point
     nearer the camera projects further out), z in mm, each the larger side around the centre.
+    Last, the ray-angle box the crop must hold (hand and the pieces ending next to it, columns
+    15-18): where it runs past the crop (``CROP_MARGIN_MM``) the centre moves towards it, within
+    the slack of the other side; the half extent holds it (a frame whose hand still does not fit
+    gets its own box).
     """
     g = np.asarray(geometry, dtype=np.float64)
     if not np.isfinite(g[13]):
@@ -1000,6 +1151,22 @@ def _box_of(geometry: np.ndarray, cube_mm: float, box_cube_mm: float | None = No
     # up to a cube in front of the centre stays foreground)
     z_front = z_lo + cube_mm - FRONT_MARGIN_MM
     zc = max(zc, min(z_hi + hidden - 0.5 * cube_mm, z_fit, z_front))
+    lo, hi = a_lo, a_hi
+    if np.all(np.isfinite(g[15:19])):
+        # the pieces ending next to the hand (step 5): the centre moves towards them as far as
+        # they run past the crop, within the slack the other side leaves; what still runs past
+        # grows the half extent (the frame's own box, :func:`frame_cubes_mm`)
+        lo, hi = np.minimum(a_lo, g[15:17]), np.maximum(a_hi, g[17:19])
+        lim = 0.5 * box - CROP_MARGIN_MM
+        over_hi = (hi - ac) * zc + allowance - lim
+        over_lo = (ac - lo) * zc + allowance - lim
+        # only for the pieces: a hand that does not fit on its own keeps its box as before
+        up = (over_hi > 0.0) & (g[17:19] > a_hi)
+        down = (over_lo > 0.0) & (g[15:17] < a_lo)
+        up = np.where(up, np.minimum(over_hi, np.maximum(-over_lo, 0.0)), 0.0)
+        down = np.where(down, np.minimum(over_lo, np.maximum(-over_hi, 0.0)), 0.0)
+        ac = ac + (up - down) / zc
+    half_ang = np.maximum(hi - ac, ac - lo)
     centre = np.array([*(ac * zc), zc])
     half_xy = half_ang * zc + allowance
     half_z = max(z_hi - zc, zc - z_lo)

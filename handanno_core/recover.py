@@ -21,7 +21,7 @@ again only when its nearest well-explained frames changed).
 
 The model cannot see hidden fingers and its level rises on frames it explains poorly for other
 reasons (an egocentric forearm): hence the large ``min_gain``. Constants chosen on the benchmark
-suite's tune part (README, "Recovering frames the hand model cannot explain").
+suite's tune part (README, "Stop 30: frames the hand model cannot explain, fitted again").
 """
 
 from __future__ import annotations

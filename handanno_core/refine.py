@@ -49,7 +49,9 @@ energy (:func:`handanno_core.handmodel.frame_energy`, fitted to its own crop) ro
 (``RefineWeights.model_keep_ratio``) keeps its initialization: refinement may not throw a frame
 off its own depth, but may move a hidden finger the model cannot see. The model
 energy is also a term of the LM (``RefineWeights.model`` > 0: θ-space blocks added to the
-diagonal of the banded system).
+diagonal of the banded system). Last (``recover=True``), the frames the model still cannot explain
+are fitted again from their well-explained neighbours and per-finger hypotheses
+(:mod:`handanno_core.recover`; ``RefineResult.info["recovered"]``).
 
 Versus the anchors (anchor-algorithms.md §d): weights are √λ in mm/px instead of λ/N; the
 appearance template is the closest *true* reference; smoothing is in camera coordinates along

@@ -17,18 +17,19 @@ the second estimate was kept, the seconds of each lift. The machine load is reco
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import re
-import time
 from pathlib import Path
 
 import numpy as np
 
-from handanno_core import pipeline
-from handanno_core.bench import noisy_stage_sessions, print_means_by_noise, stage_bench_parser
+from handanno_core.bench import (
+    logged_lift,
+    noisy_stage_sessions,
+    print_means_by_noise,
+    stage_bench_parser,
+)
 from handanno_core.evaluate import error_summary
 
 
@@ -44,18 +45,14 @@ def main() -> None:
         for key, least in (("once", None), ("default", default)):
             session.model.settings.lift_denoise_min_px = least
             session.save()
-            log = io.StringIO()
-            t = time.perf_counter()
-            with contextlib.redirect_stdout(log):
-                pipeline.lift(session)
-            row[f"lift_s_{key}"] = round(time.perf_counter() - t, 2)
+            seconds, text = logged_lift(session)
+            row[f"lift_s_{key}"] = round(seconds, 2)
             lifted = session.load_results()["lifted_mm"][refs]
             row[key] = error_summary(lifted, gt[refs])
             bones = np.asarray(session.model.bone_lengths_mm)
             row[f"bone_rel_error_{key}"] = round(
                 float(np.mean(np.abs(bones - true_bones) / true_bones)), 4
             )
-            text = log.getvalue()
             found = re.findall(r"click noise ([0-9.]+) px, estimated", text)
             row["click_noise_estimated_px"] = [float(x) for x in found][:1]
             if key == "default":

@@ -13,16 +13,17 @@ mm), the click noise the refit estimated, the seconds of each lift. The machine 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import re
-import time
 from pathlib import Path
 
-from handanno_core import pipeline
-from handanno_core.bench import noisy_stage_sessions, print_means_by_noise, stage_bench_parser
+from handanno_core.bench import (
+    logged_lift,
+    noisy_stage_sessions,
+    print_means_by_noise,
+    stage_bench_parser,
+)
 from handanno_core.evaluate import error_summary
 
 
@@ -33,14 +34,11 @@ def main() -> None:
         refs = session.reference_frames
         row = {"dataset": name, "noise_px": noise, "references": int(len(refs))}
         for refit in (False, True):
-            log = io.StringIO()
-            t = time.perf_counter()
-            with contextlib.redirect_stdout(log):
-                pipeline.lift(session, refit=refit)
-            row[f"lift_s_{'on' if refit else 'off'}"] = round(time.perf_counter() - t, 2)
+            seconds, log = logged_lift(session, refit=refit)
+            row[f"lift_s_{'on' if refit else 'off'}"] = round(seconds, 2)
             lifted = session.load_results()["lifted_mm"][refs]
             row["refit" if refit else "lift"] = error_summary(lifted, gt[refs])
-            found = re.findall(r"click noise ([0-9.]+) px, (?:estimated|given)", log.getvalue())
+            found = re.findall(r"click noise ([0-9.]+) px, (?:estimated|given)", log)
             if refit and found:
                 row["click_noise_estimated_px"] = [float(x) for x in found]
         row["load_avg_1m"] = round(os.getloadavg()[0], 2)

@@ -9,6 +9,8 @@ table shaped like the thesis's Tables 2-4 and plots error against reference frac
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import platform
 import resource
@@ -99,6 +101,16 @@ def stage_bench_parser(description: str, noise: str | None = None) -> argparse.A
     if noise is not None:
         ap.add_argument("--noise", default=noise, help="click noises (px), comma-separated")
     return ap
+
+
+def logged_lift(session: Session, **kwargs) -> tuple[float, str]:
+    """:func:`pipeline.lift` of ``session`` (``kwargs`` passed on) with its log captured, for the
+    stage benchmarks that read it: (seconds, log text)."""
+    log = io.StringIO()
+    t = time.perf_counter()
+    with contextlib.redirect_stdout(log):
+        pipeline.lift(session, **kwargs)
+    return time.perf_counter() - t, log.getvalue()
 
 
 def print_means_by_noise(rows: list[dict], keys: tuple[str, ...]) -> None:

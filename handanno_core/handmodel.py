@@ -80,6 +80,7 @@ __all__ = [
     "finger_chains",
     "finger_hypotheses",
     "finger_grid",
+    "depth_energies",
     "reference_level",
     "finger_targets",
     "frame_energy",
@@ -1439,14 +1440,40 @@ def personalize_from_crops(
     return model, obs
 
 
+def depth_energies(
+    model: HandModel,
+    joints_mm: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    weights: FitWeights | None = None,
+    chunk: int | None = None,
+) -> np.ndarray:
+    """How well the model explains each of K poses ``joints_mm`` (K,J,3) mm in its frame
+    (``obs`` of those K frames): the data + free-space energy (:func:`frame_energy`, ``weights``
+    default :class:`FitWeights`), (K,); ``chunk`` frames at a time (memory), None: all at once."""
+    kin = Kinematics(model.skeleton, model.bone_lengths_mm)
+    w = weights or FitWeights()
+    k = len(joints_mm)
+    step = max(k if chunk is None else int(chunk), 1)
+    out = np.empty(k)
+    for a in range(0, k, step):
+        rows = np.arange(a, min(a + step, k))
+        part = obs if step >= k else obs.take(rows)
+        _, terms, _, _ = frame_energy(
+            model, kin, *kin.fit(joints_mm[rows]), part, camera, w, diagnostics=False
+        )
+        out[rows] = terms["data"] + terms["free_space"]
+    return out
+
+
 def reference_level(
-    model: HandModel, joints_mm: np.ndarray, obs: FrameObservations, camera: CameraIntrinsics
+    model: HandModel,
+    joints_mm: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    weights: FitWeights | None = None,
 ) -> float:
     """How well the model explains verified poses: the median over the references (K,J,3) mm of
-    the data + free-space energy (:func:`frame_energy`) at their poses. A fitted frame far above
-    it is a fit that failed (hand on the wrong surface, wrong minimum)."""
-    kin = Kinematics(model.skeleton, model.bone_lengths_mm)
-    _, terms, _, _ = frame_energy(
-        model, kin, *kin.fit(joints_mm), obs, camera, FitWeights(), diagnostics=False
-    )
-    return float(np.median(terms["data"] + terms["free_space"]))
+    :func:`depth_energies` at their poses. A fitted frame far above it is a fit that failed (hand
+    on the wrong surface, wrong minimum)."""
+    return float(np.median(depth_energies(model, joints_mm, obs, camera, weights)))

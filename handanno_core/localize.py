@@ -927,9 +927,7 @@ def _ending_pieces(
     if not cand.any() or not hand.any():
         return none
     s, d = edges[:, 0], edges[:, 1]
-    inner = cand[s] & cand[d]
-    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
-    k, lab = connected_components(sub, directed=False)
+    k, lab = _components_within(edges, cand)
     bad = np.zeros(k, bool)
     node_bad = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
     node_bad |= _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
@@ -969,6 +967,17 @@ def _ending_pieces(
     return taken & np.isin(gl, np.unique(gl[past]))
 
 
+def _components_within(edges: np.ndarray, mask: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the surface graph's ``edges`` ``(E, 2)`` kept within ``mask``
+    ``(M,)`` bool (both ends inside): their number and each node's label ``(M,)`` (a node outside
+    ``mask`` is a component of its own)."""
+    n = len(mask)
+    s, d = edges[:, 0], edges[:, 1]
+    inner = mask[s] & mask[d]
+    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
+    return connected_components(sub, directed=False)
+
+
 def _linked(edges: np.ndarray, hand: np.ndarray, zone: np.ndarray) -> np.ndarray:
     """The parts ``(M,)`` bool of ``zone`` ``(M,)`` bool (connected by the surface graph's
     ``edges`` ``(E, 2)`` within it) that the surface links to ``hand`` ``(M,)`` bool. The zone kept
@@ -980,9 +989,7 @@ def _linked(edges: np.ndarray, hand: np.ndarray, zone: np.ndarray) -> np.ndarray
     if not zone.any():
         return np.zeros(n, bool)
     s, d = edges[:, 0], edges[:, 1]
-    inner = zone[s] & zone[d]
-    sub = coo_matrix((np.ones(int(inner.sum())), (s[inner], d[inner])), shape=(n, n))
-    lab = connected_components(sub, directed=False)[1]
+    lab = _components_within(edges, zone)[1]
     touch = (zone[s] & hand[d]) | (hand[s] & zone[d])
     ends = np.where(zone[s[touch]], s[touch], d[touch])
     return zone & np.isin(lab, np.unique(lab[ends]))

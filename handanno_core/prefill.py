@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .datasets.base import segment_ids
 from .session import CROPS_FILE, CROPS_META_FILE, Session
 from .skeleton import Skeleton
 
@@ -73,15 +74,6 @@ def known_joints(results: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     if joints is None:
         raise ValueError(f"results need one of {STAGES}")
     return joints, _finite_rows(joints)
-
-
-def _segment_ids(n: int, breaks) -> np.ndarray:
-    """``(N,)`` index of the sequence segment of each frame (a break starts a new segment)."""
-    starts = np.zeros(n, dtype=np.int64)
-    for b in breaks:
-        if 0 < int(b) < n:
-            starts[int(b)] = 1
-    return np.cumsum(starts)
 
 
 def _nearest_known(frame: int, has: np.ndarray, segment: np.ndarray) -> int | None:
@@ -182,7 +174,7 @@ def prefill_reference(
     joints, has = known_joints(results)
     if has[frame]:
         return joints[frame].copy()
-    segment = _segment_ids(n, session.model.sequence_breaks)
+    segment = segment_ids(n, session.model.sequence_breaks)
     source = _nearest_known(frame, has, segment)
     if source is None:
         return None

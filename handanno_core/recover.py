@@ -32,6 +32,7 @@ import numpy as np
 
 from . import handmodel as hm
 from .camera import CameraIntrinsics
+from .datasets.base import segment_ids
 
 
 @dataclass(frozen=True)
@@ -66,15 +67,6 @@ class RecoveryResult:
     tried: np.ndarray
     level_before: np.ndarray
     level_after: np.ndarray
-
-
-def _segment_ids(n: int, breaks) -> np.ndarray:
-    """(n,) int: the sequence segment of every frame (a break starts a new one)."""
-    cuts = np.zeros(n, dtype=np.int64)
-    for b in breaks or ():
-        if 0 < int(b) < n:
-            cuts[int(b)] = 1
-    return np.cumsum(cuts)
 
 
 def _nearest_good(f: int, good: np.ndarray, seg: np.ndarray, k: int) -> tuple[int, ...]:
@@ -125,17 +117,6 @@ def recover_frames(
         lv = np.full(n, np.nan)
         return RecoveryResult(x, empty, empty, lv, lv.copy())
 
-    def levels(poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        out = np.empty(len(rows))
-        for a in range(0, len(rows), st.chunk):
-            r = rows[a : a + st.chunk]
-            _, terms, _, _ = hm.frame_energy(
-                model, kin, *kin.fit(poses[a : a + st.chunk]), obs.take(r), camera, w, None,
-                diagnostics=False,
-            )  # fmt: skip
-            out[a : a + len(r)] = (terms["data"] + terms["free_space"]) / reference_level
-        return out
-
     flex, abd = hm.finger_grid(model.skeleton)
 
     def refit(frames: list[int], near: dict[int, tuple[int, ...]]) -> tuple[np.ndarray, np.ndarray]:
@@ -162,10 +143,13 @@ def recover_frames(
 
     rows_all = np.flatnonzero(finite)
     level = np.full(n, np.nan)
-    level[rows_all] = levels(x[rows_all], rows_all)
+    seen_all = obs if len(rows_all) == n else obs.take(rows_all)  # no copy in the usual case
+    level[rows_all] = (
+        hm.depth_energies(model, x[rows_all], seen_all, camera, w, st.chunk) / reference_level
+    )
     before = level.copy()
     tried = np.flatnonzero(finite & ~keep & (level > st.fail_level))
-    seg = _segment_ids(n, sequence_breaks)
+    seg = segment_ids(n, sequence_breaks)
     recovered: set[int] = set()
     seen: dict[int, tuple[int, ...]] = {}
     for _ in range(st.passes):

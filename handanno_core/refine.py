@@ -899,7 +899,7 @@ def _recover(problem: _Problem, joints: np.ndarray, init: np.ndarray, keep: np.n
     level = hmod.reference_level(problem.model, init[refs], problem.obs.take(refs), problem.cam)
     res = recover_frames(
         problem.model, joints, problem.obs, np.asarray(centres_mm), problem.cam, level,
-        keep=keep, sequence_breaks=list(sequence_breaks), fit_weights=fit_weights,
+        keep=keep, sequence_breaks=sequence_breaks, fit_weights=fit_weights,
     )  # fmt: skip
     return res.joints_mm, res.recovered
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from review_session import STEP, open_review_session, synth_data
 
-from handanno_core.prefill import _nearest_known, _segment_ids, prefill_reference, prefill_uv
+from handanno_core.datasets.base import segment_ids
+from handanno_core.prefill import _nearest_known, prefill_reference, prefill_uv
 
 FRAMES = 30
 
@@ -79,7 +80,7 @@ def test_without_crops_the_neighbours_joints(session):
 def test_nearest_known_stays_in_its_segment():
     has = np.zeros(20, bool)
     has[[2, 11, 19]] = True
-    seg = _segment_ids(20, [10])
+    seg = segment_ids(20, [10])
     assert _nearest_known(8, has, seg) == 2  # 11 is nearer but across the break
     assert _nearest_known(12, has, seg) == 11
     assert _nearest_known(15, has, seg) == 11  # ties -> earlier

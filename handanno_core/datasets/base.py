@@ -255,6 +255,16 @@ class FileListSequence(DepthSequence):
         return index, base / self._files[index], (self.camera.height, self.camera.width)
 
 
+def segment_ids(n: int, breaks) -> np.ndarray:
+    """``(N,)`` index of the sequence segment of each of ``n`` frames (a break starts a new
+    segment; breaks outside ``1..n-1`` are ignored)."""
+    starts = np.zeros(n, dtype=np.int64)
+    for b in breaks or ():
+        if 0 < int(b) < n:
+            starts[int(b)] = 1
+    return np.cumsum(starts)
+
+
 def breaks_from_names(names: list[str], gap_factor: float = GAP_FACTOR) -> list[int]:
     """Sequence breaks read off ordered frame file names: a new recording starts at frame ``i``
     when the text around the last number of its stem differs from frame ``i - 1``'s

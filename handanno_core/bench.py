@@ -296,6 +296,26 @@ def run_bench(
     return doc
 
 
+def crop_coverage(session: Session, gt: np.ndarray) -> dict:
+    """Evaluation: ``crops_held_pct``, the share of frames whose every ground-truth joint
+    ``gt`` ``(N, J, 3)`` mm lies inside the session's crop (x, y, 8 mm from its edge: the crops
+    propagation and refinement used, after :func:`handanno_core.pipeline.recrop_from_references`),
+    and ``crops_missed_frames`` (the first 50 that do not)."""
+    from .crops import joints_inside_crops
+    from .session import CROPS_META_FILE
+
+    with np.load(session.folder / CROPS_META_FILE, allow_pickle=False) as meta:
+        centres = np.asarray(meta["centres_mm"])
+        box = np.asarray(meta["box_cubes_mm"])
+    held = joints_inside_crops(
+        gt, centres, session.open_sequence().camera, box, session.model.settings.crop_size
+    )
+    return {
+        "crops_held_pct": round(100.0 * float(held.mean()), 2),
+        "crops_missed_frames": np.flatnonzero(~held)[:50].tolist(),
+    }
+
+
 def _propagate_and_refine(
     folder: Path,
     use_model: bool | None,
@@ -336,6 +356,7 @@ def _propagate_and_refine(
         "timings_s": timings,
         "peak_rss_mb": round(peak_rss_mb(), 1),
     }
+    run.update(crop_coverage(session, gt))
     if with_model_keys:
         run["model"] = bool(session.model.settings.hand_model)
         run["kept_initialization"] = len(refined.info.get("kept_initialization", []))

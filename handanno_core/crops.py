@@ -26,6 +26,7 @@ pixel ``u = u_left + (x + 0.5) * sx - 0.5``, ``v = v_top + (y + 0.5) * sy - 0.5`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -40,6 +41,9 @@ __all__ = [
     "CropSpec",
     "DEFAULT_CROP",
     "locate_crops",
+    "place_crops",
+    "joints_inside_crops",
+    "update_crops",
     "locate_hand",
     "locate_hands",
     "smooth_centres",
@@ -199,6 +203,35 @@ def compute_crops(
     return np.load(out_path, mmap_mode="r")
 
 
+def update_crops(
+    sequence: DepthSequence,
+    path: str | Path,
+    frames: np.ndarray,
+    centres_mm: np.ndarray,
+    cube_mm: float,
+    size: int,
+    box_cubes_mm: np.ndarray,
+) -> None:
+    """Cut ``frames`` again into the crop file ``path`` (:func:`compute_crops`'s ``.npy``) at
+    ``centres_mm`` ``(N, 3)`` and ``box_cubes_mm`` ``(N,)``; the other frames' crops are kept.
+    Written through a copy that replaces the file, so a crash leaves the old file whole. Bad
+    frames stay at background."""
+    import shutil
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.npy")
+    shutil.copyfile(path, tmp)
+    header = np.load(tmp, mmap_mode="r")
+    offset, frame_shape = int(header.offset), header.shape[1:]
+    del header
+    cubes = (float(cube_mm), np.asarray(box_cubes_mm, dtype=np.float64))
+    centres = np.asarray(centres_mm, dtype=np.float64)
+    for i in np.asarray(frames, dtype=int):
+        buf = _crop_chunk(sequence, centres, int(i), int(i) + 1, cubes, size, BadFrameReport())
+        _write_chunk((str(tmp), offset, frame_shape), int(i), buf)
+    tmp.replace(path)
+
+
 def _crop_chunk(sequence, centres, a, b, cubes, size, report) -> np.ndarray:
     """Crops ``(b - a, size, size)`` float16 of frames ``a..b-1`` (bad frames to ``report``);
     ``cubes``: ``(cube_mm, box cubes (N,))``."""
@@ -293,10 +326,24 @@ def locate_crops(
     Centres depend on the cube, so both are placed again from the same geometry until neither
     grows: one pass over the frames, and a rebuilt cache gives the same crops.
     """
-    from .localize import centres_at, frame_cubes_mm, locate_hand_geometry, session_cube_mm
+    from .localize import locate_hand_geometry
 
     geometry = locate_hand_geometry(sequence, report=report, progress=progress, workers=workers)
-    breaks = sequence.sequence_breaks
+    return place_crops(geometry, spec, sequence.sequence_breaks)
+
+
+def place_crops(
+    geometry: np.ndarray,
+    spec: CropSpec = DEFAULT_CROP,
+    breaks: Sequence[int] | None = None,
+    grow: bool = True,
+) -> tuple[np.ndarray, CropSpec, np.ndarray]:
+    """:func:`locate_crops` from the frames' hand geometry ``(N, GEOMETRY_LEN)``
+    (:func:`handanno_core.localize.locate_hand_geometry`): crop centres ``(N, 3)`` mm, the
+    session's spec (its cube grown unless ``grow`` is False) and each frame's own cube in x and
+    y ``(N,)`` mm."""
+    from .localize import centres_at, frame_cubes_mm, session_cube_mm
+
     own = geometry[:, 14] == 1.0  # frames with their own box do not size the session's cube
 
     def session_cube(half):
@@ -304,7 +351,7 @@ def locate_crops(
         return session_cube_mm(half, spec.cube_mm, sequence_breaks=breaks)
 
     centres, half = centres_at(geometry, spec.cube_mm, breaks)
-    while (cube := session_cube(half)) != spec.cube_mm:
+    while grow and (cube := session_cube(half)) != spec.cube_mm:
         spec = spec.with_cube(cube)
         centres, half = centres_at(geometry, spec.cube_mm, breaks)
     boxes = frame_cubes_mm(half, spec.cube_mm)
@@ -314,3 +361,27 @@ def locate_crops(
         if np.array_equal(grown, boxes):
             return centres, spec, boxes
         boxes = grown
+
+
+def joints_inside_crops(
+    joints_mm: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    box_cubes_mm: np.ndarray | float,
+    size: int = DEFAULT_CROP.size,
+    margin_mm: float = 8.0,
+) -> np.ndarray:
+    """``(N,)`` bool: every joint of ``joints_mm`` ``(N, J, 3)`` projects inside its frame's crop
+    (crop centre ``centres_mm`` ``(N, 3)``, image box of ``box_cubes_mm`` ``(N,)`` or scalar, in
+    x and y), ``margin_mm`` (at the box's scale) from its edge. Joints with a NaN coordinate
+    are not counted; a frame without a finite crop centre holds none."""
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    box = np.broadcast_to(np.asarray(box_cubes_mm, dtype=np.float64), (n,))
+    boxes = crop_boxes(np.asarray(centres_mm, dtype=np.float64), camera, box, size)
+    known = np.all(np.isfinite(j), axis=2) & (np.nan_to_num(j[..., 2]) > 0)
+    uv = camera.project(np.where(known[..., None], j, 1.0))
+    xy = image_to_crop(uv, boxes[:, None, :])
+    mm = (xy - (size - 1) / 2) * box[:, None, None] / size
+    inside = np.all(np.abs(mm) <= box[:, None, None] / 2 - margin_mm, axis=2) | ~known
+    return np.all(inside, axis=1) & np.all(np.isfinite(boxes), axis=1)

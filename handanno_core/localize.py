@@ -140,6 +140,7 @@ __all__ = [
     "locate_hands",
     "locate_hands_with_extent",
     "locate_hand_geometry",
+    "anchored_geometry",
     "centres_at",
     "hand_geometry",
     "session_cube_mm",
@@ -209,6 +210,10 @@ EDGE_RATIO = 1.2
 #: cue counts 1).
 TRACK_RATIO = 1.5
 TRACK_VOTE = 1.5
+#: ... and, in a hint chain that starts at a hand known from annotation (:func:`anchored_geometry`),
+#: more than every other cue together (two shape cues and the rim): the annotated hand is evidence,
+#: the shape cues are guesses.
+ANCHOR_VOTE = 3.5
 #: the seed is the component with the most pixels within this radius (mm) of the previous
 #: frame's hand (half the default cube, whatever the session's cube) ...
 TRACK_RADIUS_MM = 110.0
@@ -561,6 +566,7 @@ def _stump_of_free_arm(
     degree: np.ndarray,
     prev_centre_mm: np.ndarray | None = None,
     rim: np.ndarray | None = None,
+    track_vote: float = TRACK_VOTE,
 ) -> np.ndarray | None:
     """For a region with no wide contact: if it is elongated (longer than ``HAND_LENGTH_MM +
     ARM_EXTRA_MM`` along its principal axis), which end is the forearm's cut (the stump) and
@@ -570,7 +576,7 @@ def _stump_of_free_arm(
     fingers, the gaps between them and their depth steps make edges, a forearm or sleeve is one
     smooth cylinder; by a factor ``EDGE_RATIO``: one vote); it is the end farther from
     ``prev_centre_mm`` (3,) (the previous frame's hand, if given and one end is ``TRACK_RATIO``
-    times nearer: ``TRACK_VOTE``, so it outvotes one shape cue, not two; a sleeve's open end is
+    times nearer: ``track_vote``, by default ``TRACK_VOTE``, so it outvotes one shape cue, not two; a sleeve's open end is
     not solid, a fist has few edges).
     Returns the stump's nodes, or None if not elongated or not clear."""
     idx = np.flatnonzero(region)
@@ -607,7 +613,7 @@ def _stump_of_free_arm(
         # the previous frame's hand is the hand (outvotes one shape cue, not two)
         d = [np.linalg.norm(p[end].mean(axis=0) - prev_centre_mm) for end in ends]
         if max(d) >= TRACK_RATIO * min(d):
-            track = TRACK_VOTE if d[0] < d[1] else -TRACK_VOTE
+            track = track_vote if d[0] < d[1] else -track_vote
     vote += track
     if t.max() - t.min() < HAND_LENGTH_MM + ARM_EXTRA_MM and not (
         abs(shape_vote) == 2.0 and track * shape_vote > 0
@@ -662,10 +668,12 @@ def _attachment(
     edges: np.ndarray,
     prev: np.ndarray | None,
     min_depth_mm: float,
+    track_vote: float = TRACK_VOTE,
 ) -> tuple[np.ndarray | None, np.ndarray, bool]:
     """Step 3 of the module docstring: (attachment nodes ``(M,)`` bool or None when there is
     none, narrow-contact nodes ``(M,)`` bool kept out of the hand's far end, tentative: the
-    attachment holds only if a hand shows past the arm's far end)."""
+    attachment holds only if a hand shows past the arm's far end; ``track_vote``: the weight of
+    the previous frame's hand in the end vote, :func:`_stump_of_free_arm`)."""
     h, w = zs.shape
     border = (rr == 0) | (rr == h - 1) | (cc == 0) | (cc == w - 1)
     out = _continues_out(zs, vs, win, EDGE_STEP_MM)[rr, cc]
@@ -686,7 +694,7 @@ def _attachment(
     if not attach.any() and contact.any():
         # only narrow contacts: the arm's way out (an arm grazing a corner), unless the region's
         # shape says the arm ends elsewhere (fingertips touching the image border)
-        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
+        stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim, track_vote)
         far = stump is not None and _far_apart(pts, contact, stump, END_PART_MM)
         return (stump if far else contact), narrow & False, False
     if attach.any():
@@ -694,7 +702,7 @@ def _attachment(
     # no contact: an elongated region's ends vote which is the arm's cut (the rim is one vote:
     # fingers curled towards the camera near the sensor make a rim too); else a rim within
     # STUMP_NEAR_MM of min_depth_mm is where the near range cut the arm
-    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim)
+    stump = _stump_of_free_arm(pts, rr, cc, region, degree, prev, rim, track_vote)
     if stump is not None:
         return stump, narrow, False
     if rim.any() and z_lo <= min_depth_mm + STUMP_NEAR_MM:
@@ -730,6 +738,7 @@ def hand_geometry(
     prev_centre_mm: np.ndarray | None = None,
     front_mm: float = 40.0,
     hand_length_mm: float = HAND_LENGTH_MM,
+    track_vote: float = TRACK_VOTE,
 ) -> np.ndarray:
     """The hand's geometry row ``(GEOMETRY_LEN,)`` in ``depth`` ``(H, W)`` mm (module docstring,
     steps 1-4; all NaN without a hand): what a crop at any cube needs (:func:`_box_of`), found
@@ -737,7 +746,8 @@ def hand_geometry(
 
     ``prev_centre_mm`` (3,): the previous frame's hand (:func:`_geometry_middle`); if given (and
     finite) the seed is the sizeable component with the most pixels within ``TRACK_RADIUS_MM``
-    of its projection, and the free-arm vote counts it.
+    of its projection, and the free-arm vote counts it, ``track_vote`` (``ANCHOR_VOTE`` where the
+    hint chain starts at an annotated hand).
     """
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
@@ -786,7 +796,7 @@ def hand_geometry(
 
     # step 3: attachment (where the arm comes from)
     attach, narrow, tentative = _attachment(
-        pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm
+        pts, rr, cc, zs, vs, win, region, edges, prev, min_depth_mm, track_vote
     )
     if attach is None:
         return _free_blob(z, mask, camera, front_mm, scene)
@@ -1326,22 +1336,28 @@ def _locate_range(
     report: BadFrameReport | None,
     progress: bool,
     locate_kwargs: dict,
+    hints: dict[int, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Geometry rows ``(N, GEOMETRY_LEN)`` of ``frames`` (the rest NaN); the hint chain starts
-    afresh at ``frames.start``, at every break and after every bad frame."""
+    """Geometry rows ``(N, GEOMETRY_LEN)`` of ``frames`` (the rest NaN; a range with step 1 or
+    -1: the hint chain runs backwards in time for -1); the hint chain starts afresh at
+    ``frames.start``, at every break and after every bad frame, from ``hints[i]`` ``(3,)`` mm
+    where given (a hand known there)."""
     n = len(sequence)
     out = np.full((n, GEOMETRY_LEN), np.nan)
     breaks = set(int(b) for b in sequence.sequence_breaks)
+    step = frames.step
     prev = None
     it = sequence.iter_depth(frames, report=report)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, total=len(frames), desc="locating hand", unit="frame")
-    last = -2
+    last = -2 * n - 2
     for i, depth in it:
-        if i in breaks or i != last + 1:
+        if max(i, i - step) in breaks or i != last + step:
             prev = None  # new segment, or the previous frame was bad
+        if hints is not None and i in hints:
+            prev = hints[i]
         geo = hand_geometry(depth, sequence.camera, prev_centre_mm=prev, **locate_kwargs)
         mid = _geometry_middle(geo)
         if np.all(np.isfinite(mid)) and prev is not None:
@@ -1352,6 +1368,62 @@ def _locate_range(
         out[i] = geo
         prev = mid if np.all(np.isfinite(mid)) else None
         last = i
+    return out
+
+
+def anchored_geometry(
+    sequence: DepthSequence,
+    geometry: np.ndarray,
+    anchors: dict[int, np.ndarray],
+    stops: _Seq[int],
+    report: BadFrameReport | None = None,
+    **locate_kwargs,
+) -> np.ndarray:
+    """The geometry ``(N, GEOMETRY_LEN)`` of :func:`locate_hand_geometry` located again from
+    frames where the hand is known: ``anchors`` maps a frame to its joints ``(J, 3)`` mm (lifted
+    references whose crop missed them: the arm's ends were told apart wrongly, and the hint chain
+    carried the mistake).
+
+    From each anchor the hint chain restarts at the joints' centroid and runs forwards to the
+    next of ``stops`` (frames whose hand is known and held: the other references) or the end of
+    its segment, and backwards to the previous stop unless that is an anchor too (its own forward
+    run covers the frames between). The anchor's row must hold its joints (the ray-angle box of
+    columns 15-18 grows to them: :func:`_box_of` moves or grows the crop). The other rows are
+    unchanged. ``geometry`` is not modified."""
+    out = np.array(geometry, dtype=np.float64, copy=True)
+    n = len(sequence)
+    if not anchors:
+        return out
+    segments = _segments(n, sequence.sequence_breaks)
+    known = sorted({int(f) for f in stops} | {int(f) for f in anchors})
+    hints = {
+        int(f): np.asarray(j, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+        for f, j in anchors.items()
+    }
+    for a in sorted(hints):
+        lo, hi = next((s, e) for s, e in segments if s <= a < e)
+        before = [f for f in known if lo <= f < a]
+        after = [f for f in known if a < f < hi]
+        end = after[0] if after else hi
+        runs = [range(a, end)]
+        if not (before and before[-1] in hints):
+            start = before[-1] if before else lo - 1
+            runs.append(range(a, start, -1))
+        for run in runs:
+            kwargs = {**locate_kwargs, "track_vote": ANCHOR_VOTE}
+            rows = _locate_range(sequence, run, report, False, kwargs, hints=hints)
+            idx = np.array(list(run))
+            if run.step < 0:
+                idx = idx[1:]  # the anchor itself: its forward run
+            out[idx] = rows[idx]
+        joints = np.asarray(anchors[a], dtype=np.float64).reshape(-1, 3)
+        joints = joints[np.all(np.isfinite(joints), axis=1) & (joints[:, 2] > 0)]
+        if len(joints) and np.isfinite(out[a, 13]):
+            box = _ray_box(joints)
+            held = out[a, 15:19]
+            if np.all(np.isfinite(held)):
+                box = np.concatenate([np.minimum(box[:2], held[:2]), np.maximum(box[2:], held[2:])])
+            out[a, 15:19] = box
     return out
 
 

@@ -188,7 +188,8 @@ def ensure_crops(
     chain restarts at every break, so a single sequence is located in one process), cutting the
     crops in ranges of frames, each process writing its part of the file; the cache is the same,
     bit for bit, as one process builds."""
-    from .crops import CropSpec, compute_crops, crop_boxes, locate_crops
+    from .crops import CropSpec, compute_crops, crop_boxes, place_crops
+    from .localize import locate_hand_geometry
 
     s = session.model.settings
     crops_path = session.folder / CROPS_FILE
@@ -201,11 +202,11 @@ def ensure_crops(
     sequence = session.open_sequence()
     report = BadFrameReport()
     t0 = time.perf_counter()
-    # The hand may not fit the session's cube: locate_crops grows it (all stages use it).
+    # The hand may not fit the session's cube: place_crops grows it (all stages use it). The
+    # geometry is kept: a lift whose references fall outside their crops places them again.
     spec = CropSpec.of(s)
-    centres, grown, box_cubes = locate_crops(
-        sequence, spec, report=report, progress=not quiet, workers=workers
-    )
+    geometry = locate_hand_geometry(sequence, report=report, progress=not quiet, workers=workers)
+    centres, grown, box_cubes = place_crops(geometry, spec, sequence.sequence_breaks)
     if grown != spec:
         with session.lock:
             s.cube_mm = grown.cube_mm
@@ -242,6 +243,7 @@ def ensure_crops(
             "centres_mm": centres,
             "boxes": boxes,
             "box_cubes_mm": box_cubes,
+            "geometry": geometry,
             "crops_fingerprint": np.asarray(crops_fingerprint(crops_path)),
         },
     )
@@ -512,6 +514,81 @@ def lift(
     return joints_mm
 
 
+def recrop_from_references(
+    session: Session, joints_mm: dict[int, np.ndarray], *, quiet: bool = False, workers: int = 1
+) -> np.ndarray:
+    """Place the crops again where lifted references ``joints_mm`` (frame -> ``(J, 3)`` mm) fall
+    outside their own crop: the localization took the wrong end of an elongated arm region for
+    the hand, and its hint chain carried the mistake (README, crops "Eighth round").
+
+    Each such reference becomes an anchor of :func:`handanno_core.localize.anchored_geometry`:
+    the hint chain restarts at its joints and runs to the neighbouring references, the annotated
+    hand outvoting the shape cues. The crops are placed again at the session's cube (a frame
+    whose hand does not fit gets its own box) and only the frames whose crop changed are cut
+    again; the cache stays consistent (rewritten through a copy, then its metadata).
+    Returns the frames whose crop changed (sorted; empty when every reference holds its joints).
+    """
+    from .crops import CropSpec, joints_inside_crops, place_crops, update_crops
+    from .localize import anchored_geometry, locate_hand_geometry
+
+    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
+    frames = np.array(sorted(f for f, j in joints_mm.items() if np.isfinite(j).any()), int)
+    if frames.size == 0:
+        return frames
+    s = session.model.settings
+    meta_path = session.folder / CROPS_META_FILE
+    with np.load(meta_path, allow_pickle=False) as meta:
+        box_cubes = np.asarray(meta["box_cubes_mm"]) if "box_cubes_mm" in meta.files else None
+        geometry = np.asarray(meta["geometry"]) if "geometry" in meta.files else None
+    if box_cubes is None:
+        box_cubes = np.full(session.num_frames, float(s.cube_mm))
+    sequence = session.open_sequence()
+    joints = np.stack([np.asarray(joints_mm[f], dtype=np.float64) for f in frames])
+    held = joints_inside_crops(
+        joints, centres[frames], sequence.camera, box_cubes[frames], s.crop_size
+    )
+    missed = frames[~held]
+    if missed.size == 0:
+        return missed
+    if geometry is None or geometry.shape[0] != session.num_frames:  # a cache of an older version
+        geometry = locate_hand_geometry(sequence, report=BadFrameReport(), workers=workers)
+    anchored = anchored_geometry(
+        sequence, geometry, {int(f): joints_mm[int(f)] for f in missed}, frames.tolist(),
+        report=BadFrameReport(),
+    )  # fmt: skip
+    spec = CropSpec.of(s)
+    new_centres, _, new_box = place_crops(anchored, spec, sequence.sequence_breaks, grow=False)
+    same_c = np.all(np.isclose(new_centres, centres, atol=1e-6) | ~np.isfinite(new_centres), axis=1)
+    changed = np.flatnonzero(~same_c | (new_box != box_cubes))
+    if changed.size == 0:
+        return changed
+    from .crops import crop_boxes
+
+    update_crops(
+        sequence, session.folder / CROPS_FILE, changed, new_centres, spec.cube_mm, spec.size,
+        new_box,
+    )  # fmt: skip
+    atomic_save_npz(
+        meta_path,
+        {
+            "frames": np.asarray(session.num_frames),
+            "cube_mm": np.asarray(spec.cube_mm),
+            "size": np.asarray(spec.size),
+            "centres_mm": new_centres,
+            "boxes": crop_boxes(new_centres, sequence.camera, cube_mm=new_box, size=spec.size),
+            "box_cubes_mm": new_box,
+            "geometry": anchored,
+            "crops_fingerprint": np.asarray(crops_fingerprint(session.folder / CROPS_FILE)),
+        },
+    )
+    _log(
+        f"crops: {missed.size} lifted reference(s) outside their crop ({missed[:10].tolist()}); "
+        f"{changed.size} frames' crops placed again from the references",
+        quiet,
+    )
+    return changed
+
+
 def _bones_pinned(session: Session) -> bool:
     """The session's bone lengths are pinned (given, never re-estimated by a lift)."""
     return session.model.bones_pinned and session.model.bone_lengths_mm is not None
@@ -700,14 +777,16 @@ def propagate(
 ):
     """Propagate lifted references to every frame along the selection's parent forest
     (``use_model``: fit the personalized hand model to every frame, see ``handmodel``; None: the
-    session's ``settings.hand_model``)."""
+    session's ``settings.hand_model``). Crops that miss a lifted reference's joints are placed
+    again first (:func:`recrop_from_references`)."""
     from .propagate import PropagationSettings
     from .propagate import propagate as run_propagation
 
     sequence = session.open_sequence()
-    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
     results = session.load_results()
     reference_joints = _reference_joints(session, results)
+    recrop_from_references(session, reference_joints, quiet=quiet, workers=workers)
+    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
     if session.model.bone_lengths_mm is None:
         raise SessionError(f"{session.folder}: no bone lengths; run `handanno lift` first")
     settings = PropagationSettings.from_session(session.model.settings)

@@ -214,9 +214,46 @@ def crop_scores(
     }
 
 
-def bench_suite(folder: Path, part: str, baseline=None) -> dict:
+def uniform_references(n: int, fraction: float) -> np.ndarray:
+    """``max(2, round(fraction * n))`` frames evenly spread over ``0..n-1`` (the bench's
+    ``uniform`` selection within one segment)."""
+    k = max(2, int(round(fraction * n)))
+    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))
+
+
+def anchored_scores(seq, fraction: float) -> dict:
+    """Coverage of the crops placed again from references (``pipeline.recrop_from_references``'s
+    rule, without a session): uniform references at ``fraction``, each with its ground-truth
+    joints standing in for its lift (a lift is 1-3 mm off, far less than the crop's margin);
+    the references outside their crop are the anchors."""
+    from handanno_core.crops import joints_inside_crops, place_crops
+    from handanno_core.cropspec import DEFAULT_CROP
+    from handanno_core.localize import anchored_geometry, locate_hand_geometry
+
+    gt = seq.ground_truth.joints_mm
+    geometry = locate_hand_geometry(seq)
+    centres, spec, box = place_crops(geometry, DEFAULT_CROP, seq.sequence_breaks)
+    t0 = time.perf_counter()
+    refs = uniform_references(len(seq), fraction)
+    held = joints_inside_crops(gt[refs], centres[refs], seq.camera, box[refs], spec.size)
+    missed = refs[~held]
+    if missed.size:
+        geometry = anchored_geometry(seq, geometry, {int(f): gt[f] for f in missed}, refs.tolist())
+        centres, _, box = place_crops(geometry, spec, seq.sequence_breaks, grow=False)
+    return {
+        **crop_scores(seq, centres, spec.cube_mm, box_cubes=box),
+        "cube_mm": spec.cube_mm,
+        "references": int(len(refs)),
+        "anchors": missed.tolist(),
+        "ms_per_frame": 1e3 * (time.perf_counter() - t0) / len(seq),
+    }
+
+
+def bench_suite(folder: Path, part: str, baseline=None, references: float | None = None) -> dict:
     """Crop coverage on every sequence of a benchmark suite folder (``handanno suite``), ``part``
-    tune or report: centres and cube as the pipeline makes them (:func:`locate_crops`)."""
+    tune or report: centres and cube as the pipeline makes them (:func:`locate_crops`); with
+    ``references`` also after the crops are placed again from references at that fraction
+    (:func:`anchored_scores`, key ``anchored``)."""
     from handanno_core.datasets import open_sequence
     from handanno_core.suite import read_suite
 
@@ -231,6 +268,14 @@ def bench_suite(folder: Path, part: str, baseline=None) -> dict:
             "after": {**crop_scores(seq, centres, spec.cube_mm, box_cubes=box)},
         }
         row["after"].update(cube_mm=spec.cube_mm, ms_per_frame=ms)
+        if references:
+            row["anchored"] = anchored_scores(seq, references)
+            a = row["anchored"]
+            print(
+                f"  {name:28s} from {a['references']} references (anchors {a['anchors']}): "
+                f"inside {a['inside_xy_pct']:5.1f}% (depth too {a['inside_xyz_pct']:5.1f}%) "
+                f"out {a['frames_out'][:10]}"
+            )
         if baseline is not None:
             t0 = time.perf_counter()
             old, cube, old_box = baseline_locate(baseline, seq)
@@ -242,7 +287,12 @@ def bench_suite(folder: Path, part: str, baseline=None) -> dict:
             }
         rows.append(row)
         _print_row(name, row)
-    return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}
+    return {
+        "rows": rows,
+        "after": _total(rows, "after"),
+        "before": _total(rows, "before"),
+        "anchored": _total(rows, "anchored"),
+    }
 
 
 def _print_row(name: str, row: dict) -> None:
@@ -305,7 +355,12 @@ def bench_forearm(cases, baseline=None) -> dict:
             }
         rows.append(row)
         _print_row(case.name, row)
-    return {"rows": rows, "after": _total(rows, "after"), "before": _total(rows, "before")}
+    return {
+        "rows": rows,
+        "after": _total(rows, "after"),
+        "before": _total(rows, "before"),
+        "anchored": _total(rows, "anchored"),
+    }
 
 
 # ---------------------------------------------------------------------------- synthetic timing
@@ -455,8 +510,8 @@ def bench_memory(sizes: list[int]) -> list[dict]:
 
 
 def _summary(name: str, res: dict) -> None:
-    for key in ("after", "before"):
-        t = res[key]
+    for key in ("after", "before", "anchored"):
+        t = res.get(key)
         if t:
             print(
                 f"  {name} {key}: frames inside {t['frames_inside_xyz_pct']:.1f}% (x, y and depth; "
@@ -484,6 +539,12 @@ def main() -> None:
         choices=("tune", "report", "all"),
         help="suite and forearm-fixture part",
     )
+    ap.add_argument(
+        "--references",
+        type=float,
+        help="suite: also the coverage after crops are placed again from uniform references at "
+        "this fraction (ground truth standing in for their lifts)",
+    )
     ap.add_argument("--no-forearm", action="store_true", help="skip the forearm fixture")
     ap.add_argument("--no-real", action="store_true", help="skip the real frames")
     ap.add_argument("--out", type=Path, default=RESULTS / "crops.json", help="JSON to write")
@@ -509,7 +570,7 @@ def main() -> None:
     if args.suite:
         for part in ("tune", "report") if args.part == "all" else (args.part,):
             print(f"suite {part}:", flush=True)
-            res[f"suite_{part}"] = bench_suite(args.suite, part, baseline)
+            res[f"suite_{part}"] = bench_suite(args.suite, part, baseline, args.references)
             _summary(f"suite {part}", res[f"suite_{part}"])
     if not args.no_forearm:
         for part, cases in (("forearm_tune", TUNE_CASES), ("forearm_report", REPORT_CASES)):

@@ -75,6 +75,14 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    (using the slack on the other side, the arm's), else the frame's own box grows
    (:func:`frame_cubes_mm`); a crop that holds them already does not move.
 
+6. **Anchors** (:func:`anchored_geometry`, once references are lifted:
+   ``pipeline.recrop_from_references`` before propagation): the end vote can be wrong over a
+   whole stretch (a hand with its fingers closed, nearest to the camera, looks like a stump to
+   both shape cues and to the rim; the previous frame's hint then carries the mistake). Where a
+   lifted reference's joints fall outside its crop, the hint chain restarts at them and runs to
+   the neighbouring references, the annotated hand counting ``ANCHOR_VOTE`` (more than every
+   other cue together), and that reference's crop holds its joints.
+
 The centre (:func:`_box_of`) is the middle of the hand's extent in ray angle (so the crop, a
 projection, holds its outermost pixels) and in depth, moved back if needed so that the cube's
 back is ``HIDDEN_DEPTH_MM`` behind the farthest visible surface of the hand and its wrist (the

@@ -77,6 +77,8 @@ class LiveResults:
             # (B,), or (N, B) with several hands: each frame its hand's
             self.bone_lengths_mm = self.session.frame_bone_lengths()
             self.version += 1
+            # propagation may have placed crops again (pipeline.recrop_from_references)
+            self._crops = None
         self._changed()
 
     def put(

@@ -331,7 +331,9 @@ def _total(rows: list[dict], key: str) -> dict | None:
     }
 
 
-def bench_forearm(cases, baseline=None) -> dict:
+def bench_forearm(cases, baseline=None, references: float | None = None) -> dict:
+    """Crop coverage on the forearm fixture's ``cases``; with ``references`` also after the crops
+    are placed again from references at that fraction (:func:`anchored_scores`)."""
     rows = []
     for case in cases:
         seq = case_sequence(case)
@@ -353,6 +355,8 @@ def bench_forearm(cases, baseline=None) -> dict:
                 "cube_mm": cube,
                 "ms_per_frame": ms,
             }
+        if references:
+            row["anchored"] = anchored_scores(seq, references)
         rows.append(row)
         _print_row(case.name, row)
     return {
@@ -577,7 +581,7 @@ def main() -> None:
             if args.part != "all" and not part.endswith(args.part):
                 continue
             print(f"{part}:")
-            res[part] = bench_forearm(cases[:4] if args.quick else cases, baseline)
+            res[part] = bench_forearm(cases[:4] if args.quick else cases, baseline, args.references)
             _summary(part, res[part])
     if args.sequence:
         res["sequence"] = bench_sequence(frames)

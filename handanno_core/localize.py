@@ -584,8 +584,8 @@ def _stump_of_free_arm(
     fingers, the gaps between them and their depth steps make edges, a forearm or sleeve is one
     smooth cylinder; by a factor ``EDGE_RATIO``: one vote); it is the end farther from
     ``prev_centre_mm`` (3,) (the previous frame's hand, if given and one end is ``TRACK_RATIO``
-    times nearer: ``track_vote``, by default ``TRACK_VOTE``, so it outvotes one shape cue, not two; a sleeve's open end is
-    not solid, a fist has few edges).
+    times nearer: ``track_vote``, by default ``TRACK_VOTE``, so it outvotes one shape cue, not
+    two; a sleeve's open end is not solid, a fist has few edges).
     Returns the stump's nodes, or None if not elongated or not clear."""
     idx = np.flatnonzero(region)
     p = pts[idx]
@@ -1404,10 +1404,13 @@ def anchored_geometry(
         return out
     segments = _segments(n, sequence.sequence_breaks)
     known = sorted({int(f) for f in stops} | {int(f) for f in anchors})
-    hints = {
-        int(f): np.asarray(j, dtype=np.float64).reshape(-1, 3).mean(axis=0)
-        for f, j in anchors.items()
-    }
+    known_joints = {}
+    for f, j in anchors.items():
+        j = np.asarray(j, dtype=np.float64).reshape(-1, 3)
+        j = j[np.all(np.isfinite(j), axis=1) & (j[:, 2] > 0)]
+        if len(j):
+            known_joints[int(f)] = j
+    hints = {f: j.mean(axis=0) for f, j in known_joints.items()}
     for a in sorted(hints):
         lo, hi = next((s, e) for s, e in segments if s <= a < e)
         before = [f for f in known if lo <= f < a]
@@ -1424,10 +1427,8 @@ def anchored_geometry(
             if run.step < 0:
                 idx = idx[1:]  # the anchor itself: its forward run
             out[idx] = rows[idx]
-        joints = np.asarray(anchors[a], dtype=np.float64).reshape(-1, 3)
-        joints = joints[np.all(np.isfinite(joints), axis=1) & (joints[:, 2] > 0)]
-        if len(joints) and np.isfinite(out[a, 13]):
-            box = _ray_box(joints)
+        if np.isfinite(out[a, 13]):
+            box = _ray_box(known_joints[a])
             held = out[a, 15:19]
             if np.all(np.isfinite(held)):
                 box = np.concatenate([np.minimum(box[:2], held[:2]), np.maximum(box[2:], held[2:])])

@@ -74,6 +74,23 @@ def test_anchored_geometry_relocates_the_frames_up_to_the_neighbouring_reference
     )
 
 
+class _BrokenFrames(FramesSequence):
+    """The same frames, two recordings: a break before frame 7."""
+
+    @property
+    def sequence_breaks(self):
+        return [7]
+
+
+def test_anchored_runs_stop_at_a_sequence_break():
+    seq = _BrokenFrames([_frame() for _ in range(10)])
+    geometry = locate_hand_geometry(seq)
+    out = anchored_geometry(seq, geometry, {5: _disc_joints()}, [0, 5])
+    x = np.array([_geometry_middle(g)[0] for g in out])
+    assert np.all(x[1:7] < -60.0)  # back to reference 0, forwards to the break
+    np.testing.assert_array_equal(out[[0, 7, 8, 9]], geometry[[0, 7, 8, 9]])
+
+
 def test_propagate_places_the_crops_again_where_a_reference_falls_outside_its_own(tmp_path):
     folder = tmp_path / "frames"
     folder.mkdir()

@@ -35,8 +35,8 @@ One frame, in four steps (depth ``(H, W)`` mm, 0 = no measurement):
    (``END_PART_MM`` each) vote which is the cut forearm: the more solid one (points / convex hull), the one with fewer edge nodes
    (fingers, the gaps between them and their depth steps make edges; a forearm or sleeve is one
    smooth cylinder), the one holding the rim, the one farther from the previous frame's hand
-   (it counts more than one cue, less than two: a sleeve's open end is not solid, a fist has
-   few edges); (b) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm`` (where the near range cut
+   (it counts more than two cues, less than three: a sleeve's open end is not solid, a fist
+   has few edges); (b) a rim within ``STUMP_NEAR_MM`` of ``min_depth_mm`` (where the near range cut
    the arm; after the vote, since fingers curled towards the camera near the sensor make such a
    rim too); (c) a rim farther from ``min_depth_mm`` (a sleeve ending in view, or a sensor
    whose near range is farther, a Kinect's 400 mm), tentatively: step 4 keeps it if the hand
@@ -215,9 +215,12 @@ SOLIDITY_GAP = 0.08
 #: ... or in their share of edge nodes by at least this factor (the hand's end has more).
 EDGE_RATIO = 1.2
 #: ... the end TRACK_RATIO times nearer the previous frame's hand counts TRACK_VOTE (one shape
-#: cue counts 1).
+#: cue or the rim counts 1): it outvotes any two of them, not all three (the hand does not jump
+#: from one end of the arm to the other between frames; a hand nearest to the camera makes a rim
+#: too, and a closed hand looks solid; stop 31, chosen on tune-side replicas: 1.5 let the rim and
+#: one shape cue carry the crop to a sleeve's end).
 TRACK_RATIO = 1.5
-TRACK_VOTE = 1.5
+TRACK_VOTE = 2.5
 #: ... and, in a hint chain that starts at a hand known from annotation (:func:`anchored_geometry`),
 #: more than every other cue together (two shape cues and the rim): the annotated hand is evidence,
 #: the shape cues are guesses.
@@ -584,8 +587,8 @@ def _stump_of_free_arm(
     fingers, the gaps between them and their depth steps make edges, a forearm or sleeve is one
     smooth cylinder; by a factor ``EDGE_RATIO``: one vote); it is the end farther from
     ``prev_centre_mm`` (3,) (the previous frame's hand, if given and one end is ``TRACK_RATIO``
-    times nearer: ``track_vote``, by default ``TRACK_VOTE``, so it outvotes one shape cue, not
-    two; a sleeve's open end is not solid, a fist has few edges).
+    times nearer: ``track_vote``, by default ``TRACK_VOTE``, so it outvotes any two of the
+    other cues, not all three; a sleeve's open end is not solid, a fist has few edges).
     Returns the stump's nodes, or None if not elongated or not clear."""
     idx = np.flatnonzero(region)
     p = pts[idx]
@@ -618,7 +621,7 @@ def _stump_of_free_arm(
     track = 0.0
     if prev_centre_mm is not None:
         # the hand does not jump from one end to the other between frames: the end much nearer
-        # the previous frame's hand is the hand (outvotes one shape cue, not two)
+        # the previous frame's hand is the hand (outvotes any two other cues, not all three)
         d = [np.linalg.norm(p[end].mean(axis=0) - prev_centre_mm) for end in ends]
         if max(d) >= TRACK_RATIO * min(d):
             track = track_vote if d[0] < d[1] else -track_vote

@@ -46,7 +46,8 @@ def _disc_joints() -> np.ndarray:
 def test_an_annotated_hand_outvotes_the_shape_cues():
     depth = _frame()
     hint = _disc_joints().mean(axis=0)
-    # no hint, and the previous frame's hand as a hint (one vote and a half): the ragged end
+    # no hint, and the previous frame's hand as a hint (TRACK_VOTE, less than the three cues
+    # together): the ragged end
     assert _geometry_middle(hand_geometry(depth, CAM))[0] > 60.0
     assert _geometry_middle(hand_geometry(depth, CAM, prev_centre_mm=hint))[0] > 60.0
     # the annotated hand (ANCHOR_VOTE, more than the three cues together): the disc

@@ -118,7 +118,10 @@ length, the fingers' end part, the 2-node gap of the hand seen past an arm's end
 give the same coverage); checked on the same tune side plus the suite's tune part at
 frames-scale 1.0 with tune-icvl and 14 more tune-side replicas (report-like SR300 top-down +
 sleeve, ICVL with a sleeve, varied hands, one more FPHA Subject_1 sequence, SR300 egocentric,
-shape-fast, Kinect 640 wrist + sleeve; seeds 141-157).
+shape-fast, Kinect 640 wrist + sleeve; seeds 141-157). Eighth round (``TRACK_VOTE`` 1.5 -> 2.5,
+the anchors of step 6 and ``ANCHOR_VOTE``): the same tune side plus 21 fresh tune-side replicas
+(seeds 161-183: SR300 top-down and Kinect 640 wrist with sleeves, fast motion, ICVL with a
+sleeve); no crop of the suite's tune part moved.
 
 A crop's box may be larger than the session's cube in x and y for a frame whose own hand does
 not fit it (:func:`frame_cubes_mm`; depth stays at the session's cube): one-frame spikes and

@@ -220,16 +220,19 @@ def update_crops(
 
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npy")
-    shutil.copyfile(path, tmp)
-    header = np.load(tmp, mmap_mode="r")
-    offset, frame_shape = int(header.offset), header.shape[1:]
-    del header
-    cubes = (float(cube_mm), np.asarray(box_cubes_mm, dtype=np.float64))
-    centres = np.asarray(centres_mm, dtype=np.float64)
-    for i in np.asarray(frames, dtype=int):
-        buf = _crop_chunk(sequence, centres, int(i), int(i) + 1, cubes, size, BadFrameReport())
-        _write_chunk((str(tmp), offset, frame_shape), int(i), buf)
-    tmp.replace(path)
+    try:
+        shutil.copyfile(path, tmp)
+        header = np.load(tmp, mmap_mode="r")
+        offset, frame_shape = int(header.offset), header.shape[1:]
+        del header
+        cubes = (float(cube_mm), np.asarray(box_cubes_mm, dtype=np.float64))
+        centres = np.asarray(centres_mm, dtype=np.float64)
+        for i in np.asarray(frames, dtype=int):
+            buf = _crop_chunk(sequence, centres, int(i), int(i) + 1, cubes, size, BadFrameReport())
+            _write_chunk((str(tmp), offset, frame_shape), int(i), buf)
+        tmp.replace(path)
+    finally:  # a failed copy (a full disk) leaves no half-written file behind
+        tmp.unlink(missing_ok=True)
 
 
 def _crop_chunk(sequence, centres, a, b, cubes, size, report) -> np.ndarray:

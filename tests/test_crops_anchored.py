@@ -129,3 +129,34 @@ def test_propagate_places_the_crops_again_where_a_reference_falls_outside_its_ow
     # a second call finds every reference held
     assert pipeline.recrop_from_references(session, joints, quiet=True).size == 0
     assert localize.ANCHOR_VOTE > 3.0  # two shape cues and the rim
+
+
+def test_a_failed_rewrite_leaves_the_crop_cache_whole(tmp_path, monkeypatch):
+    from handanno_core import crops as crops_module
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(6):
+        np.save(folder / f"{i:03d}.npy", _frame())
+    cam = {k: getattr(CAM, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+    (folder / "intrinsics.json").write_text(json.dumps(cam))
+    session = pipeline.new_session(tmp_path / "s", folder)
+    crops0 = np.array(pipeline.ensure_crops(session, quiet=True)[0])
+
+    def full_disk(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(crops_module, "_write_chunk", full_disk)
+    joints = {0: np.tile(np.array([[RAGGED_X, 0.0, 612.0]]), (21, 1)), 3: _disc_joints()}
+    try:
+        pipeline.recrop_from_references(session, joints, quiet=True)
+    except OSError as exc:
+        assert "No space left" in str(exc)
+    else:
+        raise AssertionError("the write error must reach the caller")
+    assert not list(session.folder.glob("*.tmp.npy"))
+    cached = pipeline._cached_crops(
+        session, session.folder / CROPS_FILE, session.folder / CROPS_META_FILE
+    )
+    assert isinstance(cached, tuple)  # the old cache, whole and consistent
+    np.testing.assert_array_equal(np.asarray(cached[0]), crops0)

@@ -92,14 +92,19 @@ def test_anchored_runs_stop_at_a_sequence_break():
     np.testing.assert_array_equal(out[[0, 7, 8, 9]], geometry[[0, 7, 8, 9]])
 
 
-def test_propagate_places_the_crops_again_where_a_reference_falls_outside_its_own(tmp_path):
+def _session(tmp_path, frames: int):
+    """A session of ``frames`` copies of the scene (a folder of ``.npy`` depth maps)."""
     folder = tmp_path / "frames"
     folder.mkdir()
-    for i in range(10):
+    for i in range(frames):
         np.save(folder / f"{i:03d}.npy", _frame())
     cam = {k: getattr(CAM, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
     (folder / "intrinsics.json").write_text(json.dumps(cam))
-    session = pipeline.new_session(tmp_path / "s", folder)
+    return pipeline.new_session(tmp_path / "s", folder)
+
+
+def test_propagate_places_the_crops_again_where_a_reference_falls_outside_its_own(tmp_path):
+    session = _session(tmp_path, 10)
     crops0, centres0, _ = pipeline.ensure_crops(session, quiet=True)
     crops0 = np.array(crops0)
     joints = {f: np.tile(np.array([[RAGGED_X, 0.0, 612.0]]), (21, 1)) for f in (0, 2, 9)}
@@ -134,13 +139,7 @@ def test_propagate_places_the_crops_again_where_a_reference_falls_outside_its_ow
 def test_a_failed_rewrite_leaves_the_crop_cache_whole(tmp_path, monkeypatch):
     from handanno_core import crops as crops_module
 
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    for i in range(6):
-        np.save(folder / f"{i:03d}.npy", _frame())
-    cam = {k: getattr(CAM, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
-    (folder / "intrinsics.json").write_text(json.dumps(cam))
-    session = pipeline.new_session(tmp_path / "s", folder)
+    session = _session(tmp_path, 6)
     crops0 = np.array(pipeline.ensure_crops(session, quiet=True)[0])
 
     def full_disk(*args):

@@ -223,23 +223,22 @@ def uniform_references(n: int, fraction: float) -> np.ndarray:
 
 def anchored_scores(seq, fraction: float) -> dict:
     """Coverage of the crops placed again from references (``pipeline.recrop_from_references``'s
-    rule, without a session): uniform references at ``fraction``, each with its ground-truth
-    joints standing in for its lift (a lift is 1-3 mm off, far less than the crop's margin);
-    the references outside their crop are the anchors."""
-    from handanno_core.crops import joints_inside_crops, place_crops
+    rule, :func:`handanno_core.crops.crops_from_references`, without a session): uniform
+    references at ``fraction``, each with its ground-truth joints standing in for its lift (a lift
+    is 1-3 mm off, far less than the crop's margin); the references outside their crop are the
+    anchors."""
+    from handanno_core.crops import crops_from_references, place_crops
     from handanno_core.cropspec import DEFAULT_CROP
-    from handanno_core.localize import anchored_geometry, locate_hand_geometry
+    from handanno_core.localize import locate_hand_geometry
 
     gt = seq.ground_truth.joints_mm
     geometry = locate_hand_geometry(seq)
     centres, spec, box = place_crops(geometry, DEFAULT_CROP, seq.sequence_breaks)
     t0 = time.perf_counter()
     refs = uniform_references(len(seq), fraction)
-    held = joints_inside_crops(gt[refs], centres[refs], seq.camera, box[refs], spec.size)
-    missed = refs[~held]
-    if missed.size:
-        geometry = anchored_geometry(seq, geometry, {int(f): gt[f] for f in missed}, refs.tolist())
-        centres, _, box = place_crops(geometry, spec, seq.sequence_breaks, grow=False)
+    missed, _, centres, box = crops_from_references(
+        seq, geometry, spec, centres, box, {int(f): gt[f] for f in refs}
+    )
     return {
         **crop_scores(seq, centres, spec.cube_mm, box_cubes=box),
         "cube_mm": spec.cube_mm,

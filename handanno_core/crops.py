@@ -43,6 +43,7 @@ __all__ = [
     "locate_crops",
     "place_crops",
     "joints_inside_crops",
+    "crops_from_references",
     "update_crops",
     "locate_hand",
     "locate_hands",
@@ -388,3 +389,42 @@ def joints_inside_crops(
     mm = (xy - (size - 1) / 2) * box[:, None, None] / size
     inside = np.all(np.abs(mm) <= box[:, None, None] / 2 - margin_mm, axis=2) | ~known
     return np.all(inside, axis=1) & np.all(np.isfinite(boxes), axis=1)
+
+
+def crops_from_references(
+    sequence: DepthSequence,
+    geometry: np.ndarray | None,
+    spec: CropSpec,
+    centres_mm: np.ndarray,
+    box_cubes_mm: np.ndarray,
+    joints_mm: dict[int, np.ndarray],
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """The crops placed again where references' joints ``joints_mm`` (frame -> ``(J, 3)`` mm) fall
+    outside their own crop (centres ``(N, 3)`` mm, image boxes of ``box_cubes_mm`` ``(N,)``):
+    those references anchor :func:`handanno_core.localize.anchored_geometry`, the others stop its
+    runs, and the crops are placed at ``spec``'s cube (not grown; a frame whose hand does not
+    fit gets its own box). ``geometry`` ``(N, GEOMETRY_LEN)``: the sequence's hand geometry
+    (None: located here, only if a reference is missed).
+
+    Returns ``(missed (A,) frames, geometry, centres (N, 3), box cubes (N,))``: with no
+    reference missed, the inputs unchanged."""
+    from .localize import anchored_geometry, locate_hand_geometry
+
+    frames = np.array(sorted(f for f, j in joints_mm.items() if np.isfinite(j).any()), int)
+    missed = frames
+    if frames.size:
+        joints = np.stack([np.asarray(joints_mm[f], dtype=np.float64) for f in frames])
+        held = joints_inside_crops(
+            joints, centres_mm[frames], sequence.camera, box_cubes_mm[frames], spec.size
+        )
+        missed = frames[~held]
+    if missed.size == 0:
+        return missed, geometry, centres_mm, box_cubes_mm
+    if geometry is None:
+        geometry = locate_hand_geometry(sequence, report=BadFrameReport())
+    anchored = anchored_geometry(
+        sequence, geometry, {int(f): joints_mm[int(f)] for f in missed}, frames.tolist(),
+        report=BadFrameReport(),
+    )  # fmt: skip
+    centres, _, box = place_crops(anchored, spec, sequence.sequence_breaks, grow=False)
+    return missed, anchored, centres, box

@@ -1366,9 +1366,9 @@ def _locate_range(
         from tqdm import tqdm
 
         it = tqdm(it, total=len(frames), desc="locating hand", unit="frame")
-    last = -2 * n - 2
+    last = None
     for i, depth in it:
-        if max(i, i - step) in breaks or i != last + step:
+        if last is None or i != last + step or max(i, i - step) in breaks:
             prev = None  # new segment, or the previous frame was bad
         if hints is not None and i in hints:
             prev = hints[i]

@@ -179,6 +179,27 @@ def _cached_crops(
     return crops, centres, boxes
 
 
+def _save_crops_meta(session: Session, camera, spec, centres, box_cubes, geometry) -> None:
+    """The crop cache's metadata (``CROPS_META_FILE``, written atomically): centres ``(N, 3)`` mm,
+    image boxes of ``box_cubes`` ``(N,)`` mm, the hand geometry ``(N, GEOMETRY_LEN)`` and the
+    checksum of the crop file as it is now."""
+    from .crops import crop_boxes
+
+    atomic_save_npz(
+        session.folder / CROPS_META_FILE,
+        {
+            "frames": np.asarray(session.num_frames),
+            "cube_mm": np.asarray(spec.cube_mm),
+            "size": np.asarray(spec.size),
+            "centres_mm": centres,
+            "boxes": crop_boxes(centres, camera, cube_mm=box_cubes, size=spec.size),
+            "box_cubes_mm": box_cubes,
+            "geometry": geometry,
+            "crops_fingerprint": np.asarray(crops_fingerprint(session.folder / CROPS_FILE)),
+        },
+    )
+
+
 def ensure_crops(
     session: Session, *, quiet: bool = False, workers: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -234,19 +255,7 @@ def ensure_crops(
         workers=workers,
         box_cubes_mm=box_cubes,
     )
-    atomic_save_npz(
-        meta_path,
-        {
-            "frames": np.asarray(session.num_frames),
-            "cube_mm": np.asarray(grown.cube_mm),
-            "size": np.asarray(grown.size),
-            "centres_mm": centres,
-            "boxes": boxes,
-            "box_cubes_mm": box_cubes,
-            "geometry": geometry,
-            "crops_fingerprint": np.asarray(crops_fingerprint(crops_path)),
-        },
-    )
+    _save_crops_meta(session, sequence.camera, grown, centres, box_cubes, geometry)
     _log(f"crops: {session.num_frames} frames in {time.perf_counter() - t0:.1f} s", quiet)
     if report.errors:
         _log(report.summary(), quiet)
@@ -521,66 +530,44 @@ def recrop_from_references(
     outside their own crop: the localization took the wrong end of an elongated arm region for
     the hand, and its hint chain carried the mistake (README, crops "Eighth round").
 
-    Each such reference becomes an anchor of :func:`handanno_core.localize.anchored_geometry`:
-    the hint chain restarts at its joints and runs to the neighbouring references, the annotated
-    hand outvoting the shape cues. The crops are placed again at the session's cube (a frame
-    whose hand does not fit gets its own box) and only the frames whose crop changed are cut
-    again; the cache stays consistent (rewritten through a copy, then its metadata).
+    Each such reference becomes an anchor of :func:`handanno_core.localize.anchored_geometry`
+    (:func:`handanno_core.crops.crops_from_references`): the hint chain restarts at its joints and
+    runs to the neighbouring references, the annotated hand outvoting the shape cues. Only the
+    frames whose crop changed are cut again; the cache stays consistent (rewritten through a
+    copy, then its metadata).
     Returns the frames whose crop changed (sorted; empty when every reference holds its joints).
     """
-    from .crops import CropSpec, joints_inside_crops, place_crops, update_crops
-    from .localize import anchored_geometry, locate_hand_geometry
+    from .crops import CropSpec, crops_from_references, update_crops
+    from .localize import locate_hand_geometry
 
-    crops, centres, boxes = ensure_crops(session, quiet=quiet, workers=workers)
-    frames = np.array(sorted(f for f, j in joints_mm.items() if np.isfinite(j).any()), int)
-    if frames.size == 0:
-        return frames
-    s = session.model.settings
+    _, centres, _ = ensure_crops(session, quiet=quiet, workers=workers)
     meta_path = session.folder / CROPS_META_FILE
+    n = session.num_frames
     with np.load(meta_path, allow_pickle=False) as meta:
         box_cubes = np.asarray(meta["box_cubes_mm"]) if "box_cubes_mm" in meta.files else None
         geometry = np.asarray(meta["geometry"]) if "geometry" in meta.files else None
+    spec = CropSpec.of(session.model.settings)
     if box_cubes is None:
-        box_cubes = np.full(session.num_frames, float(s.cube_mm))
+        box_cubes = np.full(n, float(spec.cube_mm))
     sequence = session.open_sequence()
-    joints = np.stack([np.asarray(joints_mm[f], dtype=np.float64) for f in frames])
-    held = joints_inside_crops(
-        joints, centres[frames], sequence.camera, box_cubes[frames], s.crop_size
+    if geometry is not None and geometry.shape[0] != n:
+        geometry = None
+    if geometry is None and workers > 1:  # a cache of an older version: located in parallel
+        geometry = locate_hand_geometry(sequence, report=BadFrameReport(), workers=workers)
+    missed, anchored, new_centres, new_box = crops_from_references(
+        sequence, geometry, spec, centres, box_cubes, joints_mm
     )
-    missed = frames[~held]
     if missed.size == 0:
         return missed
-    if geometry is None or geometry.shape[0] != session.num_frames:  # a cache of an older version
-        geometry = locate_hand_geometry(sequence, report=BadFrameReport(), workers=workers)
-    anchored = anchored_geometry(
-        sequence, geometry, {int(f): joints_mm[int(f)] for f in missed}, frames.tolist(),
-        report=BadFrameReport(),
-    )  # fmt: skip
-    spec = CropSpec.of(s)
-    new_centres, _, new_box = place_crops(anchored, spec, sequence.sequence_breaks, grow=False)
-    same_c = np.all(np.isclose(new_centres, centres, atol=1e-6) | ~np.isfinite(new_centres), axis=1)
-    changed = np.flatnonzero(~same_c | (new_box != box_cubes))
+    same = np.all(np.isclose(new_centres, centres, atol=1e-6) | ~np.isfinite(new_centres), axis=1)
+    changed = np.flatnonzero(~same | (new_box != box_cubes))
     if changed.size == 0:
         return changed
-    from .crops import crop_boxes
-
     update_crops(
         sequence, session.folder / CROPS_FILE, changed, new_centres, spec.cube_mm, spec.size,
         new_box,
     )  # fmt: skip
-    atomic_save_npz(
-        meta_path,
-        {
-            "frames": np.asarray(session.num_frames),
-            "cube_mm": np.asarray(spec.cube_mm),
-            "size": np.asarray(spec.size),
-            "centres_mm": new_centres,
-            "boxes": crop_boxes(new_centres, sequence.camera, cube_mm=new_box, size=spec.size),
-            "box_cubes_mm": new_box,
-            "geometry": anchored,
-            "crops_fingerprint": np.asarray(crops_fingerprint(session.folder / CROPS_FILE)),
-        },
-    )
+    _save_crops_meta(session, sequence.camera, spec, new_centres, new_box, anchored)
     _log(
         f"crops: {missed.size} lifted reference(s) outside their crop ({missed[:10].tolist()}); "
         f"{changed.size} frames' crops placed again from the references",

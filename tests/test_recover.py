@@ -108,6 +108,24 @@ def test_a_fit_the_model_explains_only_somewhat_better_is_not_kept(scene):
     assert np.array_equal(res.level_after, res.level_before)
 
 
+def test_a_hand_without_a_neighbour_in_its_basin_is_refitted_from_the_references(scene):
+    """Frame 2 turned 70 degrees and no neighbour taken as a start (``neighbours=0``: a hand that
+    jumped, whose neighbours are wrong too): its own start and the finger hypotheses leave it
+    there; the references' poses as starts (``reference_starts``) bring it back."""
+    truth, model, obs, centres, level = scene
+    est = truth.copy()
+    est[2] = _spin(truth[2], 70.0)
+    keep = np.array([True, False, False, False, True])
+    alone = RecoverySettings(neighbours=0, reference_starts=0)
+    res = recover_frames(model, est, obs, centres, CAM, level, keep=keep, settings=alone)
+    assert list(res.tried) == [2] and len(res.recovered) == 0
+    refs = RecoverySettings(neighbours=0, reference_starts=1)
+    res = recover_frames(model, est, obs, centres, CAM, level, keep=keep, settings=refs)
+    assert list(res.recovered) == [2]
+    err = np.linalg.norm(res.joints_mm[2] - truth[2], axis=1)
+    assert err.max() <= 5.0 and err.mean() <= 2.0, np.round(err, 1)
+
+
 def test_neighbours_are_taken_within_the_frames_segment_only():
     good = np.array([0, 1, 2, 6, 7, 9])
     seg = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1])  # a break at frame 5

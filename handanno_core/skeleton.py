@@ -148,10 +148,10 @@ class Skeleton:
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
         return n if right_hand else -n
 
-    def joint_angles(
-        self, poses_mm: np.ndarray, right_hand: bool = True
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``.
+    def bone_directions(self, poses_mm: np.ndarray, right_hand: bool = True) -> np.ndarray:
+        """``(..., A, 3)`` unit vectors: the bone leaving each joint of ``angle_joints`` in that
+        joint's frame (along the incoming bone, towards the palm, lateral), the frame
+        :meth:`joint_angles` measures flexion and abduction in.
 
         At the first joint of a finger (MCP, thumb CMC) the towards-the-palm direction is the palm
         normal made perpendicular to the incoming bone. Further along the finger the lateral axis is
@@ -164,7 +164,7 @@ class Skeleton:
         parents = self.parent_array
         normal = self.palm_normal(poses, right_hand)
         lateral_of: dict[int, np.ndarray] = {}
-        flexion, abduction = [], []
+        out = []
         for k, c in zip(self.angle_joints, self.angle_children, strict=True):
             p = int(parents[k])
             a = _unit(poses[..., k, :] - poses[..., p, :])
@@ -177,13 +177,29 @@ class Skeleton:
                 lateral = np.cross(a, n_perp)
             lateral_of[int(k)] = lateral
             n_perp = np.cross(lateral, a)
-            b = poses[..., c, :] - poses[..., k, :]
-            along = np.sum(b * a, axis=-1)
-            towards_palm = np.sum(b * n_perp, axis=-1)
-            side = np.sum(b * lateral, axis=-1)
-            flexion.append(np.degrees(np.arctan2(towards_palm, along)))
-            abduction.append(np.degrees(np.arctan2(side, np.hypot(along, towards_palm))))
-        return np.stack(flexion, axis=-1), np.stack(abduction, axis=-1)
+            b = _unit(poses[..., c, :] - poses[..., k, :])
+            out.append(
+                np.stack(
+                    [
+                        np.sum(b * a, axis=-1),
+                        np.sum(b * n_perp, axis=-1),
+                        np.sum(b * lateral, axis=-1),
+                    ],
+                    axis=-1,
+                )
+            )
+        return np.stack(out, axis=-2)
+
+    def joint_angles(
+        self, poses_mm: np.ndarray, right_hand: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Flexion and abduction in degrees, each ``(..., A)`` for the joints in ``angle_joints``,
+        of the bones leaving them in their frames (:meth:`bone_directions`)."""
+        d = self.bone_directions(poses_mm, right_hand)
+        along, towards_palm, side = d[..., 0], d[..., 1], d[..., 2]
+        flexion = np.degrees(np.arctan2(towards_palm, along))
+        abduction = np.degrees(np.arctan2(side, np.hypot(along, towards_palm)))
+        return flexion, abduction
 
     def angle_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """``(A, 2)`` flexion and abduction limits in degrees for ``angle_joints``."""

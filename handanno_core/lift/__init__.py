@@ -8,6 +8,7 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
          + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
          + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
          + 1/2 w_angle sum_r min(g_r(X), 0)^2                  (angle-range rows, mm; soft)
+         + w_pose E_prior(X)                                   (pose prior, px^2)
     s.t.   |X_c - X_p| = d_b                                   (bones, equality, mm)
            D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
@@ -46,6 +47,17 @@ Fingertips whose distal segment leads away from the camera lie on the far end of
 target moves by ``2 k o_dip cos(phi)`` (``incline_tips``). A warm start (``init_mm``: the previous
 round's pose, a dragged joint) begins with the targets of its start pose, so the re-solve only
 runs where the solution moves them by 0.5 mm or more.
+
+The pose prior (:mod:`handanno_core.pose_prior`): ``E_prior`` is half the squared Mahalanobis
+distance of the bone directions in the angle joints' frames from a Gaussian learned on real
+recorded hands (FPHA, without the benchmark suite's sequences). It decides what the clicks leave
+open, above all the depth of the fingers the camera does not see: real fingers curl together.
+:func:`lift_references` makes it the session's own after its first round
+(:func:`handanno_core.pose_prior.session_prior`): the mean moves to the lifted references' (the
+knuckles' directions depend on the palm's shape, which differs between people), and ``w_pose``
+(:data:`solve.W_POSE` = 0.3 px^2, chosen on the suite's tune part) is divided by how much wider
+than the learned spread the session's poses still are (``LiftSet.pose_weight``). A single
+:func:`lift_frame` (the app's live lift) uses the learned prior at ``w_pose``.
 
 Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
 length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the

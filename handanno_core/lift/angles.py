@@ -92,11 +92,12 @@ class _AngleRows:
         bn = np.maximum(np.linalg.norm(B, axis=1), 1e-9)
         return dict(e1=e1, e2=e2, mn=mn, n=n, A=A, LAT=LAT, U=U, UN=UN, WN=WN, B=B, bn=bn)
 
-    def _angles(self, X: np.ndarray) -> tuple[np.ndarray, dict]:
+    def _angles(self, X: np.ndarray, fr: dict | None = None) -> tuple[np.ndarray, dict]:
         """Angle-limit rows ``(4 A T,)`` mm (T tiers of ``angle_coef``; rows ``>= 0`` inside the
         range) for a pose ``X`` ``(J, 3)`` mm, and the frames they were computed in
-        (:meth:`_angle_frames`)."""
-        fr = self._angle_frames(X)
+        (:meth:`_angle_frames`; ``fr`` if already computed for ``X``)."""
+        if fr is None:
+            fr = self._angle_frames(X)
         B, A, LAT = fr["B"], fr["A"], fr["LAT"]
         s1, s2, s3 = _dot(B, A), _dot(B, _cross(LAT, A)), _dot(B, LAT)
         bn = fr["bn"]
@@ -110,7 +111,6 @@ class _AngleRows:
         """``sum_r weights_r d row_r / dX`` ``(J, 3)`` for the rows of :meth:`_angles` (``fr`` its
         frames, ``weights`` ``(4 A T,)``): reverse-mode through the rows, the transported frames
         and the palm normal (exact; no Jacobian matrix is formed)."""
-        A, LAT, B, bn, n = fr["A"], fr["LAT"], fr["B"], fr["bn"], fr["n"]
         ws = weights.reshape(len(self.angle_coef), 4, -1)
         coef = self.a_coef
         # rows -> s1 = B.a, s2 = B.n_perp, s3 = B.lat, |B|
@@ -118,6 +118,27 @@ class _AngleRows:
         g2 = np.sum(coef[:, 0] * ws[:, 0] - coef[:, 2] * ws[:, 1], axis=0)
         g3 = np.sum(ws[:, 2] - ws[:, 3], axis=0)
         gb = np.sum(-coef[:, 4] * ws[:, 2] + coef[:, 5] * ws[:, 3], axis=0)
+        return self._frames_back(fr, g1, g2, g3, gb)
+
+    def _bone_directions(self, fr: dict) -> np.ndarray:
+        """``(A, 3)`` the unit bone leaving each angle joint in its frame (along, towards the
+        palm, lateral; :meth:`handanno_core.skeleton.Skeleton.bone_directions`) from the frames
+        ``fr`` of :meth:`_angle_frames`."""
+        B, A, LAT = fr["B"], fr["A"], fr["LAT"]
+        s = np.stack([_dot(B, A), _dot(B, _cross(LAT, A)), _dot(B, LAT)], axis=1)
+        return s / fr["bn"][:, None]
+
+    def _bone_directions_grad(self, fr: dict, dirs: np.ndarray, d_bar: np.ndarray) -> np.ndarray:
+        """``(J, 3)``: the adjoint ``d_bar`` ``(A, 3)`` of :meth:`_bone_directions` (``dirs``)
+        taken back to the joints."""
+        bn = fr["bn"]
+        gb = -np.sum(d_bar * dirs, axis=1) / bn
+        return self._frames_back(fr, d_bar[:, 0] / bn, d_bar[:, 1] / bn, d_bar[:, 2] / bn, gb)
+
+    def _frames_back(self, fr, g1, g2, g3, gb) -> np.ndarray:
+        """``(J, 3)``: adjoints ``(A,)`` of ``s1 = B.a``, ``s2 = B.n_perp``, ``s3 = B.lat`` and
+        ``|B|`` taken back through the transported frames and the palm normal."""
+        A, LAT, B, bn, n = fr["A"], fr["LAT"], fr["B"], fr["bn"], fr["n"]
         npp = _cross(LAT, A)
         b_bar = g1[:, None] * A + g2[:, None] * npp + g3[:, None] * LAT
         b_bar += (gb / bn)[:, None] * B

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
+from ..pose_prior import PosePrior
 from ..skeleton import Skeleton
 from .angles import _AngleRows
 
@@ -83,6 +84,8 @@ class _Problem(_AngleRows):
         right_hand: bool,
         w_angle: float = 1.0,
         w_angle_inner: float = 0.0,
+        pose_prior: PosePrior | None = None,
+        w_pose: float = 0.0,
     ):
         self.cam = camera
         self.j = skeleton.num_joints
@@ -128,13 +131,27 @@ class _Problem(_AngleRows):
             and skeleton.palm_joints is not None
             and len(skeleton.angle_joints) > 0
         )
-        if self.use_angles:
+        # the pose prior (a Gaussian over the bone directions in the angle joints' frames)
+        self.use_prior = (
+            pose_prior is not None
+            and w_pose > 0
+            and skeleton.palm_joints is not None
+            and len(pose_prior.mean) == 3 * len(skeleton.angle_joints)
+        )
+        if self.use_prior:
+            self.prior = pose_prior
+            self.w_pose = w_pose
+            # a left hand is measured as a mirrored right one: lateral components change sign
+            self.prior_sign = np.array([1.0, 1.0, 1.0 if right_hand else -1.0])
+        if self.use_angles or self.use_prior:
             k = skeleton.angle_joints
             self.ak = k
             self.ap = par_all[k]
             self.ac = skeleton.angle_children
-            self.angle_coef, self.angle_row_w = _angle_tiers(
-                skeleton, right_hand, w_angle, w_angle_inner
+            self.angle_coef, self.angle_row_w = (
+                _angle_tiers(skeleton, right_hand, w_angle, w_angle_inner)
+                if self.use_angles
+                else ([], np.zeros(0))
             )
             self.palm = skeleton.palm_joints
             self.hand_sign = 1.0 if right_hand else -1.0
@@ -292,8 +309,15 @@ class _Problem(_AngleRows):
             c, jac = self._bone_eq(X)
             f += 0.5 * self.soft * float(np.sum(c**2))
             g += self.soft * np.einsum("b,bjk->jk", c, jac)
+        frames = self._angle_frames(X) if (self.use_angles or self.use_prior) else None
+        if self.use_prior:
+            dirs = self._bone_directions(frames)
+            r = self.prior.residuals((dirs * self.prior_sign).ravel())
+            f += 0.5 * self.w_pose * float(r @ r)
+            d_bar = (self.w_pose * (r @ self.prior.sqrt_precision)).reshape(-1, 3)
+            g += self._bone_directions_grad(frames, dirs, d_bar * self.prior_sign)
         if self.use_angles:
-            v, frames = self._angles(X)
+            v, frames = self._angles(X, frames)
             short = np.minimum(v, 0.0)  # mm beyond the range (rows are >= 0 inside)
             ws = self.angle_row_w * short
             if np.any(ws):  # inside every range the penalty and its gradient are 0

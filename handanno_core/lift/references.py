@@ -12,9 +12,11 @@ import numpy as np
 from ..annotation import AnnotationError, FrameAnnotation
 from ..camera import CameraIntrinsics
 from ..parallel import Runner
+from ..pose_prior import pose_prior as packaged_pose_prior
+from ..pose_prior import session_prior
 from ..skeleton import Skeleton
 from .initial import initial_bone_lengths
-from .solve import SURFACE_DEPTH_MM, LiftResult, lift_frame, surface_depths_mm
+from .solve import SURFACE_DEPTH_MM, W_POSE, LiftResult, lift_frame, surface_depths_mm
 
 
 @dataclass
@@ -30,6 +32,8 @@ class LiftSet:
     surface_offsets_mm: np.ndarray | None = None
     #: ``(B,)`` number of references in which both ends of each bone are annotated
     bone_votes: np.ndarray | None = None
+    #: the pose prior's weight the references were lifted with (px^2; after the session's scale)
+    pose_weight: float | None = None
 
 
 def surface_correction(
@@ -220,6 +224,7 @@ def lift_references(
     stretch_tolerance: float = 0.2,
     seen_votes: bool = True,
     shrink_bones: bool = False,
+    adapt_pose_prior: bool = True,
     **lift_kwargs,
 ) -> LiftSet:
     """Lift every annotated reference frame; estimate the bone lengths and surface offsets.
@@ -235,7 +240,10 @@ def lift_references(
     re-estimated ones (median ratio to the template). seen_votes: a bone seen in
     ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
     the median over those only (module docstring). shrink_bones: each median pulled towards the
-    template's proportions by its own uncertainty (:func:`shrink_to_template`). calibrate_surface:
+    template's proportions by its own uncertainty (:func:`shrink_to_template`).
+    adapt_pose_prior: after the first round, divide the pose prior's weight (``w_pose``) by
+    :func:`handanno_core.pose_prior.session_scale` of the lifted references (the result is in
+    ``LiftSet.pose_weight``); not with pinned bones (no rounds). calibrate_surface:
     re-estimate the depth of joint centres below the observed surface per joint group in every
     round (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).
     A reference whose own evidence (its last soft-bone lift) wants some annotated bone more than
@@ -269,6 +277,9 @@ def lift_references(
         sk = skeleton
         surface_depth = surface_depths_mm(sk, lift_kwargs.get("surface_depth_mm", SURFACE_DEPTH_MM))
         kw = dict(eps_mm=eps_mm, angle_limits=angle_limits, **lift_kwargs)
+        kw.setdefault("w_pose", W_POSE)
+        prior = packaged_pose_prior(sk) if kw.get("pose_prior") is None else kw["pose_prior"]
+        adapt = adapt_pose_prior and prior is not None and kw["w_pose"] > 0
         inits: dict[int, np.ndarray] = {}
         soft_lengths = None
         votes = (
@@ -299,6 +310,13 @@ def lift_references(
                 ]
                 res = runner.map(_lift_job, jobs, progress)
                 poses = np.stack([r.joints_mm for r in res])
+                if adapt:
+                    # once: centre the prior on this hand's own poses, and widen it by how far
+                    # they still lie from it
+                    kw["pose_prior"], kw["w_pose"] = session_prior(
+                        prior, sk, poses, kw["w_pose"], kw.get("right_hand", True)
+                    )
+                    adapt = False
                 soft_lengths = np.where(bmask, sk.bone_lengths(poses), np.nan)  # (F, B)
                 new = _reestimate_bones(
                     bones, soft_lengths, voted, tmpl,
@@ -323,27 +341,14 @@ def lift_references(
                     break
                 offsets = np.asarray(sk.surface_offsets_mm) + corr
                 sk = dataclasses.replace(sk, surface_offsets_mm=tuple(float(o) for o in offsets))
-        jobs = [
-            (anns[f], shared[f], camera, sk, bones, dict(kw, init_mm=inits.get(f))) for f in frames
-        ]
-        res = runner.map(_lift_job, jobs, progress)
-        if inits:
-            # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
-            # from the cold start and keep the better objective (one more lift per reference; see
-            # benchmarks/results/design_measurements.md)
-            cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
-            cold = runner.map(_lift_job, cold_jobs)
-            res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+        res = _final_lifts(
+            runner, [anns[f] for f in frames], [shared[f] for f in frames], camera, sk, bones, kw,
+            [inits.get(f) for f in frames], progress,
+        )  # fmt: skip
         if soft_lengths is not None:
             _mark_stretched(res, soft_lengths, bones, sk, stretch_tolerance)
+        _warn_stretched(res)
         results = dict(zip(frames, res, strict=True))
-        n_stretched = sum(r.stretched for r in res)
-        if n_stretched:
-            warnings.warn(
-                f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
-                "lengths (LiftResult.stretched); check their 2D annotations",
-                stacklevel=2,
-            )
         return LiftSet(
             joints_mm={f: r.joints_mm for f, r in results.items()},
             confidence={f: r.confidence for f, r in results.items()},
@@ -352,4 +357,31 @@ def lift_references(
             bone_history_mm=history,
             surface_offsets_mm=np.asarray(sk.surface_offsets_mm, dtype=np.float64),
             bone_votes=bmask.sum(axis=0),
+            pose_weight=float(kw["w_pose"]),
+        )
+
+
+def _final_lifts(runner, anns, shared, camera, sk, bones, kw, inits, progress) -> list:
+    """The references lifted with the final bones (hard bone equalities), each from its last
+    soft-bone pose ``inits`` (None: cold) and, where it had one, from the cold start too; the
+    better objective is kept."""
+    jobs = [(a, dp, camera, sk, bones, dict(kw, init_mm=i)) for a, dp, i in zip(anns, shared, inits, strict=True)]  # fmt: skip
+    res = runner.map(_lift_job, jobs, progress)
+    if any(i is not None for i in inits):
+        # the soft-bone rounds can drift into the mirrored mode of a hidden finger; also solve
+        # from the cold start and keep the better objective (one more lift per reference; see
+        # benchmarks/results/design_measurements.md)
+        cold_jobs = [(a, dp, cm, sk_, b, dict(kw)) for a, dp, cm, sk_, b, _ in jobs]
+        cold = runner.map(_lift_job, cold_jobs)
+        res = [_better(w, c) for w, c in zip(res, cold, strict=True)]
+    return res
+
+
+def _warn_stretched(res: list) -> None:
+    n_stretched = sum(r.stretched for r in res)
+    if n_stretched:
+        warnings.warn(
+            f"lift: {n_stretched} of {len(res)} references only fit by stretching the bone "
+            "lengths (LiftResult.stretched); check their 2D annotations",
+            stacklevel=3,
         )

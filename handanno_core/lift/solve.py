@@ -13,10 +13,15 @@ from scipy.optimize import minimize
 from ..annotation import AnnotationError, FrameAnnotation
 from ..blas import single_blas_thread
 from ..camera import CameraIntrinsics
+from ..pose_prior import PosePrior
+from ..pose_prior import pose_prior as packaged_pose_prior
 from ..skeleton import Skeleton
 from .initial import initial_pose
 from .problem import _Problem
 from .surface import inclined_joints, inclined_surface_extra_mm, inclined_tips
+
+#: weight (px^2) of the pose prior's energy in the lift, chosen on the suite's tune part
+W_POSE = 0.3
 
 
 # ---------------------------------------------------------------------------------------- results
@@ -128,6 +133,8 @@ def lift_frame(
     w_flat: float = 0.01,
     w_angle: float = 1.0,
     w_angle_inner: float = 0.0,
+    w_pose: float = W_POSE,
+    pose_prior: PosePrior | None = None,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
     right_hand: bool = True,
@@ -154,6 +161,8 @@ def lift_frame(
     w_surface: weight (px^2/mm^2) of the pull of visible joints towards ``D + o``.
     w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
     w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
+    w_pose: weight (px^2) of the pose prior's energy (:mod:`handanno_core.pose_prior`; ``pose_prior``,
+    default the packaged one of the layout; none: no prior).
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
     ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
@@ -202,6 +211,10 @@ def lift_frame(
         w_flat=w_flat,
         w_angle=w_angle,
         w_angle_inner=w_angle_inner,
+        pose_prior=(
+            packaged_pose_prior(skeleton) if pose_prior is None and w_pose > 0 else pose_prior
+        ),
+        w_pose=w_pose,
         w_free=_W_FREE,
         soft_bones=soft_bones,
         right_hand=right_hand,

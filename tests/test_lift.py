@@ -668,6 +668,17 @@ def test_elastic_lift_of_a_frame_with_few_joints_has_no_hard_rows(frames):
     assert np.linalg.norm(result.joints_mm[1] - X[1]) < 15.0
 
 
+def _assert_objective_gradient(prob: _Problem, pose: np.ndarray, h: float = 1e-6) -> None:
+    """``prob.objective``'s gradient at ``pose`` (J, 3) mm matches central differences."""
+    x = ((pose - prob.x0) / prob.sc3).ravel()
+    g = prob.objective(x)[1]
+    fd = np.array([
+        (prob.objective(x + h * e)[0] - prob.objective(x - h * e)[0]) / (2 * h)
+        for e in np.eye(len(x))
+    ])  # fmt: skip
+    np.testing.assert_allclose(g, fd, atol=1e-4, rtol=1e-5)
+
+
 def test_angle_penalty_gradient_matches_finite_differences(frames):
     """The reverse-mode gradient of any weighted sum of the angle rows (two tiers, both hands)
     matches finite differences, and so does the objective's gradient on a pose outside the
@@ -703,13 +714,7 @@ def test_angle_penalty_gradient_matches_finite_differences(frames):
                     soft_bones=None, right_hand=True)  # fmt: skip
     for pose, outside in ((X, False), (bent, True)):
         assert np.any(prob._angles(pose)[0] < 0) == outside
-        x = ((pose - prob.x0) / prob.sc3).ravel()
-        g = prob.objective(x)[1]
-        fd = np.array([
-            (prob.objective(x + h * e)[0] - prob.objective(x - h * e)[0]) / (2 * h)
-            for e in np.eye(len(x))
-        ])  # fmt: skip
-        np.testing.assert_allclose(g, fd, atol=1e-4, rtol=1e-5)
+        _assert_objective_gradient(prob, pose)
 
 
 def test_pose_prior_gradient_matches_finite_differences(frames):
@@ -723,7 +728,6 @@ def test_pose_prior_gradient_matches_finite_differences(frames):
     bones = SK.bone_lengths(X)
     x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
     rng = np.random.default_rng(1)
-    h = 1e-6
     for right in (True, False):
         kw = dict(eps_mm=15.0, angle_limits=True, order_margin_mm=10.0, w_3d=1.0, w_surface=0.1,
                   w_free=1e-3, soft_bones=None, right_hand=right)  # fmt: skip
@@ -733,12 +737,7 @@ def test_pose_prior_gradient_matches_finite_differences(frames):
         x = ((P - prob.x0) / prob.sc3).ravel()
         extra = prob.objective(x)[0] - plain.objective(x)[0]
         assert extra == pytest.approx(2.0 * prior.energy(SK, P, right), rel=1e-9)
-        g = prob.objective(x)[1]
-        fd = np.array([
-            (prob.objective(x + h * e)[0] - prob.objective(x - h * e)[0]) / (2 * h)
-            for e in np.eye(len(x))
-        ])  # fmt: skip
-        np.testing.assert_allclose(g, fd, atol=1e-4, rtol=1e-5)
+        _assert_objective_gradient(prob, P)
 
 
 def test_pose_prior_scores_a_reversed_finger_unlikely_and_mirrors_left_hands(frames):

@@ -241,8 +241,9 @@ def lift_references(
     ``min_bone_votes`` references (both ends visible with a kept reading, not foreshortened) takes
     the median over those only (module docstring). shrink_bones: each median pulled towards the
     template's proportions by its own uncertainty (:func:`shrink_to_template`).
-    adapt_pose_prior: after the first round, divide the pose prior's weight (``w_pose``) by
-    :func:`handanno_core.pose_prior.session_scale` of the lifted references (the result is in
+    adapt_pose_prior: after the first round, make the pose prior the session's own
+    (:func:`handanno_core.pose_prior.session_prior` of the lifted references: its mean moved to
+    theirs, ``w_pose`` divided by their remaining spread; the weight used is
     ``LiftSet.pose_weight``); not with pinned bones (no rounds). calibrate_surface:
     re-estimate the depth of joint centres below the observed surface per joint group in every
     round (:func:`surface_correction`; the result is in ``LiftSet.surface_offsets_mm``).

@@ -9,8 +9,9 @@ over all of them (mean ``mu``, covariance ``S`` plus ``shrink`` on the diagonal)
 whole pose is, where the angle ranges only bound each joint alone.
 
 The energy of a pose is ``1/2 |W (phi - mu)|^2`` with ``W^T W = (S + shrink I)^-1`` (half the
-squared Mahalanobis distance, dimensionless). The lift adds it, times a weight, to its objective: it decides what the clicks leave open, such as the depth of a
-finger the camera does not see.
+squared Mahalanobis distance, dimensionless). The lift adds it, times a weight, to its objective:
+it decides what the clicks leave open, such as the depth of a finger the camera does not see.
+:func:`session_prior` makes it one session's own (its mean, its spread).
 
 The table (``data/pose_prior.json``) is written by ``benchmarks/learn_pose_prior.py`` from
 ``shared/data/real-motion`` (derived statistics only). A left hand is measured as the mirror of a

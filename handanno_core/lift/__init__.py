@@ -57,7 +57,8 @@ open, above all the depth of the fingers the camera does not see: real fingers c
 knuckles' directions depend on the palm's shape, which differs between people), and ``w_pose``
 (:data:`solve.W_POSE` = 0.3 px^2, chosen on the suite's tune part) is divided by how much wider
 than the learned spread the session's poses still are (``LiftSet.pose_weight``). A single
-:func:`lift_frame` (the app's live lift) uses the learned prior at ``w_pose``.
+:func:`lift_frame` (the app's live lift and pre-fill) has no prior unless given ``w_pose``: the
+learned prior, not yet the session's, pulls another person's hand towards the recorded one's.
 
 Observed depths that no pose can meet (a visible bone whose two readings differ by more than its
 length + eps) are dropped before solving: a 2D point that slips off a thin finger reads the

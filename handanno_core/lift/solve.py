@@ -20,7 +20,7 @@ from .initial import initial_pose
 from .problem import _Problem
 from .surface import inclined_joints, inclined_surface_extra_mm, inclined_tips
 
-#: weight (px^2) of the pose prior's energy in the lift, chosen on the suite's tune part
+#: weight (px^2) of the pose prior's energy in ``lift_references``, chosen on the suite's tune part
 W_POSE = 0.3
 
 
@@ -133,7 +133,7 @@ def lift_frame(
     w_flat: float = 0.01,
     w_angle: float = 1.0,
     w_angle_inner: float = 0.0,
-    w_pose: float = W_POSE,
+    w_pose: float = 0.0,
     pose_prior: PosePrior | None = None,
     depth_near_px: int = 1,
     soft_bones: float | None = None,
@@ -162,7 +162,9 @@ def lift_frame(
     w_angle: weight (px^2/mm^2) of the soft rows of ``skeleton.angle_ranges()`` (``angle_limits``);
     w_angle_inner: weight of the soft rows of the narrower ``skeleton.angle_limits()``.
     w_pose: weight (px^2) of the pose prior's energy (:mod:`handanno_core.pose_prior`; ``pose_prior``,
-    default the packaged one of the layout; none: no prior).
+    default the packaged one of the layout). Default 0: one frame alone has no session to make the
+    prior its own, and the learned prior pulls another person's hand towards the recorded one's
+    (the app's pre-fill got worse with it); :func:`lift_references` uses :data:`W_POSE`.
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
     ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.

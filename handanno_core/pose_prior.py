@@ -48,19 +48,26 @@ class PosePrior:
 
     def features(self, skeleton: Skeleton, poses_mm: np.ndarray, right_hand: bool = True):
         """``(..., 3 A)`` the prior's coordinates of ``poses_mm`` ``(..., J, 3)`` mm."""
-        d = skeleton.bone_directions(poses_mm, right_hand)
-        if not right_hand:
-            d = d * np.array([1.0, 1.0, -1.0])
+        d = skeleton.bone_directions(poses_mm, right_hand) * mirror_sign(right_hand)
         return d.reshape(*d.shape[:-2], -1)
 
     def residuals(self, features: np.ndarray) -> np.ndarray:
         """``(..., 3 A)`` ``W (phi - mu)``: the pose's energy is half its squared norm."""
         return (np.asarray(features) - self.mean) @ self.sqrt_precision.T
 
+    def feature_energy(self, features: np.ndarray) -> np.ndarray:
+        """``(...)`` half the squared Mahalanobis distance of ``features`` ``(..., 3 A)``."""
+        return 0.5 * np.sum(self.residuals(features) ** 2, axis=-1)
+
     def energy(self, skeleton: Skeleton, poses_mm: np.ndarray, right_hand: bool = True):
         """``(...)`` half the squared Mahalanobis distance of each pose (dimensionless)."""
-        r = self.residuals(self.features(skeleton, poses_mm, right_hand))
-        return 0.5 * np.sum(r**2, axis=-1)
+        return self.feature_energy(self.features(skeleton, poses_mm, right_hand))
+
+
+def mirror_sign(right_hand: bool) -> np.ndarray:
+    """``(3,)`` what a bone direction (along, towards the palm, lateral) is multiplied by to be
+    measured as a right hand's: a left hand is a mirrored right one, its lateral side reversed."""
+    return np.array([1.0, 1.0, 1.0 if right_hand else -1.0])
 
 
 def learn_pose_prior(
@@ -169,5 +176,4 @@ def session_prior(
     n = float(len(feats))
     mean = (n * feats.mean(axis=0) + pseudo_count * prior.mean) / (n + pseudo_count)
     moved = dataclasses.replace(prior, mean=mean)
-    energies = 0.5 * np.sum(moved.residuals(feats) ** 2, axis=-1)
-    return moved, weight / session_scale(moved, energies)
+    return moved, weight / session_scale(moved, moved.feature_energy(feats))

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
-from ..pose_prior import PosePrior
+from ..pose_prior import PosePrior, mirror_sign
 from ..skeleton import Skeleton
 from .angles import _AngleRows
 
@@ -141,8 +141,7 @@ class _Problem(_AngleRows):
         if self.use_prior:
             self.prior = pose_prior
             self.w_pose = w_pose
-            # a left hand is measured as a mirrored right one: lateral components change sign
-            self.prior_sign = np.array([1.0, 1.0, 1.0 if right_hand else -1.0])
+            self.prior_sign = mirror_sign(right_hand)
         if self.use_angles or self.use_prior:
             k = skeleton.angle_joints
             self.ak = k

@@ -26,7 +26,14 @@ inside the skeleton's limits and the palm term keeps the palm rigid.
     + λ_angle ½ Σ (angle outside limits)²        skeleton.angle_limits(), degrees
     + λ_palm  ½ Σ (‖X_a − X_b‖ − d_ab)²          palm shape from the references, mm
     + λ_pose  Σ_k w_k ρ_H(‖X_k − Y_k‖)           closeness to a given pose (temporal / start), mm
-    + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px``
+    + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px
+    + λ_prior ½ ‖W (φ(X) − μ)‖²                   the session's pose prior, dimensionless``
+
+The pose prior (:mod:`handanno_core.pose_prior`: a Gaussian over the bone directions ``φ`` in the
+joints' frames, learned from real recorded hands) is made the session's own by
+:func:`personalize` (mean moved to the references', their spread added to its covariance). It
+decides what the depth leaves open, a finger the camera does not see, from how the visible ones
+sit; its rows are forward differences over the tangent parameters (:func:`_prior_jacobian`).
 
 Observed points (:func:`observe`) come from the normalized crops (no extra depth reads), a few
 hundred per frame; forearm points are ignored (:func:`_forearm`: behind the wrist along the
@@ -65,6 +72,8 @@ from scipy.ndimage import distance_transform_edt, minimum_filter
 from . import lm
 from .camera import CameraIntrinsics
 from .crops import DEFAULT_CROP, crop_to_image, image_to_crop
+from .pose_prior import PosePrior, session_prior
+from .pose_prior import pose_prior as packaged_pose_prior
 from .skeleton import Skeleton
 
 __all__ = [
@@ -204,12 +213,26 @@ class _AngleMeter:
         """Flexion, abduction (..., A) degrees, as :meth:`Skeleton.joint_angles` (right hand);
         with ``axes`` also the flexion axes (..., A, 3) (unit; flexion turns a joint's child
         bone about its axis, right-handed)."""
+        along, towards, side, lat_all = self._components(poses)
+        flex = np.degrees(np.arctan2(towards, along))
+        abd = np.degrees(np.arctan2(side, np.hypot(along, towards)))
+        return (flex, abd, lat_all) if axes else (flex, abd)
+
+    def directions(self, poses: np.ndarray) -> np.ndarray:
+        """(..., A, 3) unit bone directions in the joints' frames, as
+        :meth:`Skeleton.bone_directions` (right hand)."""
+        along, towards, side, _ = self._components(poses)
+        return _unit(np.stack([along, towards, side], axis=-1))
+
+    def _components(self, poses: np.ndarray):
+        """The child bone of every angle joint along the incoming bone, towards the palm and
+        lateral (..., A) mm each, and the lateral axes (..., A, 3)."""
         x = np.asarray(poses, dtype=np.float64)
         normal = self.skeleton.palm_normal(x)[..., None, :]
-        a_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
-        lat_all = np.zeros_like(a_all)
-        flex = np.zeros(x.shape[:-2] + (len(self.joints),))
-        abd = np.zeros_like(flex)
+        lat_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
+        along_all = np.zeros(x.shape[:-2] + (len(self.joints),))
+        towards_all = np.zeros_like(along_all)
+        side_all = np.zeros_like(along_all)
         for lv, idx in enumerate(self.levels):
             k, p, c = self.joints[idx], self.parents[idx], self.children[idx]
             a = _unit(x[..., k, :] - x[..., p, :])
@@ -222,13 +245,10 @@ class _AngleMeter:
             lat_all[..., idx, :] = lateral
             n_perp = _cross(lateral, a)
             b = x[..., c, :] - x[..., k, :]
-            along = np.sum(b * a, axis=-1)
-            towards = np.sum(b * n_perp, axis=-1)
-            flex[..., idx] = np.degrees(np.arctan2(towards, along))
-            abd[..., idx] = np.degrees(
-                np.arctan2(np.sum(b * lateral, axis=-1), np.hypot(along, towards))
-            )
-        return (flex, abd, lat_all) if axes else (flex, abd)
+            along_all[..., idx] = np.sum(b * a, axis=-1)
+            towards_all[..., idx] = np.sum(b * n_perp, axis=-1)
+            side_all[..., idx] = np.sum(b * lateral, axis=-1)
+        return along_all, towards_all, side_all, lat_all
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -298,18 +318,45 @@ def angle_jacobian(
         bones = np.flatnonzero(np.any(own, axis=0))
     if len(bones) == 0:
         return v0, jac
-    cols = np.stack([2 * bones, 2 * bones + 1], axis=1).ravel()  # tangent parameters
-    t = kin.tangents(u[:, bones])  # (m,nb,3,2)
-    idx = np.arange(len(cols))
-    ub = u[:, cols // 2]  # (m, 2nb, 3)
-    du = _unit(ub + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)) - ub
-    xs = x0[:, None] + kin.ancestor_lengths[:, cols // 2].T[None, :, :, None] * du[:, :, None]
+    cols, xs = _tangent_steps(kin, x0, u, bones, h)
     v1 = angle_violation(skeleton, xs.reshape((-1,) + x0.shape[1:])).reshape(len(u), len(cols), -1)
     d = (v1 - v0[:, None, :]) / h
     if own_bones:
         d = np.where(own[:, cols // 2, None], d, 0.0)
     jac[:, :, 3 + cols] = d.transpose(0, 2, 1)
     return v0, jac
+
+
+def _tangent_steps(kin: Kinematics, x0, u, bones: np.ndarray, h: float):
+    """The tangent parameters of ``bones`` (2nb,) (θ minus the root's 3) and the joints (m,2nb,J,3)
+    with each of them stepped by ``h`` from the frames' joints ``x0`` (m,J,3) at directions ``u``
+    (m,B,3): a stepped bone moves only the joints below it, by ``L·Δu``."""
+    cols = np.stack([2 * bones, 2 * bones + 1], axis=1).ravel()
+    t = kin.tangents(u[:, bones])  # (m,nb,3,2)
+    idx = np.arange(len(cols))
+    ub = u[:, cols // 2]  # (m, 2nb, 3)
+    du = _unit(ub + h * t[:, idx // 2, :, idx % 2].transpose(1, 0, 2)) - ub
+    xs = x0[:, None] + kin.ancestor_lengths[:, cols // 2].T[None, :, :, None] * du[:, :, None]
+    return cols, xs
+
+
+def pose_prior_residuals(model: HandModel, x: np.ndarray) -> np.ndarray:
+    """(..., 3A) the residuals ``W (phi - mu)`` of the model's pose prior at joints ``x``
+    (..., J, 3) mm (a right hand): its energy is half their squared norm."""
+    phi = _meter(model.skeleton).directions(x)
+    return model.pose_prior.residuals(np.nan_to_num(phi.reshape(*phi.shape[:-2], -1)))
+
+
+def _prior_jacobian(model: HandModel, kin: Kinematics, root, u, h: float = 1e-5):
+    """d(prior residuals)/dθ (m,3A,P) at the frames' parameters (root, u): forward differences
+    over every bone's tangent parameters (the directions do not depend on the root)."""
+    x0 = kin.joints(root, u)
+    r0 = pose_prior_residuals(model, x0)
+    cols, xs = _tangent_steps(kin, x0, u, np.arange(u.shape[1]), h)
+    r1 = pose_prior_residuals(model, xs)
+    jac = np.zeros((len(u), r0.shape[-1], kin.num_params))
+    jac[:, :, 3 + cols] = ((r1 - r0[:, None]) / h).transpose(0, 2, 1)
+    return jac
 
 
 def violated_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:
@@ -372,6 +419,11 @@ class HandModel:
     tip: np.ndarray
     palm_pairs: np.ndarray
     palm_dist_mm: np.ndarray
+    #: the session's pose prior (:func:`handanno_core.pose_prior.session_prior` of the
+    #: references' poses, set by :func:`personalize`) and its weight relative to
+    #: ``FitWeights.prior`` (smaller for a hand that moves more widely than the recordings)
+    pose_prior: PosePrior | None = None
+    pose_prior_weight: float = 1.0
 
     @cached_property
     def finger_of(self) -> np.ndarray:
@@ -599,6 +651,10 @@ class FitWeights:
     pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)
     pose_huber_mm: float = 20.0
     uv: float = 0.002  #: per px² per joint to the prior 2D positions
+    #: times the model's pose prior (half the squared Mahalanobis distance of the bone
+    #: directions, :mod:`handanno_core.pose_prior`; none without ``HandModel.pose_prior``);
+    #: chosen on the tune part from 1, 3, 10 (README, stop 33)
+    prior: float = 3.0
     iterations: int = 12
     max_rejects: int = 3  #: a frame stops after this many rejected LM steps in a row
     #: observed points per frame of the per-frame fit in propagation and refinement (the nearest
@@ -771,10 +827,16 @@ def _assemble(state: tuple, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mt @ hx.reshape(n, d, d) @ m, np.matmul(mt, gx[..., None])[..., 0]
 
 
-def _normal_equations(model, kin, root, u, weights, state, v0):
-    """θ-space (H, g) of the energy whose rows ``state`` and angle violations ``v0`` (n,2A) (or
-    None) were collected at (root (n,3), u (n,B,3))."""
+def _normal_equations(model, kin, root, u, weights, state, v0, prior_r=None):
+    """θ-space (H, g) of the energy whose rows ``state``, angle violations ``v0`` (n,2A) (or
+    None) and pose-prior residuals ``prior_r`` (n,3A) (or None) were collected at (root (n,3),
+    u (n,B,3))."""
     h, g = _assemble(state, kin.jacobian(u))
+    if prior_r is not None and prior_r.size:
+        jac_p = _prior_jacobian(model, kin, root, u)
+        lam = _prior_weight(model, weights)
+        h += lam * np.matmul(jac_p.transpose(0, 2, 1), jac_p)
+        g += lam * np.einsum("nrp,nr->np", jac_p, prior_r)
     if v0 is not None and v0.size:
         hit = np.flatnonzero(np.any(v0 > 0, axis=1))
         if len(hit):
@@ -784,6 +846,13 @@ def _normal_equations(model, kin, root, u, weights, state, v0):
             h[hit] += weights.angle * np.matmul(jac_a.transpose(0, 2, 1), jac_a)
             g[hit] += weights.angle * np.einsum("nap,na->np", jac_a, v0[hit])
     return h, g
+
+
+def _prior_weight(model: HandModel, weights: FitWeights) -> float:
+    """The pose prior's weight in the fit (0: no prior)."""
+    if model.pose_prior is None:
+        return 0.0
+    return weights.prior * model.pose_prior_weight
 
 
 def frame_energy(
@@ -1008,9 +1077,16 @@ def _energy(
         v0 = angle_violation(model.skeleton, x)
         terms["angle"] = w.angle * 0.5 * np.sum(v0**2, axis=1)
 
+    # ---------------- pose prior (the session's)
+    terms["prior"] = np.zeros(n)
+    prior_r = None
+    if _prior_weight(model, w) > 0:
+        prior_r = pose_prior_residuals(model, x)
+        terms["prior"] = _prior_weight(model, w) * 0.5 * np.sum(prior_r**2, axis=1)
+
     energy = sum(terms.values())
     if want_jac:
-        return energy, terms, x, (acc.state(), v0)
+        return energy, terms, x, (acc.state(), v0, prior_r)
     if diagnostics:
         return (
             energy,
@@ -1064,13 +1140,16 @@ def fit_frames(
 
     def evaluate(pose, rows) -> _FrameFit:
         pri = None if priors is None else priors.take(rows)
-        e, t, xj, (state, v0) = _energy(
+        e, t, xj, (state, v0, prior_r) = _energy(
             model, kin, *pose, obs.take(rows), camera, w, pri, True, False
         )
-        return _FrameFit(e, t, xj, state, np.zeros((len(e), 0)) if v0 is None else v0)
+        none = np.zeros((len(e), 0))
+        return _FrameFit(
+            e, t, xj, state, none if v0 is None else v0, none if prior_r is None else prior_r
+        )
 
     def normal_equations(pose, ev: _FrameFit) -> lm.BatchedNormalEquations:
-        h, g = _normal_equations(model, kin, *pose, w, ev.state, ev.v0)
+        h, g = _normal_equations(model, kin, *pose, w, ev.state, ev.v0, ev.prior_r)
         return lm.BatchedNormalEquations(h, g, np.einsum("npp->np", h) + 1e-6)
 
     first = evaluate((root, u), np.arange(len(root)))
@@ -1333,13 +1412,15 @@ def refit_fingers(
 @dataclass
 class _FrameFit:
     """Per-frame energy ``cost`` (n,), ``terms``, joints ``x`` (n,J,3), the residual rows
-    ``state`` (:meth:`_Accumulator.state`) and angle violations ``v0`` (n,2A) (n,0: no term)."""
+    ``state`` (:meth:`_Accumulator.state`), angle violations ``v0`` (n,2A) and pose-prior
+    residuals ``prior_r`` (n,3A) ((n,0): no such term)."""
 
     cost: np.ndarray
     terms: dict
     x: np.ndarray
     state: tuple
     v0: np.ndarray
+    prior_r: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1401,13 +1482,19 @@ def personalize(
     obs: FrameObservations,
 ) -> HandModel:
     """The hand model of a sequence: bone lengths (from the lift), radii fitted to the references'
-    point clouds, palm distances = median over the references' lifted poses (K,J,3)."""
+    point clouds, palm distances = median over the references' lifted poses (K,J,3), and the
+    pose prior of the skeleton's layout (if packaged) made the session's own from those poses
+    (:func:`handanno_core.pose_prior.session_prior`)."""
     model = build_model(skeleton, bone_lengths_mm)
     x = np.asarray(reference_joints_mm, dtype=np.float64)
     fin = np.all(np.isfinite(x), axis=(1, 2))
     if np.any(fin):
         dv = x[fin][:, model.palm_pairs[:, 0]] - x[fin][:, model.palm_pairs[:, 1]]
         model = replace(model, palm_dist_mm=np.median(np.linalg.norm(dv, axis=-1), axis=0))
+        learned = packaged_pose_prior(skeleton)
+        if learned is not None:
+            own, weight = session_prior(learned, skeleton, x[fin], 1.0, widen=True)
+            model = replace(model, pose_prior=own, pose_prior_weight=weight)
     return replace(model, radii=estimate_radii(model, x, obs))
 
 

@@ -160,6 +160,7 @@ def session_prior(
     weight: float,
     right_hand: bool = True,
     pseudo_count: float = 5.0,
+    widen: bool = False,
 ) -> tuple[PosePrior, float]:
     """The prior made for one session from its lifted poses ``poses_mm`` ``(N, J, 3)`` mm: its
     mean moved to the poses' own mean (weighted ``N`` against ``pseudo_count`` for the learned
@@ -168,7 +169,12 @@ def session_prior(
     Why: the bone directions at the knuckles depend on the shape of the palm (where the knuckles
     sit relative to the wrist), which differs from person to person and from a renderer's hand;
     the learned mean would pull every pose towards the recorded person's palm. The session's own
-    mean keeps what real hands share, the correlations between the fingers."""
+    mean keeps what real hands share, the correlations between the fingers.
+
+    ``widen``: the poses' own spread about their mean is added to the covariance (only ever
+    wider), so the ways this hand moves that the recordings did not (a renderer's fingers moving
+    one at a time) are not pulled back, while what neither shows stays held; the hand-model fit
+    uses it (:func:`handanno_core.handmodel.personalize`), the lift does not."""
     feats = prior.features(skeleton, poses_mm, right_hand)
     feats = feats[np.all(np.isfinite(feats), axis=1)]
     if len(feats) == 0:
@@ -176,4 +182,21 @@ def session_prior(
     n = float(len(feats))
     mean = (n * feats.mean(axis=0) + pseudo_count * prior.mean) / (n + pseudo_count)
     moved = dataclasses.replace(prior, mean=mean)
+    if widen and len(feats) > 1:
+        moved = _widened(moved, feats)
     return moved, weight / session_scale(moved, moved.feature_energy(feats))
+
+
+def _widened(prior: PosePrior, feats: np.ndarray) -> PosePrior:
+    """``prior`` with the spread of ``feats`` ``(N, 3 A)`` about their mean added to its
+    covariance: the directions a session moves in are not penalized more than the recordings'."""
+    w = prior.sqrt_precision
+    kept = np.any(w != 0, axis=0)
+    wk = w[np.ix_(kept, kept)]
+    cov = np.eye(len(prior.mean))
+    d = feats - feats.mean(axis=0)
+    cov[np.ix_(kept, kept)] = np.linalg.inv(wk.T @ wk) + (d.T @ d)[np.ix_(kept, kept)] / len(d)
+    keep = kept.reshape(-1, 3).all(axis=1)
+    return prior_from_moments(
+        prior.layout, prior.mean, cov, prior.frames, keep, prior.typical_energy
+    )

@@ -11,6 +11,7 @@ import pytest
 from handanno_core import handmodel as hm
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.crops import crop_boxes, crop_depth
+from handanno_core.pose_prior import pose_prior, session_prior
 from handanno_core.results import MODEL_FIT_TERMS
 from handanno_core.skeleton import MSRA21
 from handanno_core.synth import (
@@ -105,16 +106,17 @@ def test_energy_is_zero_at_the_rendered_pose(scene):
 
 @pytest.mark.parametrize(
     "term",
-    ["data", "free_space", "collision", "palm", "pose", "uv", "angle"],
+    ["data", "free_space", "collision", "palm", "pose", "uv", "angle", "prior"],
 )
 def test_analytic_gradient_matches_finite_differences(scene, term):
     x, model, obs = scene
+    model = replace(model, pose_prior=pose_prior(MSRA21), pose_prior_weight=0.5)
     kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
     rng = np.random.default_rng(1)
     start = _perturb_joints(x, 12.0, rng.choice([-1.0, 1.0], len(MSRA21.angle_joints)))
     start = start + rng.normal(0, 2.0, x.shape)
     root, u = kin.fit(start[None])
-    names = ["data", "free_space", "collision", "palm", "pose", "uv", "angle"]
+    names = ["data", "free_space", "collision", "palm", "pose", "uv", "angle", "prior"]
     w = replace(hm.FitWeights(), **{n: 0.0 for n in names if n != term})
     priors = hm.Priors(
         pose=x[None] + 2.0,
@@ -136,6 +138,64 @@ def test_analytic_gradient_matches_finite_differences(scene, term):
     rel = np.linalg.norm(g[0] - fd) / np.linalg.norm(fd)
     # free space: the samples' spread direction around the axis is held fixed in the Jacobian
     assert rel < (0.15 if term == "free_space" else 1e-4), rel
+
+
+def test_fit_with_only_the_pose_prior_reaches_its_mean(scene):
+    """The prior's Gauss-Newton rows (forward differences through the joint frames) drive the
+    fit: with no other term a perturbed pose goes to the prior's mean directions."""
+    x, model, obs = scene
+    own, _ = session_prior(pose_prior(MSRA21), MSRA21, x[None], 1.0, pseudo_count=1e-9)
+    model = replace(model, pose_prior=own, pose_prior_weight=1.0)
+    off = dict(data=0.0, free_space=0.0, collision=0.0, angle=0.0, pose=0.0, uv=0.0)
+    w = replace(hm.FitWeights(), prior=1.0, **off)
+    signs = np.where(np.arange(len(MSRA21.angle_joints)) % 2 == 0, 1.0, -1.0)
+    start = _perturb_joints(x, 20.0, signs)
+    res = hm.fit_frames(model, start[None], obs, CAM, weights=w, iterations=60)
+    kept = np.any(own.sqrt_precision != 0, axis=0).reshape(-1, 3).all(axis=1)
+    angle = np.degrees(
+        np.arccos(
+            np.clip(
+                np.sum(
+                    MSRA21.bone_directions(res.joints_mm[0]) * MSRA21.bone_directions(x), axis=-1
+                ),
+                -1,
+                1,
+            )
+        )
+    )
+    assert res.energy[0] < 1e-4 * res.energy_start[0]
+    assert angle[kept].max() < 0.5, np.round(angle, 2)
+    # without the prior nothing moves the fingers
+    still = hm.fit_frames(model, start[None], obs, CAM, weights=replace(w, prior=0.0))
+    assert np.allclose(still.joints_mm[0], start, atol=1e-6)
+
+
+def test_personalize_makes_the_pose_prior_the_sessions_own():
+    poses = np.stack([_pose("fist"), _pose("point", (20.0, 0.0, 0.0))])
+    model = _model(poses[0])
+    obs = _observe(model, list(poses))
+    own = hm.personalize(MSRA21, model.bone_lengths_mm, poses, obs)
+    learned = pose_prior(MSRA21)
+    assert own.pose_prior is not None and 0 < own.pose_prior_weight <= 1.0
+    assert np.all(own.pose_prior.energy(MSRA21, poses) < learned.energy(MSRA21, poses))
+
+
+def test_widened_session_prior_never_scores_a_pose_higher():
+    """Widening adds the session's spread to the covariance: no pose costs more than under the
+    prior only centred on the session, and the session's own poses cost much less."""
+    rng = np.random.default_rng(5)
+    poses = np.stack(
+        [_pose(g, tuple(rng.uniform(-30, 30, 3))) for g in ("open", "fist", "point", "spread")]
+    )
+    learned = pose_prior(MSRA21)
+    centred, _ = session_prior(learned, MSRA21, poses, 1.0)
+    wide, _ = session_prior(learned, MSRA21, poses, 1.0, widen=True)
+    others = np.stack([_pose(g) for g in gesture_library(make_hand_model(1))])
+    others = others + rng.normal(0, 4.0, others.shape)
+    for x in (poses, others):
+        assert np.all(wide.energy(MSRA21, x) <= centred.energy(MSRA21, x) + 1e-9)
+    assert np.median(wide.energy(MSRA21, poses)) < 0.5 * np.median(centred.energy(MSRA21, poses))
+    assert np.array_equal(wide.mean, centred.mean)
 
 
 def test_radii_estimation_recovers_known_radii():
@@ -185,6 +245,8 @@ def test_angle_meter_matches_skeleton_joint_angles():
     flex, abd = hm._AngleMeter(MSRA21)(poses)
     f_ref, a_ref = MSRA21.joint_angles(poses)
     assert np.allclose(flex, f_ref, atol=1e-9) and np.allclose(abd, a_ref, atol=1e-9)
+    dirs = hm._AngleMeter(MSRA21).directions(poses)
+    assert np.allclose(dirs, MSRA21.bone_directions(poses), atol=1e-12)
     fl, al = MSRA21.angle_limits()
     assert np.any(hm.angle_violation(MSRA21, poses) > 0)
     expected = np.concatenate(

@@ -296,7 +296,9 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     best; that beats either direction alone. A partial run from one changed frame recomputes
     its descendants in both chains. (Without the per-finger hypotheses, which rescue most of the
     frames either chain alone loses here: with them, both directions are 5.04 mm, the backward
-    chain alone 5.01.)"""
+    chain alone 5.01; and without the pose prior, which keeps the forward chain's fits good
+    enough here that no backward candidate is needed.)"""
+    from handanno_core.handmodel import FitWeights
     from handanno_core.propagate import PropagationSettings
     from handanno_core.select import temporal_chains
 
@@ -307,9 +309,10 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     chains = temporal_chains(n, refs)
     assert chains[0][5] == 4 and chains[1][5] == 6
     plain = PropagationSettings(finger_hypotheses=False)
-    forward = run(data, chains[0], refs, hand_model=True, settings=plain)
-    backward = run(data, chains[1], refs, hand_model=True, settings=plain)
-    both = run(data, chains, refs, hand_model=True,
+    no_prior = FitWeights(prior=0.0)
+    forward = run(data, chains[0], refs, hand_model=True, fit_weights=no_prior, settings=plain)
+    backward = run(data, chains[1], refs, hand_model=True, fit_weights=no_prior, settings=plain)
+    both = run(data, chains, refs, hand_model=True, fit_weights=no_prior,
                settings=replace(plain, candidate_level=0))  # fmt: skip
     inner = np.arange(1, n - 1)
     steps = {0: inner, 1: n - 1 - inner}  # propagation steps from each chain's reference
@@ -325,12 +328,12 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     assert mean["both"] < min(mean["forward"], mean["backward"]), mean
     # by default the backward chain is computed only where a forward fit is poor (and for its
     # ancestors): frames before the first poorly fitted one keep the forward result
-    adaptive = run(data, chains, refs, hand_model=True, settings=plain)
+    adaptive = run(data, chains, refs, hand_model=True, fit_weights=no_prior, settings=plain)
     bad = inner[forward.model_fit[inner, 0] > PropagationSettings().candidate_level]
     assert len(bad) and bad[0] > 1
     np.testing.assert_array_equal(adaptive.joints_mm[1 : bad[0]], forward.joints_mm[1 : bad[0]])
     np.testing.assert_array_equal(adaptive.joints_mm[bad], both.joints_mm[bad])
-    partial = run(data, chains, refs, hand_model=True, frames=[7], previous=both,
+    partial = run(data, chains, refs, hand_model=True, fit_weights=no_prior, frames=[7], previous=both,
                   settings=replace(plain, candidate_level=0))  # fmt: skip
     np.testing.assert_array_equal(partial.joints_mm[inner], both.joints_mm[inner])
     with pytest.raises(ValueError, match="same references"):

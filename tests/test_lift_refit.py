@@ -72,6 +72,29 @@ def test_refit_moves_lifted_references_towards_the_truth(sigma):
         assert exact.uv_weight > res.uv_weight
 
 
+def test_the_pose_prior_weighs_in_as_the_clicks_lose_weight():
+    """The refit's pose prior has the clicks' share of the noise: none for exact clicks, most of
+    ``FitWeights.prior`` at 2 px."""
+    from dataclasses import replace
+
+    from handanno_core.handmodel import FitWeights
+
+    truth, model, crops, boxes, centres, anns, lifted = _frames(2.0)
+    no_prior = FitWeights(prior=0.0)
+    for noise, same in ((0.0, True), (2.0, False)):
+        with_prior = _refit(model, crops, boxes, centres, anns, lifted, noise_px=noise)
+        without = _refit(
+            model, crops, boxes, centres, anns, lifted, noise_px=noise, fit_weights=no_prior
+        )
+        assert np.array_equal(with_prior.joints_mm, without.joints_mm) == same, noise
+    strong = _refit(
+        model, crops, boxes, centres, anns, lifted, noise_px=2.0,
+        fit_weights=replace(FitWeights(), prior=30.0),
+    )  # fmt: skip
+    moved = np.linalg.norm(strong.joints_mm - with_prior.joints_mm, axis=-1).max()
+    assert moved > 0.1, moved
+
+
 def test_denoised_clicks_move_towards_the_refit_by_the_click_noise():
     x = _pose("open")
     a = FrameAnnotation.empty(21)

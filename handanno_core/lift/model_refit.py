@@ -17,6 +17,10 @@ final fit's 2D weight is ``uv_gain / (σ² + model_px²)`` (per px², the model'
 ``model_px`` keeps it finite for exact clicks). ``noise_px`` given by the caller (the annotator's
 known accuracy) replaces the estimate.
 
+The model carries the session's pose prior (:func:`handanno_core.handmodel.personalize`); here it
+weighs in as the clicks lose weight, ``FitWeights.prior · σ² / (σ² + model_px²)``: none for exact
+clicks, where it made the tune part's references worse, most of it for noisy ones.
+
 A reference keeps its lift where the fit breaks one of its annotated depth orders that the lift
 met (the fit does not see depth orders), or where its lift is not finite.
 
@@ -176,9 +180,7 @@ def refit_references(
     ok = np.flatnonzero(np.all(np.isfinite(x0), axis=(1, 2)))
     if len(ok) == 0:
         return RefitResult(out, kept, float(noise_px or 0.0), 0.0, np.full(k, np.nan))
-    # without the pose prior: the lift already has its own (the session's, ``lift_references``),
-    # and with it here too the tune part's references came out worse (1.37 -> 1.40 mm)
-    base = replace(fit_weights or hm.FitWeights(), pose=st.pose, prior=0.0)
+    base = replace(fit_weights or hm.FitWeights(), pose=st.pose)
     model, obs = hm.personalize_from_crops(
         skeleton, bone_lengths_mm, x0[ok], crops[ok], np.asarray(boxes)[ok],
         np.asarray(centres_mm)[ok], camera, cube_mm=cube_mm,
@@ -187,8 +189,8 @@ def refit_references(
     # pose_w multiplies FitWeights.pose: a placed joint's weight is placed_pose per mm²
     priors = click_priors(x0[ok], anns, st.placed_pose / base.pose)
 
-    def fit(uv_weight: float) -> tuple[np.ndarray, np.ndarray]:
-        w = replace(base, uv=uv_weight)
+    def fit(uv_weight: float, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        w = replace(base, uv=uv_weight, prior=prior)
         parts, depth = [], []
         for a in range(0, len(ok), st.chunk):
             rows = np.arange(a, min(a + st.chunk, len(ok)))
@@ -205,7 +207,9 @@ def refit_references(
         residual = np.linalg.norm(camera.project(probe) - priors.uv, axis=-1)[has]
         noise_px = estimate_click_noise(residual, st)
     uv_weight = st.uv_gain / (float(noise_px) ** 2 + st.model_px**2)
-    fitted, depth = fit(uv_weight)
+    # the session's pose prior weighs in as the clicks lose weight (none for exact clicks)
+    share = float(noise_px) ** 2 / (float(noise_px) ** 2 + st.model_px**2)
+    fitted, depth = fit(uv_weight, base.prior * share)
     parents = skeleton.parent_array
     broken = _orders_broken(fitted, anns, parents) & ~_orders_broken(x0[ok], anns, parents)
     out[ok[~broken]] = fitted[~broken]

@@ -347,11 +347,11 @@ def pose_prior_residuals(model: HandModel, x: np.ndarray) -> np.ndarray:
     return model.pose_prior.residuals(np.nan_to_num(phi.reshape(*phi.shape[:-2], -1)))
 
 
-def _prior_jacobian(model: HandModel, kin: Kinematics, root, u, h: float = 1e-5):
-    """d(prior residuals)/dθ (m,3A,P) at the frames' parameters (root, u): forward differences
-    over every bone's tangent parameters (the directions do not depend on the root)."""
+def _prior_jacobian(model: HandModel, kin: Kinematics, root, u, r0, h: float = 1e-5):
+    """d(prior residuals)/dθ (m,3A,P) at the frames' parameters (root, u), where the residuals
+    are ``r0`` (m,3A): forward differences over every bone's tangent parameters (the directions
+    do not depend on the root)."""
     x0 = kin.joints(root, u)
-    r0 = pose_prior_residuals(model, x0)
     cols, xs = _tangent_steps(kin, x0, u, np.arange(u.shape[1]), h)
     r1 = pose_prior_residuals(model, xs)
     jac = np.zeros((len(u), r0.shape[-1], kin.num_params))
@@ -833,7 +833,7 @@ def _normal_equations(model, kin, root, u, weights, state, v0, prior_r=None):
     u (n,B,3))."""
     h, g = _assemble(state, kin.jacobian(u))
     if prior_r is not None and prior_r.size:
-        jac_p = _prior_jacobian(model, kin, root, u)
+        jac_p = _prior_jacobian(model, kin, root, u, prior_r)
         lam = _prior_weight(model, weights)
         h += lam * np.matmul(jac_p.transpose(0, 2, 1), jac_p)
         g += lam * np.einsum("nrp,nr->np", jac_p, prior_r)
@@ -1080,9 +1080,10 @@ def _energy(
     # ---------------- pose prior (the session's)
     terms["prior"] = np.zeros(n)
     prior_r = None
-    if _prior_weight(model, w) > 0:
+    lam_p = _prior_weight(model, w)
+    if lam_p > 0:
         prior_r = pose_prior_residuals(model, x)
-        terms["prior"] = _prior_weight(model, w) * 0.5 * np.sum(prior_r**2, axis=1)
+        terms["prior"] = lam_p * 0.5 * np.sum(prior_r**2, axis=1)
 
     energy = sum(terms.values())
     if want_jac:

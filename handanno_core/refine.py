@@ -673,8 +673,8 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
     """Switch the hand-model term on: observations of every frame, the personalized model and the
     motion-adaptive temporal weights."""
     refs = problem.refs[np.all(np.isfinite(init[problem.refs]), axis=(1, 2))]
-    # the refinement has its own angle prior; the model term brings data, free space, collisions
-    # and the palm shape
+    # the refinement has its own angle prior; the model term brings data, free space, collisions,
+    # the palm shape and the session's pose prior
     fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
 
     def observe(frames, points=fit_w.points):

@@ -146,3 +146,53 @@ def test_finger_grid_sets_each_first_joints_abduction():
     assert np.allclose(abd[len(g) :, first], lim[first, 1])
     rest = np.setdiff1d(np.arange(len(MSRA21.angle_joints)), first)
     assert np.all(np.isnan(abd[:, rest]))
+
+
+def test_a_crop_that_slid_off_the_hand_centre_is_undone_by_the_observed_points():
+    """Frame 2's crop centre slid 45 mm along the forearm while the fist moved 4 mm (its crop
+    still holds the hand), and its estimate is in the wrong basin: its neighbours' poses moved
+    by the crop centres start 45 mm off and their fit stays off (without the second start the
+    frame is not recovered: 24 mm); moved by the medians of the observed hand points they start
+    on the hand, and the frame is recovered."""
+    rng = np.random.default_rng(1)
+    x0 = _pose("fist")
+    truth = np.stack([x0 + [4.0 * i, 0.0, 0.0] for i in range(5)])
+    model = _model(x0)
+    centres = truth.mean(axis=1)
+    centres[2] += [0.0, 45.0, 0.0]
+    crops = np.stack(
+        [_noisy_crop(_render(model, p), c, rng) for p, c in zip(truth, centres, strict=True)]
+    )
+    obs = hm.observe(crops, crop_boxes(centres, CAM), centres, CAM)
+    level = hm.reference_level(model, truth[[0, 4]], obs.take([0, 4]), CAM)
+    est = truth.copy()
+    est[2] = _spin(truth[2], 70.0)
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    by_centre = truth[1] + (centres[2] - centres[1])
+    fit = hm.fit_frames(model, by_centre[None], obs.take([2]), CAM, kin=kin)
+    assert np.linalg.norm(fit.joints_mm[0] - truth[2], axis=1).mean() > 10.0
+    keep = np.array([True, False, False, False, True])
+    res = recover_frames(model, est, obs, centres, CAM, level, keep=keep)
+    assert list(res.recovered) == [2]
+    err = np.linalg.norm(res.joints_mm[2] - truth[2], axis=1)
+    # the thumb tucked over the fist is the least determined (about 8 mm)
+    assert err.max() <= 10.0 and np.median(err) <= 2.0 and err.mean() <= 2.5, np.round(err, 1)
+
+
+def test_point_medians_of_crops_agree_with_the_observations():
+    """:func:`handmodel.point_medians` reads the same points as :func:`handmodel.observe`; a crop
+    without a hand pixel has none (NaN)."""
+    rng = np.random.default_rng(2)
+    x0 = _pose("open")
+    model = _model(x0)
+    centres = np.stack([x0.mean(axis=0), x0.mean(axis=0) + [10.0, -5.0, 20.0]])
+    crops = np.stack([_noisy_crop(_render(model, x0), c, rng) for c in centres])
+    crops = np.concatenate([crops, np.ones_like(crops[:1])])  # all background
+    centres = np.concatenate([centres, centres[:1]])
+    boxes = crop_boxes(centres, CAM)
+    med = hm.point_medians(crops, boxes, centres, CAM)
+    obs = hm.observe(crops, boxes, centres, CAM)
+    assert np.array_equal(med[:2], obs.point_medians()[:2])
+    assert np.all(np.isnan(med[2])) and np.all(np.isnan(obs.point_medians()[2]))
+    # the hand's points lie around its joints
+    assert np.linalg.norm(med[0] - x0.mean(axis=0)) < 30.0

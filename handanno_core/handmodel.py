@@ -63,7 +63,6 @@ recombined and refitted once, and the result is kept only where its energy is lo
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -554,14 +553,6 @@ class FrameObservations:
             self.points[idx], self.valid[idx], self.depth[idx], self.nearest[idx], self.boxes[idx]
         )
 
-    def point_medians(self) -> np.ndarray:
-        """(n, 3) mm the per-axis median of each frame's observed hand points (NaN: none): where
-        the frame's own depth puts the hand, independent of where its crop was centred."""
-        pts = np.where(self.valid[..., None], self.points, np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a frame without points: NaN
-            return np.nanmedian(pts, axis=1)
-
     @staticmethod
     def concatenate(parts: list[FrameObservations]) -> FrameObservations:
         """The frames of ``parts`` (non-empty), in order."""
@@ -606,69 +597,24 @@ def observe(
     for i in range(n):
         crop = np.asarray(crops[i], dtype=np.float32)
         fg = np.abs(crop) < 0.999
-        if not fg.any() or not np.isfinite(zc[i]):
+        flat = np.flatnonzero(fg)
+        if len(flat) == 0 or not np.isfinite(zc[i]):
             nearest[i] = grid
             continue
         # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front
         # of every surface it could project onto after resampling (no false violations at edges)
         d = minimum_filter(np.where(fg, zc[i] + half * crop, np.inf), size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
-        pts = _crop_points(crop, fg, boxes[i], zc[i], half, camera, max_points)
-        points[i, : len(pts)] = pts
-        valid[i, : len(pts)] = True
+        take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
+        pick = flat[np.unique(take)]
+        xy = np.stack([pick % s, pick // s], axis=-1).astype(np.float64)
+        uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled (nearest)
+        z = zc[i] + half * crop.reshape(-1)[pick].astype(np.float64)
+        points[i, : len(pick)] = camera.backproject(uv, z)
+        valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~fg, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return FrameObservations(points, valid, depth, nearest, boxes)
-
-
-def _crop_points(crop, fg, box, zc: float, half: float, camera: CameraIntrinsics, max_points: int):
-    """(M, 3) mm up to ``max_points`` hand pixels ``fg`` of one normalized crop, evenly spaced in
-    raster order, back-projected (crop px -> the image pixel it sampled, depth ``zc + v·half``)."""
-    s = crop.shape[-1]
-    flat = np.flatnonzero(fg)
-    take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
-    pick = flat[np.unique(take)]
-    xy = np.stack([pick % s, pick // s], axis=-1).astype(np.float64)
-    uv = np.rint(crop_to_image(xy, box))  # the image pixel the crop sampled (nearest)
-    z = zc + half * crop.reshape(-1)[pick].astype(np.float64)
-    return camera.backproject(uv, z)
-
-
-def moved_starts(x: np.ndarray, by_centres: np.ndarray, by_points: np.ndarray) -> list[np.ndarray]:
-    """Another frame's pose ``x`` (J, 3) mm as starts for this frame: moved by the difference
-    of the crop centres ``by_centres`` (3,) mm and, where it is finite, by the difference of the
-    observed points' medians ``by_points`` (:func:`point_medians`). Either can be wrong where the
-    other is right: a crop that slid along the forearm moves its centre, not the hand; fingers
-    that curled move the points. The fit's energy chooses."""
-    out = [x + by_centres]
-    if np.all(np.isfinite(by_points)):
-        out.append(x + by_points)
-    return out
-
-
-def point_medians(
-    crops: np.ndarray,
-    boxes: np.ndarray,
-    centres_mm: np.ndarray,
-    camera: CameraIntrinsics,
-    *,
-    cube_mm: float = DEFAULT_CROP.cube_mm,
-    max_points: int | None = None,
-) -> np.ndarray:
-    """(n, 3) mm :meth:`FrameObservations.point_medians` of frames' crops ``(n, S, S)`` without
-    the rest of :func:`observe` (same points, so the two agree exactly)."""
-    max_points = OBSERVED_POINTS if max_points is None else int(max_points)
-    n = crops.shape[0]
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
-    zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
-    out = np.full((n, 3), np.nan)
-    for i in range(n):
-        crop = np.asarray(crops[i], dtype=np.float32)
-        fg = np.abs(crop) < 0.999
-        if fg.any() and np.isfinite(zc[i]):
-            pts = _crop_points(crop, fg, boxes[i], zc[i], 0.5 * cube_mm, camera, max_points)
-            out[i] = np.median(pts, axis=0)
-    return out
 
 
 # ------------------------------------------------------------------------------------------------

@@ -241,7 +241,6 @@ class _Context:
     model_refs: np.ndarray | None = None  #: (K,) reference frames, sorted
     model_ref_joints: np.ndarray | None = None  #: (K, J, 3) their lifted joints
     model_levels: np.ndarray | None = None  #: per model, the references' data + free energy
-    model_ref_points: np.ndarray | None = None  #: (K, 3) mm their observed points' medians
 
     def crops(self) -> np.ndarray:
         if self.crops_array is not None:
@@ -275,19 +274,7 @@ class _Context:
         joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
         return dataclasses.replace(
             self, hand_models=models[0], model_levels=models[1], model_refs=refs,
-            model_ref_joints=joints, model_ref_points=self.point_medians(refs),
-        )  # fmt: skip
-
-    def point_medians(self, frames: np.ndarray) -> np.ndarray:
-        """(len(frames), 3) mm the medians of the frames' observed hand points, as the hand
-        model's fit observes them (:func:`handmodel.point_medians`)."""
-        frames = np.asarray(frames, dtype=np.int64)
-        crops = self.crops()
-        return hm.point_medians(
-            np.stack([np.asarray(crops[f], dtype=np.float32) for f in frames])
-            if len(frames) else np.zeros((0, 1, 1), np.float32),
-            self.boxes[frames], self.centres_mm[frames], self.camera,
-            cube_mm=self.settings.cube_mm, max_points=(self.fit_weights or hm.FitWeights()).points,
+            model_ref_joints=joints,
         )  # fmt: skip
 
 
@@ -478,8 +465,6 @@ class _ModelInput(NamedTuple):
     fb: np.ndarray
     crop_f: np.ndarray
     joints_gs: np.ndarray | None = None  #: the parent's own source, for the velocity start
-    #: (3,) mm the median of the parent's observed hand points (:func:`handmodel.point_medians`)
-    points_s: np.ndarray | None = None
 
 
 class _Flowed(NamedTuple):
@@ -580,10 +565,7 @@ def _flow_step(
     bone_viol = np.zeros(len(x))
     bone_viol[bones[:, 1]] = np.abs(len0 - lengths) / np.maximum(lengths, 1e-6)
     return _Flowed(
-        _ModelInput(
-            src, frame, x, joints_s, uv_f, fb, crop_f, joints_gs,
-            None if ctx.hand_models is None else ctx.point_medians(np.array([src]))[0],
-        ),
+        _ModelInput(src, frame, x, joints_s, uv_f, fb, crop_f, joints_gs),
         conf_s, visible, z_t, z_obs, below, app_res, bone_viol,
     )  # fmt: skip
 
@@ -636,8 +618,7 @@ def _model_fits(ctx: _Context, items: list[_ModelInput]) -> list[tuple[np.ndarra
     Starts: the flowed pose ``x_flow`` (J,3), the parent's pose ``joints_s``, the parent moved on
     at its own velocity (``2 joints_s - joints_gs``, where the grandparent, parent and frame are
     consecutive frames) and the lifted poses of the nearest references before and after the frame
-    in time, each (but the velocity start) moved by the difference of the crop centres and, as a
-    second start, of the observed points' medians (:func:`handmodel.moved_starts`). All share
+    in time, each (but the velocity start) moved by the difference of the hand centres. All share
     one energy (priors: closeness to the flowed pose, the flowed 2D ``uv_f`` weighted by the
     flow's forward-backward consistency ``fb``), so the energies compare;
     the ``model_fits`` starts of lowest energy are fitted and the best fit is kept.
@@ -686,48 +667,6 @@ def _guard(st: PropagationSettings, plain: float, fitted: float, ref: float) -> 
     return failed, max(fitted, plain * ref) if failed and st.finger_hypotheses else fitted
 
 
-def _model_starts(ctx: _Context, items: list[_ModelInput], c_f, med_f):
-    """The candidate starts (S, J, 3) mm of :func:`_model_fits` for ``items`` (crop centres
-    ``c_f`` (n, 3) mm, observed points' medians ``med_f`` (n, 3) mm), the item each belongs to
-    (S,) and whether it is the first of a pose's moved copies (S,)."""
-    st = ctx.settings
-    refs = ctx.model_refs
-    near_refs = []
-    for it in items:
-        ks = []
-        if refs is not None and len(refs):
-            pos = int(np.searchsorted(refs, it.frame))
-            ks = [k for k in sorted({max(pos - 1, 0), min(pos, len(refs) - 1)})
-                  if int(refs[k]) != it.src]  # fmt: skip
-        near_refs.append(ks)
-    # a start moves by the difference of the crop centres and, as a second start, of the
-    # observed hand points' medians (handmodel.moved_starts)
-    unknown = np.full(3, np.nan)
-
-    def moved(x, i, g, med_g):
-        med_g = unknown if med_g is None else med_g
-        return hm.moved_starts(x, c_f[i] - ctx.centres_mm[g], med_f[i] - med_g)
-
-    ref_med = ctx.model_ref_points
-    starts, owner, shape = [], [], []  # shape: the first of a pose's moved copies
-    for i, it in enumerate(items):
-        own = [[it.x_flow], moved(it.joints_s, i, it.src, it.points_s)]
-        if it.joints_gs is not None and st.velocity_start:
-            own.append([2.0 * it.joints_s - it.joints_gs])
-        own += [
-            moved(ctx.model_ref_joints[k], i, int(refs[k]), None if ref_med is None else ref_med[k])
-            for k in near_refs[i]
-        ]
-        for copies in own:
-            starts += copies
-            owner += [i] * len(copies)
-            shape += [True] + [False] * (len(copies) - 1)
-    starts = np.stack(starts)
-    owner = np.asarray(owner, dtype=np.int64)
-    shape = np.asarray(shape, dtype=bool)
-    return starts, owner, shape
-
-
 def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     """:func:`_model_fits` for frames of one hand model ``ctx.hand_models[h]``."""
     st = ctx.settings
@@ -735,13 +674,27 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     cam = ctx.camera
     frames = np.array([it.frame for it in items], dtype=np.int64)
     c_f = ctx.centres_mm[frames]
+    starts, owner = [], []
+    refs = ctx.model_refs
+    for i, it in enumerate(items):
+        own = [it.x_flow, it.joints_s + (c_f[i] - ctx.centres_mm[it.src])]
+        if it.joints_gs is not None and st.velocity_start:
+            own.append(2.0 * it.joints_s - it.joints_gs)
+        if refs is not None and len(refs):
+            pos = int(np.searchsorted(refs, it.frame))
+            for k in {max(pos - 1, 0), min(pos, len(refs) - 1)}:
+                if int(refs[k]) != it.src:
+                    own.append(ctx.model_ref_joints[k] + (c_f[i] - ctx.centres_mm[refs[k]]))
+        starts += own
+        owner += [i] * len(own)
+    starts = np.stack(starts)
+    owner = np.asarray(owner, dtype=np.int64)
+    j = starts.shape[1]
     w = ctx.fit_weights or hm.FitWeights()
     obs_f = hm.observe(
         np.stack([it.crop_f for it in items]), ctx.boxes[frames], c_f, cam, cube_mm=st.cube_mm,
         max_points=w.points,
     )  # fmt: skip
-    starts, owner, shape = _model_starts(ctx, items, c_f, obs_f.point_medians())
-    j = starts.shape[1]
     x_flow = np.stack([it.x_flow for it in items])
     fb_w = np.exp(
         -0.5 * (np.nan_to_num(np.stack([it.fb for it in items]), nan=1e3) / st.fb_scale_px) ** 2
@@ -777,8 +730,7 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     tried = np.flatnonzero(lvl > st.finger_level) if st.finger_hypotheses else []
     if len(tried):
         # each fitted row's fingers also tried at the angles of its frame's every start
-        # (translated copies have the same angles)
-        flex, abd = hm.finger_targets(ctx.skeleton, starts[shape], owner[shape], len(items))
+        flex, abd = hm.finger_targets(ctx.skeleton, starts, owner, len(items))
         fit = hm.refit_fingers(
             model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
             kin=kin, flexion_deg=flex[owner[best]], abduction_deg=abd[owner[best]], rows=tried,

@@ -10,9 +10,7 @@ For every frame above ``fail_level`` (not a reference, not fixed) the model is f
 (:func:`handmodel.fit_frames`, a weak pose prior to the frame's current estimate so that what the
 depth does not show, a hidden finger, stays where it was) from several starts: the frame's own
 estimate and the estimates of the ``neighbours`` nearest well-explained frames before and after
-it within its sequence segment, each moved by the difference of the crop centres and, as a second
-start, of the observed hand points' medians (:func:`handmodel.moved_starts`: on tune-icvl a crop
-centre jumps 38 mm where the hand moved 11, and the frame was left 31 mm off). The start that
+it within its sequence segment (moved by the difference of the crop centres). The start that
 fits best then gets the per-finger hypotheses (:func:`handmodel.refit_fingers`) over a grid of
 flexions *and* abductions (:func:`handmodel.finger_grid`: a finger that slid onto its neighbour
 is an abduction away from its own points). The new fit replaces the estimate only where it
@@ -21,7 +19,7 @@ references (a fit the model still cannot explain is no evidence). Frames that be
 explained, and frames recovered in an earlier pass whatever their level, are starts for their
 neighbours in the next pass (at most ``passes``; a frame is tried again only when its nearest
 well-explained frames changed). Frames still unexplained then are tried from the references
-whose poses (moved alike) explain their depth best before any fit, and the passes
+whose poses (moved by the crop centres) explain their depth best before any fit, and the passes
 run again: a hand that jumped (a recorded glitch, fast motion) has no well-explained neighbour
 in its own basin, but often a reference there.
 
@@ -100,22 +98,20 @@ def _refit(
     kin: hm.Kinematics,
     x: np.ndarray,
     obs: hm.FrameObservations,
-    positions: tuple[np.ndarray, ...],
+    centres: np.ndarray,
     camera: CameraIntrinsics,
     w: hm.FitWeights,
     frames: list[int],
     near: dict[int, tuple[int, ...]],
 ) -> tuple[np.ndarray, np.ndarray]:
     """The best new fit (K, J, 3) mm of ``frames`` (K of them), from each one's own pose ``x[f]``
-    and the poses of ``near[f]`` moved by the difference of each of the hand ``positions``
-    (:func:`_moved`), and its data + free-space energy (K,). The start that fits best gets the
-    per-finger hypotheses (flexion x abduction)."""
+    and the poses of ``near[f]`` moved by the crop centres, and its data + free-space energy
+    (K,). The start that fits best gets the per-finger hypotheses (flexion x abduction)."""
     flex, abd = hm.finger_grid(model.skeleton)
     starts, owner = [], []
     for f in frames:
-        own = [x[f]] + [m for g in near[f] for m in _moved(x, positions, f, g)]
-        starts += own
-        owner += [f] * len(own)
+        starts += [x[f]] + [x[g] + (centres[f] - centres[g]) for g in near[f]]
+        owner += [f] * (1 + len(near[f]))
     owner_a = np.asarray(owner, dtype=np.int64)
     prior = hm.Priors(pose=x[owner_a], pose_w=np.ones((len(owner_a), x.shape[1])))
     seen_by = obs.take(owner_a)
@@ -131,18 +127,11 @@ def _refit(
     return fit.joints_mm[pick], new[pick]
 
 
-def _moved(x: np.ndarray, positions: tuple[np.ndarray, ...], f: int, g: int) -> list[np.ndarray]:
-    """Frame ``g``'s pose ``x[g]`` moved to frame ``f`` (:func:`handmodel.moved_starts`;
-    ``positions``: the crop centres and the observed points' medians, (N, 3) mm each)."""
-    centres, medians = positions
-    return hm.moved_starts(x[g], centres[f] - centres[g], medians[f] - medians[g])
-
-
 def _reference_starts(
     model: hm.HandModel,
     x: np.ndarray,
     obs: hm.FrameObservations,
-    positions: tuple[np.ndarray, ...],
+    centres: np.ndarray,
     camera: CameraIntrinsics,
     w: hm.FitWeights,
     frames: np.ndarray,
@@ -151,21 +140,14 @@ def _reference_starts(
     st: RecoverySettings,
 ) -> dict[int, tuple[int, ...]]:
     """For each of ``frames``: the ``st.reference_starts`` frames of ``anchors`` (references,
-    fixed frames) in its segment whose pose, moved by the difference of the hand positions
-    (:func:`_moved`, the better of them), explains the frame's depth best before any fit
-    (:func:`handmodel.depth_energies`)."""
+    fixed frames) in its segment whose pose, moved by the difference of the crop centres,
+    explains the frame's depth best before any fit (:func:`handmodel.depth_energies`)."""
     near: dict[int, tuple[int, ...]] = {}
     for f in frames:
         cand = anchors[seg[anchors] == seg[f]]
         if len(cand) > st.reference_starts:
-            moved = [_moved(x, positions, int(f), int(g)) for g in cand]
-            owner = np.repeat(np.arange(len(cand)), [len(m) for m in moved])
-            if not len(owner):
-                continue
-            flat = np.stack([m for ms in moved for m in ms])
-            e_all = hm.depth_energies(model, flat, obs.take(np.full(len(flat), f)), camera, w)
-            e = np.full(len(cand), np.inf)
-            np.minimum.at(e, owner, e_all)
+            moved = x[cand] + (centres[f] - centres[cand])[:, None]
+            e = hm.depth_energies(model, moved, obs.take(np.full(len(cand), f)), camera, w)
             cand = cand[np.argsort(e, kind="stable")[: st.reference_starts]]
         if len(cand):
             near[int(f)] = tuple(int(g) for g in cand)
@@ -203,7 +185,7 @@ def recover_frames(
     x = np.array(joints_mm, dtype=np.float64)
     n = len(x)
     keep = np.zeros(n, dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
-    positions = (np.asarray(centres_mm, dtype=np.float64), obs.point_medians())
+    centres = np.asarray(centres_mm, dtype=np.float64)
     w = replace(fit_weights or hm.FitWeights(), pose=st.pose)
     kin = hm.Kinematics(model.skeleton, model.bone_lengths_mm)
     empty = np.zeros(0, dtype=np.int64)
@@ -232,7 +214,7 @@ def recover_frames(
         per = max(1, st.chunk // (1 + max((len(v) for v in near.values()), default=0)))
         for a in range(0, len(todo), per):
             frames = todo[a : a + per]
-            joints, new = _refit(model, kin, x, obs, positions, camera, w, frames, near)
+            joints, new = _refit(model, kin, x, obs, centres, camera, w, frames, near)
             new = new / reference_level
             ok = (new <= st.accept_level) & (new * st.min_gain <= level[frames])
             for f, xj, lv in zip(np.asarray(frames)[ok], joints[ok], new[ok], strict=True):
@@ -259,7 +241,7 @@ def recover_frames(
     if st.reference_starts > 0:
         left = np.flatnonzero(finite & ~keep & (level > st.fail_level))
         anchors = np.flatnonzero(finite & keep)
-        near = _reference_starts(model, x, obs, positions, camera, w, left, anchors, seg, st)
+        near = _reference_starts(model, x, obs, centres, camera, w, left, anchors, seg, st)
         if attempt(near):
             neighbour_passes()
     return RecoveryResult(x, np.asarray(sorted(recovered), dtype=np.int64), tried, before, level)

@@ -362,46 +362,6 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
             np.testing.assert_array_equal(a, b)
 
 
-def test_propagation_starts_the_parent_where_the_frames_points_are_when_its_crop_slid():
-    """The frame's crop centre slid 45 mm (along a forearm) while the fist moved 4 mm, and its
-    flowed pose is wrong (turned 90 degrees about the viewing axis). The parent's pose moved by
-    the crop centres starts 45 mm off; moved by the medians of the observed points
-    (``points_s``, :func:`handmodel.moved_starts`) it starts on the hand, and the fit recovers
-    the frame. Without the parent's points (None) only the first start exists and the fit stays
-    off."""
-    from handanno_core import propagate as prop
-    from handanno_core.hands import bone_table
-
-    rng = np.random.default_rng(0)
-    x = _pose("fist")
-    model = _model(x)
-    truth = x + [4.0, 0.0, 0.0]
-    c0, c1 = x.mean(axis=0), truth.mean(axis=0) + [0.0, 45.0, 0.0]
-    crops = np.stack(
-        [_noisy_crop(_render(model, x), c0, rng), _noisy_crop(_render(model, truth), c1, rng)]
-    )
-    boxes = np.stack([crop_boxes(c, CAM) for c in (c0, c1)])
-    centres = np.stack([c0, c1])
-    level = hm.reference_level(model, x[None], hm.observe(crops[:1], boxes[:1], c0[None], CAM), CAM)
-    ctx = prop._Context(
-        None, 0, crops.shape, "float32", boxes, centres, None, CAM, MSRA21,
-        bone_table(model.bone_lengths_mm, 2, 20), "dis", {}, prop.PropagationSettings(),
-        crops_array=crops, hand_models=[model], model_levels=np.array([level]),
-    )  # fmt: skip
-    c = truth.mean(axis=0)
-    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees
-    flowed = (truth - c) @ turn.T + c
-
-    def fit(points_s):
-        item = prop._ModelInput(0, 1, flowed, x, CAM.project(flowed), np.zeros(21), crops[1],
-                                None, points_s)  # fmt: skip
-        out = prop._model_fits(ctx, [item])[0][0]
-        return np.linalg.norm(out - truth, axis=-1).mean()
-
-    assert fit(None) > 10.0
-    assert fit(ctx.point_medians(np.array([0]))[0]) < 3.0
-
-
 def test_model_guesses_fit_unplaced_joints_to_the_frames_points():
     """The interactive annotator's refit with the hand model: the frame shows the hand bent 15
     degrees at every joint away from the guessed pose; with the wrist and the five fingertips

@@ -15,10 +15,9 @@ is wrong. The estimate, best first:
    adopted: README, "pre-filled references");
    With ``hand_model`` the propagation ends with the hand model personalized from the lifted
    references fitted to the frame's own depth (:func:`reference_hand_model`,
-   :func:`session_hand_model`; the app and the bench's annotator use it once one reference is
+   :func:`session_hand_model`; the app and the bench's annotator use it once two references are
    lifted: on the suite's tune part with the interactive annotator it lowered the joints moved
-   per reference from 12.0 to 11.0, README "Fourth round", with two references; from one, 6.30
-   -> 6.09 at stop 34);
+   per reference from 12.0 to 11.0, README "Fourth round");
 3. without hand crops on disk (the app never computes them on the UI thread): that neighbour's
    joints moved by the difference of the two hand centres (no translation without crop metadata).
 
@@ -48,8 +47,7 @@ __all__ = [
 #: result arrays a frame's own estimate is read from, best first
 STAGES = ("final_mm", "init_mm", "lifted_mm")
 #: lifted references needed before pre-fills are fitted with the hand model personalized from them
-#: (one: its bones and radii already beat the flow alone on the second reference)
-MODEL_MIN_REFERENCES = 1
+MODEL_MIN_REFERENCES = 2
 #: :func:`session_hand_model` personalizes from at most this many lifted references, the nearest
 #: in time to the frame (bounds its cost in long sessions; the bench's sequences have <= 18)
 MODEL_MAX_REFERENCES = 32

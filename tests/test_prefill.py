@@ -137,7 +137,7 @@ def test_hand_model_snaps_the_prefill_to_the_frames_depth(session):
     np.testing.assert_allclose(session.skeleton.bone_lengths(snapped), bones, rtol=0.02)
 
 
-def test_session_hand_model_needs_a_lifted_reference_and_bones(session):
+def test_session_hand_model_needs_two_lifted_references_and_bones(session):
     from handanno_core import handmodel as hm
     from handanno_core.pipeline import ensure_crops
     from handanno_core.prefill import session_hand_model
@@ -149,8 +149,5 @@ def test_session_hand_model_needs_a_lifted_reference_and_bones(session):
     model = session_hand_model(session, 26, results)
     assert isinstance(model, hm.HandModel)
     np.testing.assert_allclose(model.bone_lengths_mm, session.model.bone_lengths_mm)
-    results["lifted_mm"][refs[1:]] = np.nan  # one lifted reference: its model
-    one = session_hand_model(session, 26, results)
-    assert isinstance(one, hm.HandModel)
-    results["lifted_mm"][refs[0]] = np.nan  # none lifted: flow only
+    results["lifted_mm"][refs[1:]] = np.nan  # one lifted reference: flow only
     assert session_hand_model(session, 26, results) is False

@@ -173,7 +173,13 @@ def machine_description() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    # the numeric libraries' versions: a fresh install of the same commit can render the suite
+    # and compute the flow differently, so figures compare only within one set of versions
+    import cv2
+    import scipy
+
+    libs = f"numpy {np.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}"
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {libs}"
 
 
 def run_bench(

@@ -151,3 +151,45 @@ def test_session_hand_model_needs_two_lifted_references_and_bones(session):
     np.testing.assert_allclose(model.bone_lengths_mm, session.model.bone_lengths_mm)
     results["lifted_mm"][refs[1:]] = np.nan  # one lifted reference: flow only
     assert session_hand_model(session, 26, results) is False
+
+
+def test_the_first_reference_is_refitted_with_the_template_model(session):
+    from handanno_core import handmodel as hm
+    from handanno_core.pipeline import ensure_crops
+    from handanno_core.pose_prior import pose_prior
+    from handanno_core.prefill import TEMPLATE_MODEL_BELOW, guess_model
+
+    results = session.load_results()
+    results["lifted_mm"][:] = np.nan  # nothing lifted yet: the session's first reference
+    assert guess_model(session, 10, results) == {}  # no crop cache: plain refits
+    ensure_crops(session, quiet=True)
+    got = guess_model(session, 10, results)
+    model, obs = got["hand_model"], got["observation"]
+    assert isinstance(model, hm.HandModel) and obs.points.shape[0] == 1
+    np.testing.assert_allclose(model.bone_lengths_mm, session.model.bone_lengths_mm)
+    assert model.pose_prior is pose_prior(session.skeleton)  # as learned: no references yet
+    assert np.all(np.isnan(model.palm_dist_mm))  # no palm shape measured yet
+    # the simulated annotator on the template hand: the model's refits after each click fit the
+    # unplaced joints to the frame's points, so fewer guesses are left more than 4 px off
+    from handanno_core.review_loop import _template_guess, interactive_fix
+
+    seq = session.open_sequence()
+    gt, s = seq.ground_truth.joints_mm, session.model.settings
+    clicks = {}
+    for name, extra in (("plain", {}), ("model", got)):
+        _, clicks[name], _ = interactive_fix(
+            _template_guess(session, 10),
+            gt[10],
+            seq.depth(10),
+            seq.camera,
+            session.skeleton,
+            np.asarray(session.model.bone_lengths_mm),
+            eps_mm=s.eps_mm,
+            angle_limits=s.angle_limits,
+            **extra,
+        )
+    assert clicks["model"] < clicks["plain"], clicks
+    refs = session.reference_frames
+    results["lifted_mm"][refs[0]] = session.load_results()["lifted_mm"][refs[0]]
+    assert TEMPLATE_MODEL_BELOW == 1  # one lifted reference: neither model (flow only)
+    assert guess_model(session, 10, results) == {}

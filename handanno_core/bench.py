@@ -173,12 +173,17 @@ def machine_description() -> str:
                 break
     except OSError:
         pass
-    # the numeric libraries' versions: a fresh install of the same commit can render the suite
-    # and compute the flow differently, so figures compare only within one set of versions
+    # the numeric libraries' versions and the BLAS kernels picked for this CPU: the same commit
+    # under other versions or on another CPU rounds differently, and the recorded fast sequences
+    # amplify that, so figures compare only within one such line
     import cv2
     import scipy
 
+    from .blas import blas_description
+
     libs = f"numpy {np.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}"
+    blas = blas_description()
+    libs += f", {blas}" if blas else ""
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {libs}"
 
 

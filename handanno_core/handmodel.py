@@ -1499,16 +1499,6 @@ def personalize(
     return replace(model, radii=estimate_radii(model, x, obs))
 
 
-def template_model(skeleton: Skeleton, bone_lengths_mm: np.ndarray) -> HandModel:
-    """The hand model before any reference is lifted: ``bone_lengths_mm`` (B,) mm (the
-    skeleton's template or the session's estimate), the default radii of :func:`build_model`, no
-    palm term, and the pose prior of the skeleton's layout as learned (if packaged), not yet the
-    session's own. What the first reference's guesses are fitted with."""
-    model = build_model(skeleton, np.asarray(bone_lengths_mm, dtype=np.float64))
-    learned = packaged_pose_prior(skeleton)
-    return model if learned is None else replace(model, pose_prior=learned)
-
-
 def personalize_from_crops(
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray,

@@ -37,7 +37,6 @@ __all__ = [
     "known_joints",
     "prefill_reference",
     "prefill_uv",
-    "first_hand_model",
     "frame_observation",
     "guess_model",
     "reference_hand_model",
@@ -49,9 +48,6 @@ __all__ = [
 STAGES = ("final_mm", "init_mm", "lifted_mm")
 #: lifted references needed before pre-fills are fitted with the hand model personalized from them
 MODEL_MIN_REFERENCES = 2
-#: with fewer lifted references than this, the refits of a frame's guesses after each click fit
-#: the unplaced joints with the template hand model (:func:`first_hand_model`) instead of none
-TEMPLATE_MODEL_BELOW = 1
 #: :func:`session_hand_model` personalizes from at most this many lifted references, the nearest
 #: in time to the frame (bounds its cost in long sessions; the bench's sequences have <= 18)
 MODEL_MAX_REFERENCES = 32
@@ -244,29 +240,6 @@ def session_hand_model(session: Session, frame: int, results: dict[str, np.ndarr
     return reference_hand_model(session, lifted, refs, np.asarray(bones, dtype=np.float64)) or False
 
 
-def first_hand_model(session: Session, frame: int, results: dict[str, np.ndarray]):
-    """The hand model a frame's guesses are refitted with while the session has fewer than
-    :data:`TEMPLATE_MODEL_BELOW` lifted references (:func:`session_hand_model` has none then):
-    :func:`handanno_core.handmodel.template_model` with the bones of ``frame``'s hand, else the
-    skeleton's template bones. False with enough lifted references, without the crop cache, or for
-    a layout the model does not describe."""
-    from . import handmodel as hm
-
-    skeleton = session.skeleton
-    lifted = np.asarray(results["lifted_mm"], dtype=np.float64)
-    refs = [int(f) for f in session.reference_frames if np.all(np.isfinite(lifted[f]))]
-    if len(refs) >= TEMPLATE_MODEL_BELOW or not skeleton.has_finger_segments:
-        return False
-    if cached_crops(session) is None:
-        return False
-    bones = session.bone_lengths_of(int(frame))
-    if bones is None:
-        bones = skeleton.template_bone_lengths_mm
-    if bones is None:
-        return False
-    return hm.template_model(skeleton, np.asarray(bones, dtype=np.float64))
-
-
 def frame_observation(session: Session, frame: int):
     """``frame``'s :class:`handanno_core.handmodel.FrameObservations` (its hand points) from the
     session's crop cache; None without it."""
@@ -289,11 +262,10 @@ def frame_observation(session: Session, frame: int):
 def guess_model(session: Session, frame: int, results: dict[str, np.ndarray] | None = None):
     """``{"hand_model", "observation"}`` for :func:`handanno_core.guesses.refit_guesses` of
     ``frame`` (the refit then fits the unplaced joints to the frame's points): the model of
-    :func:`session_hand_model` (before enough references are lifted, of
-    :func:`first_hand_model`) and :func:`frame_observation`; ``{}`` where either is missing."""
+    :func:`session_hand_model` and :func:`frame_observation`; ``{}`` where either is missing."""
     if results is None:
         results = session.load_results()
-    model = session_hand_model(session, frame, results) or first_hand_model(session, frame, results)
+    model = session_hand_model(session, frame, results)
     obs = frame_observation(session, frame) if model else None
     return {} if obs is None else {"hand_model": model, "observation": obs}
 

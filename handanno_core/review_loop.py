@@ -19,8 +19,7 @@ app would, from ground truth (2D positions, visibility and depth order only):
   annotated so far are lifted with their bone lengths estimated (as the app's "Lift all"), so the
   next one is pre-filled from them and refitted with those bones (and, from the second lifted
   reference on, with the hand model personalized from them); a frame with nothing to pre-fill
-  from opens with the template hand at its hand centre, as in the app, and its refits fit the
-  unplaced joints with the template hand model (:func:`handanno_core.prefill.first_hand_model`).
+  from opens with the template hand at its hand centre, as in the app.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
   before; each is fixed as above and becomes a reference (a correction, whether or not it needed
@@ -42,8 +41,7 @@ import numpy as np
 
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
-from .handmodel import template_model
-from .prefill import MODEL_MIN_REFERENCES, TEMPLATE_MODEL_BELOW
+from .prefill import MODEL_MIN_REFERENCES
 from .session import Batch, Session, SetFrameAnnotation, SetReference
 
 __all__ = [
@@ -321,9 +319,6 @@ def annotate_prefilled(
         if hand_model and bones is not None and lifted.size >= MODEL_MIN_REFERENCES:
             model = reference_hand_model(session, scratch["lifted_mm"], lifted, bones) or False
         guess = prefill_reference(session, f, scratch, descriptors=descriptors, hand_model=model)
-        refit_model = model
-        if not model and hand_model and bones is not None and lifted.size < TEMPLATE_MODEL_BELOW:
-            refit_model = template_model(skeleton, np.asarray(bones, dtype=np.float64))
         if annotations:
             gaps[f] = int(min(abs(f - g) for g in annotations))
         elif guess is None:
@@ -354,7 +349,7 @@ def annotate_prefilled(
                 click_px=click_px,
                 refit_s=refit_s,
                 guess_weights=guess_weights,
-                **_model_refit_inputs(session, f, refit_model if model_refit else False),
+                **_model_refit_inputs(session, f, model if model_refit else False),
             )
             prefilled += [] if f in templates else [f]
         annotations[f] = ann

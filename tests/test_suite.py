@@ -263,6 +263,19 @@ def test_summary_is_mean_of_means_and_worst_max():
     assert "forest" in bench.format_summary({"datasets": docs, "summary": [row], "frames": 9})
 
 
+def test_machine_line_names_the_libraries_and_blas_kernels():
+    # two installs (or CPUs) of one commit round differently: the line must tell them apart
+    import scipy
+    from threadpoolctl import threadpool_info
+
+    line = bench.machine_description()
+    assert f"numpy {np.__version__}" in line and f"scipy {scipy.__version__}" in line
+    for info in threadpool_info():
+        if info["user_api"] == "blas" and info.get("architecture"):
+            assert f"{info['version']} {info['architecture']}" in line
+    assert len(line.split(", ")) == len(set(line.split(", ")))
+
+
 def test_single_dataset_keeps_todays_json(monkeypatch, tmp_path):
     calls = []
 

@@ -12,21 +12,12 @@ from threadpoolctl import ThreadpoolController, threadpool_info, threadpool_limi
 _CONTROLLER: ThreadpoolController | None = None
 
 
-def _controller() -> ThreadpoolController:
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        import scipy.linalg  # noqa: F401  (loads scipy's BLAS)
-
-        _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER
-
-
 def blas_description() -> str:
     """The loaded BLAS libraries with the CPU kernels they picked, e.g. ``"openblas 0.3.31
     SkylakeX"``, comma-separated and deduplicated; "" when none is found. OpenBLAS picks its
     kernels per CPU at run time, so one install on two machines can round differently."""
     seen = []
-    for info in threadpool_info():  # a fresh scan: libraries loaded since the controller count
+    for info in threadpool_info():  # a fresh scan, not the controller's: cv2 loads its own later
         if info.get("user_api") != "blas":
             continue
         text = " ".join(
@@ -45,4 +36,9 @@ def single_blas_thread() -> threadpool_limits:
     with one call per SLSQP solve); scipy.linalg is imported first so that both numpy's and
     scipy's BLAS are loaded when they are found.
     """
-    return _controller().limit(limits=1, user_api="blas")
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        import scipy.linalg  # noqa: F401  (loads scipy's BLAS)
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=1, user_api="blas")

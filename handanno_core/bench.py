@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from . import pipeline
+from .blas import blas_description
 from .evaluate import error_summary
 from .session import CROPS_FILE, CROPS_META_FILE, Session
 
@@ -178,8 +179,6 @@ def machine_description() -> str:
     # amplify that, so figures compare only within one such line
     import cv2
     import scipy
-
-    from .blas import blas_description
 
     libs = f"numpy {np.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}"
     blas = blas_description()

@@ -6,7 +6,10 @@ Per joint ``k`` of a J-joint skeleton:
 * ``visible[k]``: True if the joint is seen on the depth surface, False if occluded;
 * ``depth_order[k]``: relative depth to the parent joint: ``+1`` farther from the camera than the
   parent, ``-1`` closer, ``0`` unknown or about equal (always 0 at the root);
-* ``xyz_mm[k]``: optional 3D position in mm placed directly on the point cloud; NaN where not given.
+* ``xyz_mm[k]``: optional 3D position in mm placed directly on the point cloud; NaN where not given;
+* ``accepted[k]``: True where the 2D position is a guess the annotator accepted without moving it
+  (the app's "accept guesses"), False where they clicked or dragged it; the lift weighs an
+  accepted position below a click (:data:`handanno_core.lift.ACCEPTED_UV_WEIGHT`).
 
 A joint with neither 2D nor 3D is "unannotated": lifting still places it by the constraints and flags
 it as low confidence.
@@ -14,7 +17,7 @@ it as low confidence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +32,11 @@ class FrameAnnotation:
     visible: np.ndarray  # (J,) bool
     depth_order: np.ndarray  # (J,) int8 in {-1, 0, +1}
     xyz_mm: np.ndarray  # (J, 3) float64, NaN = not placed in 3D
+    accepted: np.ndarray = field(default=None)  # type: ignore[assignment]  # (J,) bool
+
+    def __post_init__(self) -> None:
+        if self.accepted is None:
+            self.accepted = np.zeros(np.shape(self.uv_px)[0], dtype=bool)
 
     @classmethod
     def empty(cls, num_joints: int) -> FrameAnnotation:
@@ -64,6 +72,7 @@ class FrameAnnotation:
             "visible": (num_joints,),
             "depth_order": (num_joints,),
             "xyz_mm": (num_joints, 3),
+            "accepted": (num_joints,),
         }
         for name, shape in expected.items():
             value = np.asarray(getattr(self, name))
@@ -87,24 +96,34 @@ class FrameAnnotation:
         self.xyz_mm = np.asarray(self.xyz_mm, dtype=np.float64)
         self.visible = np.asarray(self.visible, dtype=bool)
         self.depth_order = np.asarray(self.depth_order, dtype=np.int8)
+        # an accepted guess is a 2D position: the flag means nothing where there is none
+        self.accepted = np.asarray(self.accepted, dtype=bool) & self.has_2d
         return self
 
     def copy(self) -> FrameAnnotation:
         return FrameAnnotation(
-            self.uv_px.copy(), self.visible.copy(), self.depth_order.copy(), self.xyz_mm.copy()
+            self.uv_px.copy(),
+            self.visible.copy(),
+            self.depth_order.copy(),
+            self.xyz_mm.copy(),
+            self.accepted.copy(),
         )
 
-    # JSON: lists with None for NaN, so session.json stays valid JSON.
+    # JSON: lists with None for NaN, so session.json stays valid JSON; "accepted" only where some
+    # joint is an accepted guess (annotations written before the flag read as all clicked).
     def to_json(self) -> dict:
         def rows(a: np.ndarray) -> list:
             return [None if np.isnan(r).any() else [round(float(x), 4) for x in r] for r in a]
 
-        return {
+        out = {
             "uv_px": rows(self.uv_px),
             "visible": [bool(x) for x in self.visible],
             "depth_order": [int(x) for x in self.depth_order],
             "xyz_mm": rows(self.xyz_mm),
         }
+        if np.any(self.accepted):
+            out["accepted"] = [bool(x) for x in self.accepted]
+        return out
 
     @classmethod
     def from_json(cls, data: dict, num_joints: int, where: str = "annotation") -> FrameAnnotation:
@@ -121,6 +140,9 @@ class FrameAnnotation:
                 visible=np.asarray(data["visible"], dtype=bool),
                 depth_order=np.asarray(data["depth_order"], dtype=np.int8),
                 xyz_mm=arr(data.get("xyz_mm") or [None] * len(data["uv_px"]), 3),
+                accepted=np.asarray(
+                    data.get("accepted") or [False] * len(data["uv_px"]), dtype=bool
+                ),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise AnnotationError(f"{where}: malformed annotation: {exc}") from exc

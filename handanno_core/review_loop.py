@@ -172,6 +172,7 @@ def interactive_fix(
     placed = ann.annotated
     uv = camera.project(shown)
     ann.uv_px[~placed] = uv[~placed]  # "accept guesses"
+    ann.accepted[:] = ~placed & ann.has_2d
     ann.visible[:] = full.visible
     ann.depth_order[:] = full.depth_order
     return ann, len(clicked), clicked

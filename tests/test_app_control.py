@@ -286,10 +286,12 @@ def test_joint_legend_shows_placed_occluded_and_selected():
     ann = FrameAnnotation.empty(3)
     ann.uv_px[0] = (1.0, 2.0)
     ann.visible[1] = False
+    ann.uv_px[2] = (3.0, 4.0)
+    ann.accepted[2] = True
     colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255]], np.uint8)
     html = joint_legend(["wrist", "index_mcp", "index_tip"], colours, ann, selected=2)
     rows = html.split("<tr")[1:]
-    assert "●" in rows[0] and "○" in rows[1] and "○" in rows[2]  # placed / not placed
+    assert "●" in rows[0] and "○" in rows[1] and "◐" in rows[2]  # placed / not / accepted
     assert "occluded" in rows[1] and "opacity" in rows[1] and "occluded" not in rows[0]
     assert "font-weight:bold" in rows[2] and "rgb(0,0,255)" in rows[2]
     assert "I-tip" in rows[2]

@@ -502,6 +502,12 @@ def test_accept_guesses_is_one_undoable_batch(session):
     np.testing.assert_allclose(ann.uv_px[0], [150.0, 130.0])
     np.testing.assert_allclose(ann.uv_px[5], [160.0, 120.0], atol=0.01)
     assert st.joint == 3  # the first joint still to place
+    assert ann.accepted.tolist() == [j not in (0, 3, 4) for j in range(21)]  # the click is not
+    st.place_2d(np.array([158.0, 121.0]), joint=5, advance=False)  # a drag: no longer a guess
+    assert not session.annotation(0).accepted[5]
+    st.undo()
+    ann = session.annotation(0)
+    assert ann.accepted[5] and np.allclose(ann.uv_px[5], [160.0, 120.0], atol=0.01)
     st.undo()  # one step removes every accepted guess, keeps the click
     ann = session.annotation(0)
     assert ann.annotated.tolist() == [True] + [False] * 20

@@ -372,3 +372,23 @@ def test_kill_during_app_refinement_leaves_results_exactly_as_they_were(propagat
     now = Session.open(folder).load_results()
     for key in old:
         np.testing.assert_array_equal(now[key], old[key])
+
+
+def test_entries_written_before_the_accepted_flag_replay_as_clicks(tmp_path):
+    """A ``set_2d`` line checksummed without the ``accepted`` field (journals written before it)
+    still verifies and replays as a click; undoing it leaves another joint's flag alone."""
+    s = make_session(tmp_path / "s")
+    s.execute(SetJoint2D(frame=0, joint=2, uv_px=(40.0, 50.0), accepted=True))
+    session_id = s.model.session_id
+    s.close()
+    old = {"kind": "set_2d", "frame": 0, "joint": 1, "uv_px": [10.0, 20.0]}
+    old_inverse = {"kind": "set_joint", "frame": 0, "joint": 1, "uv_px": None}
+    _append_line(tmp_path / "s", session_id, 2, old, old_inverse)
+    again = Session.open(tmp_path / "s")
+    ann = again.annotation(0)
+    assert ann.uv_px[1].tolist() == [10.0, 20.0]
+    assert ann.accepted.tolist()[:3] == [False, False, True]
+    again.undo()
+    ann = again.annotation(0)
+    assert np.isnan(ann.uv_px[1]).all() and ann.accepted[2]
+    again.close()

@@ -224,6 +224,7 @@ def test_analytic_derivatives_match_finite_differences(frames):
     X, depth, ann = frames[0]
     ann = ann.copy()
     ann.xyz_mm[3] = X[3] + 1.0
+    ann.accepted[[5, 9, 14]] = True  # accepted guesses: their 2D residuals weigh less
     bones = SK.bone_lengths(X)
     x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
     prob = _Problem(
@@ -241,6 +242,7 @@ def test_analytic_derivatives_match_finite_differences(frames):
         w_free=1e-3,
         soft_bones=0.1,
         right_hand=True,
+        w_accepted=0.0625,
     )
     prob = prob.with_start(x0, x0[:, 2], elastic=True)
     x = np.random.default_rng(0).normal(0, 0.5, prob.n_var)
@@ -259,6 +261,27 @@ def test_analytic_derivatives_match_finite_differences(frames):
     )
     np.testing.assert_allclose(prob.eq_jac(x), fd(prob.eq), atol=1e-5)
     np.testing.assert_allclose(prob.ineq_jac(x), fd(prob.ineq), atol=1e-5)
+
+
+def test_accepted_guesses_a_few_px_off_weigh_less_than_clicks():
+    """Six joints per frame 4 px off (guesses accepted as close enough): flagged as accepted,
+    the clicks, depths and bones move them, and the frames lift closer to the truth than with
+    the same positions taken as clicks."""
+    rng = np.random.default_rng(7)
+    err = {True: [], False: []}
+    for i in range(6):
+        X = random_pose(rng)
+        depth = render(X)
+        ann = annotate(X, depth)
+        off = np.random.default_rng(i).choice(np.arange(1, 21), 6, replace=False)
+        angle = np.random.default_rng(i).uniform(0, 2 * np.pi, len(off))
+        ann.uv_px[off] += 4.0 * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        for accepted in (True, False):
+            a = ann.copy()
+            a.accepted[off] = accepted
+            r = lift_frame(a, depth, CAM, SK, SK.bone_lengths(X))
+            err[accepted].append(np.linalg.norm(r.joints_mm - X, axis=1).mean())
+    assert np.mean(err[True]) < 0.95 * np.mean(err[False])
 
 
 def test_missing_joints_and_missing_depth_still_lift(frames):

@@ -189,3 +189,39 @@ def test_selection_that_is_not_a_forest_is_refused_and_the_old_one_kept(
         session.set_selection({"reference_frames": refs, "parent": parent})
     assert session.reference_frames.tolist() == [0, 5]
     assert session.parent.tolist() == [-1, 0, 1, 2, 3, -1, 5, 6, 7, 8]
+
+
+def test_accepted_flag_is_set_cleared_by_a_click_and_restored_by_undo(session):
+    session.execute(SetJoint2D(frame=0, joint=4, uv_px=(100.0, 80.0), accepted=True))
+    assert session.annotation(0).accepted[4]
+    session.execute(SetJoint2D(frame=0, joint=4, uv_px=(103.0, 81.0)))  # the annotator moves it
+    ann = session.annotation(0)
+    assert not ann.accepted[4] and ann.uv_px[4].tolist() == [103.0, 81.0]
+    session.undo()  # back to the accepted guess, flag and all
+    ann = session.annotation(0)
+    assert ann.accepted[4] and ann.uv_px[4].tolist() == [100.0, 80.0]
+    session.execute(SetJoint3D(frame=0, joint=4, xyz_mm=(10.0, 5.0, 400.0)))  # placed by hand
+    assert not session.annotation(0).accepted[4]
+    session.undo()
+    session.execute(SetJoint2D(frame=0, joint=4, uv_px=None))  # cleared: no flag without 2D
+    assert not session.annotation(0).accepted.any()
+    session.undo()
+    again = Session.open(session.folder)  # replayed from the journal
+    assert again.annotation(0).accepted.tolist() == [k == 4 for k in range(21)]
+
+
+def test_annotation_json_keeps_the_accepted_flag_and_reads_old_json_as_clicks():
+    from handanno_core.annotation import AnnotationError, FrameAnnotation
+
+    ann = FrameAnnotation.empty(21)
+    ann.uv_px[:3] = [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]
+    assert "accepted" not in ann.to_json()  # nothing accepted: the JSON written before the flag
+    ann.accepted[[1, 7]] = True  # joint 7 has no 2D: the flag means nothing there
+    data = ann.to_json()
+    back = FrameAnnotation.from_json(data, 21)
+    assert back.accepted.tolist() == [k == 1 for k in range(21)]
+    assert back.copy().accepted.tolist() == back.accepted.tolist()
+    del data["accepted"]
+    assert not FrameAnnotation.from_json(data, 21).accepted.any()
+    with pytest.raises(AnnotationError, match="accepted has shape"):
+        FrameAnnotation.from_json({**data, "accepted": [True] * 5}, 21)

@@ -131,8 +131,9 @@ class AnnotateState:
 
     def accept_guesses(self, guesses_mm: np.ndarray) -> JournalEntry | None:
         """Place every joint not placed yet at the 2D projection of its guess ``guesses_mm``
-        ``(J, 3)`` mm (NaN rows = no guess; guesses outside the image are skipped): ONE journal
-        entry (a Batch), undone in one step. None if there is nothing to place."""
+        ``(J, 3)`` mm (NaN rows = no guess; guesses outside the image are skipped), flagged as
+        accepted (the lift weighs them below clicks; a later click or drag clears the flag): ONE
+        journal entry (a Batch), undone in one step. None if there is nothing to place."""
         cam = self.session.camera
         ann = self.annotation()
         guesses = np.asarray(guesses_mm, dtype=np.float64)
@@ -147,6 +148,7 @@ class AnnotateState:
                 frame=self.frame,
                 joint=int(j),
                 uv_px=(round(float(uv[j, 0]), 2), round(float(uv[j, 1]), 2)),
+                accepted=True,
             ).model_dump()
             for j in np.flatnonzero(ok)
         ]

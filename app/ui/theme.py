@@ -73,13 +73,14 @@ def load_help_markdown() -> str:
 
 def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selected: int) -> str:
     """HTML legend of the joints: each joint's colour (as drawn), its label and full name, and
-    whether it is placed (● placed, ○ not yet), occluded (greyed, "occluded") or selected (bold)."""
+    whether it is placed (● placed, ◐ an accepted guess, ○ not yet), occluded (greyed, "occluded")
+    or selected (bold)."""
     rows = []
     for k, name in enumerate(names):
         r, g, b = (int(c) for c in colours[k])
         placed = bool(annotation.annotated[k])
         occluded = not bool(annotation.visible[k])
-        mark = "●" if placed else "○"
+        mark = ("◐" if annotation.accepted[k] else "●") if placed else "○"
         style = "opacity:0.45;" if occluded else ""
         weight = "font-weight:bold;" if k == selected else ""
         note = " occluded" if occluded else ""
@@ -90,8 +91,9 @@ def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selecte
     return (
         '<table class="handanno-legend" style="font-size:0.8em">'
         + "".join(rows)
-        + "</table><div style='font-size:0.75em'>● placed · ○ not placed (drawn as a small faded "
-        "guess) · faded row / grey sphere: occluded · bold: selected</div>"
+        + "</table><div style='font-size:0.75em'>● placed · ◐ accepted guess (a drag places it "
+        "yourself; the lift trusts it less) · ○ not placed (drawn as a small faded guess) · "
+        "faded row / grey sphere: occluded · bold: selected</div>"
     )
 
 

@@ -2,7 +2,7 @@
 
 For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jacobians,
 
-    min_X  1/2 sum_k |pi(X_k) - uv_k|^2                       (px^2, joints with 2D)
+    min_X  1/2 sum_k a_k |pi(X_k) - uv_k|^2                   (px^2, joints with 2D)
          + 1/2 w_3d   sum_k |X_k - xyz_k|^2                    (px^2/mm^2 * mm^2, joints placed in 3D)
          + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
          + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
@@ -13,6 +13,13 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
            D_k + o_k <= z_k <= D_k + o_k + eps                 (visible joints with valid depth; bounds)
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
+
+``a_k`` is 1 for a clicked or dragged joint and :data:`ACCEPTED_UV_WEIGHT` for a guess the
+annotator accepted without moving it (``FrameAnnotation.accepted``): the app shows a guess as
+right when it lies within about 4 px (``review_loop.CLICK_PX``) of where the annotator would
+click, while a click lands about 1 px from it, so an accepted position is about 4 times as
+uncertain, ``a = (1/4)^2``; the lift then lets the clicks, depths and bones move it (on the
+suite's tune part 1/16 cost fewer clicks per pre-filled reference than 1/4 or 1, HISTORY.md).
 
 ``D_k`` is the observed depth at the joint's 2D position (the median of the front surface in the
 3x3 block: its pixels within 10 mm of the closest one; the nearest valid pixel in a small window
@@ -137,9 +144,10 @@ the template could only be fitted to its clicks by stretching it.
 from ..annotation import AnnotationError
 from .initial import initial_bone_lengths, initial_pose, observed_depth
 from .references import LiftSet, lift_references, surface_correction
-from .solve import LiftResult, WarmStart, lift_frame
+from .solve import ACCEPTED_UV_WEIGHT, LiftResult, WarmStart, lift_frame
 
 __all__ = [
+    "ACCEPTED_UV_WEIGHT",
     "LiftResult",
     "LiftSet",
     "WarmStart",

@@ -86,6 +86,7 @@ class _Problem(_AngleRows):
         w_angle_inner: float = 0.0,
         pose_prior: PosePrior | None = None,
         w_pose: float = 0.0,
+        w_accepted: float = 1.0,
     ):
         self.cam = camera
         self.j = skeleton.num_joints
@@ -96,6 +97,9 @@ class _Problem(_AngleRows):
         ann = annotation
         self.has2d = ann.has_2d
         self.uv = np.where(self.has2d[:, None], ann.uv_px, 0.0)
+        #: (J,) weight of each joint's 2D residual: 1 for a click, ``w_accepted`` for an accepted
+        #: guess
+        self.w_uv = np.where(ann.accepted, w_accepted, 1.0)
         self.has3d = ann.has_3d
         self.xyz = np.where(self.has3d[:, None], ann.xyz_mm, 0.0)
         self.w_3d = w_3d
@@ -280,9 +284,11 @@ class _Problem(_AngleRows):
             z = np.maximum(Xm[:, 2], 1e-3)
             u = self.cam.fx * Xm[:, 0] / z + self.cam.cx
             v = self.cam.fy * Xm[:, 1] / z + self.cam.cy
+            w = self.w_uv[m]
             ru = u - self.uv[m, 0]
             rv = v - self.uv[m, 1]
-            f += 0.5 * float(np.sum(ru**2 + rv**2))
+            f += 0.5 * float(np.sum(w * (ru**2 + rv**2)))
+            ru, rv = w * ru, w * rv
             gx = ru * self.cam.fx / z
             gy = rv * self.cam.fy / z
             gz = -(ru * (u - self.cam.cx) + rv * (v - self.cam.cy)) / z

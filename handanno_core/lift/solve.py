@@ -23,6 +23,10 @@ from .surface import inclined_joints, inclined_surface_extra_mm, inclined_tips
 #: weight (px^2) of the pose prior's energy in ``lift_references``, chosen on the suite's tune part
 W_POSE = 0.3
 
+#: 2D weight of an accepted guess relative to a click: (1 px click / 4 px accept tolerance)^2
+#: (the package docstring; 1/16 chosen over 1/4 and 1 on the suite's tune part)
+ACCEPTED_UV_WEIGHT = 1.0 / 16.0
+
 
 # ---------------------------------------------------------------------------------------- results
 @dataclass
@@ -151,6 +155,7 @@ def lift_frame(
     drop_slack_depths: bool = True,
     incline_hidden: bool = True,
     depth_front_band_mm: float | None = 10.0,
+    accepted_uv_weight: float = ACCEPTED_UV_WEIGHT,
 ) -> LiftResult:
     """Lift one annotated frame to 3D (see the module docstring for the problem).
 
@@ -165,6 +170,8 @@ def lift_frame(
     default the packaged one of the layout). Default 0: one frame alone has no session to make the
     prior its own, and the learned prior pulls another person's hand towards the recorded one's
     (the app's pre-fill got worse with it); :func:`lift_references` uses :data:`W_POSE`.
+    accepted_uv_weight: the 2D weight of joints whose guess was accepted (``annotation.accepted``)
+    relative to clicked ones (:data:`ACCEPTED_UV_WEIGHT`).
     soft_bones: if given, bones are a penalty of this weight (px^2/mm^2) instead of equalities
     (used for bone-length estimation). warm: how the app's live re-lift starts (:class:`WarmStart`);
     ``init_mm``, ``start_elastic`` and ``elastic_joints`` are shorthands for its fields.
@@ -220,6 +227,7 @@ def lift_frame(
         w_free=_W_FREE,
         soft_bones=soft_bones,
         right_hand=right_hand,
+        w_accepted=accepted_uv_weight,
     )
     hard_bones = soft_bones is None
     moving = inclined_joints(skeleton) | (inclined_tips(skeleton) if incline_tips else False)

@@ -86,6 +86,7 @@ class _JointEdit(_Command):
             "xyz_mm": None if np.isnan(ann.xyz_mm[k]).any() else tuple(ann.xyz_mm[k]),
             "visible": bool(ann.visible[k]),
             "order": int(ann.depth_order[k]),
+            "accepted": bool(ann.accepted[k]),
         }
 
     #: the joint fields this edit changes; its inverse restores exactly these (per joint, per
@@ -105,6 +106,7 @@ class _JointEdit(_Command):
             xyz_mm=keep.get("xyz_mm", _UNCHANGED),
             visible=keep.get("visible"),
             order=keep.get("order"),
+            accepted=keep.get("accepted"),
         )
 
 
@@ -115,8 +117,9 @@ _UNCHANGED = "unchanged"
 class SetJointState(_JointEdit):
     """Set several fields of one joint at once (the inverse of every single-joint edit).
 
-    ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``:
-    a value or ``None`` (unchanged). Entries written before the journal had checksums set all four.
+    ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``/
+    ``accepted``: a value or ``None`` (unchanged). Entries written before the journal had checksums
+    set the first four; entries written before the ``accepted`` flag leave it unchanged.
     """
 
     kind: Literal["set_joint"] = "set_joint"
@@ -124,10 +127,12 @@ class SetJointState(_JointEdit):
     xyz_mm: tuple[float, float, float] | None | Literal["unchanged"] = _UNCHANGED
     visible: bool | None = None
     order: Literal[-1, 0, 1] | None = None
+    accepted: bool | None = None
 
     def changed_fields(self) -> tuple[str, ...]:
         out = [f for f in ("uv_px", "xyz_mm") if getattr(self, f) != _UNCHANGED]
-        return (*out, *(f for f in ("visible", "order") if getattr(self, f) is not None))
+        kept = ("visible", "order", "accepted")
+        return (*out, *(f for f in kept if getattr(self, f) is not None))
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -147,15 +152,22 @@ class SetJointState(_JointEdit):
             ann.visible[k] = self.visible
         if self.order is not None:
             ann.depth_order[k] = self.order
+        if self.accepted is not None:
+            ann.accepted[k] = self.accepted
         self._store(session, ann)
 
 
 class SetJoint2D(_JointEdit):
-    """Set (or clear, with ``None``) one joint's 2D position in image pixels."""
+    """Set (or clear, with ``None``) one joint's 2D position in image pixels.
+
+    ``accepted``: the position is a guess the annotator accepted without moving it (the app's
+    "accept guesses"); a click or a drag leaves it False. Entries written before the flag are
+    clicks."""
 
     kind: Literal["set_2d"] = "set_2d"
     uv_px: tuple[float, float] | None
-    fields: ClassVar[tuple[str, ...]] = ("uv_px",)
+    accepted: bool = False
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "accepted")
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -165,6 +177,7 @@ class SetJoint2D(_JointEdit):
     def apply(self, session: Session) -> None:
         ann = self._annotation(session)
         ann.uv_px[self.joint] = np.nan if self.uv_px is None else self.uv_px
+        ann.accepted[self.joint] = self.accepted and self.uv_px is not None
         self._store(session, ann)
 
 
@@ -173,7 +186,7 @@ class SetJoint3D(_JointEdit):
 
     kind: Literal["set_3d"] = "set_3d"
     xyz_mm: tuple[float, float, float] | None
-    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm")
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm", "accepted")
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -189,6 +202,7 @@ class SetJoint3D(_JointEdit):
         else:
             ann.xyz_mm[self.joint] = self.xyz_mm
             ann.uv_px[self.joint] = session.camera.project(np.asarray(self.xyz_mm))
+            ann.accepted[self.joint] = False  # placed by hand
         self._store(session, ann)
 
 

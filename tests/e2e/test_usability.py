@@ -504,6 +504,7 @@ def test_accept_guesses_places_the_prefill_in_one_undoable_edit(ctx: Ctx):
     cmds = entries[0]["command"]["commands"]
     assert [c["joint"] for c in cmds] == list(range(21))
     assert all(c["kind"] == "set_2d" and c["frame"] == frame for c in cmds)
+    assert all(c["accepted"] for c in cmds)  # journaled as guesses, not clicks
     assert np.allclose([c["uv_px"] for c in cmds], expected_uv, atol=0.01)
     wait_until(lambda: app.session.is_annotated(frame), what="the frame annotated")
     page.keyboard.press("Control+z")

@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import pipeline
+from handanno_core.bench import run_session
 from handanno_core.evaluate import error_summary
 from handanno_core.guesses import GuessWeights
 from handanno_core.review_loop import annotate_prefilled
-from handanno_core.session import CROPS_FILE, CROPS_META_FILE, Session
+from handanno_core.session import Session
 
 
 def prefill_options(mode: str, click_px: float) -> dict:
@@ -47,17 +48,9 @@ def prefill_options(mode: str, click_px: float) -> dict:
 
 
 def fresh_copy(src: Session, folder: Path) -> Session:
-    s = Session.create(
-        folder,
-        src.model.dataset,
-        src.num_frames,
-        src.camera,
-        src.model.skeleton,
-        src.model.sequence_breaks,
-        overwrite=True,
-    )
-    for name in (CROPS_FILE, CROPS_META_FILE):
-        (folder / name).symlink_to((src.folder / name).resolve())
+    """A fresh session on ``src``'s dataset with its settings (the crops' cube, grown per
+    sequence), crop cache and selection, and no annotation (:func:`handanno_core.bench.run_session`)."""
+    s = run_session(src, folder)
     sel = src.model.selection.model_dump()
     sel["parent"] = list(src.model.selection.parent)
     s.set_selection(sel)

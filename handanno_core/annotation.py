@@ -17,7 +17,7 @@ it as low confidence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,7 +32,7 @@ class FrameAnnotation:
     visible: np.ndarray  # (J,) bool
     depth_order: np.ndarray  # (J,) int8 in {-1, 0, +1}
     xyz_mm: np.ndarray  # (J, 3) float64, NaN = not placed in 3D
-    accepted: np.ndarray = field(default=None)  # type: ignore[assignment]  # (J,) bool
+    accepted: np.ndarray = None  # type: ignore[assignment]  # (J,) bool; None: all False
 
     def __post_init__(self) -> None:
         if self.accepted is None:

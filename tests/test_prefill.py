@@ -111,6 +111,9 @@ def test_bench_annotator_opens_references_prefilled(session):
         ann = session.annotation(f)
         off = np.linalg.norm(ann.uv_px - session.camera.project(gt[f]), axis=1)
         assert np.all(off <= 4.0 + 1e-9)  # every joint within 4 px: moved, or accepted
+        # the journal says which: the joints not moved are accepted guesses
+        moved = np.isin(np.arange(21), info["click_order"][f])
+        assert ann.accepted.tolist() == (~moved).tolist()
     lines = session.folder.joinpath("journal.jsonl").read_text().splitlines()
     assert len(lines) == entries_before + 1  # one journal entry, one undo step
 

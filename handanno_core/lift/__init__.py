@@ -14,12 +14,13 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
            D_k + o_k <= z_k                                    (occluded joints with valid depth; bounds)
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
 
-``a_k`` is 1 for a clicked or dragged joint and :data:`ACCEPTED_UV_WEIGHT` for a guess the
-annotator accepted without moving it (``FrameAnnotation.accepted``): the app shows a guess as
-right when it lies within about 4 px (``review_loop.CLICK_PX``) of where the annotator would
-click, while a click lands about 1 px from it, so an accepted position is about 4 times as
-uncertain, ``a = (1/4)^2``; the lift then lets the clicks, depths and bones move it (on the
-suite's tune part 1/16 cost fewer clicks per pre-filled reference than 1/4 or 1, HISTORY.md).
+``a_k`` is 1 for a clicked or dragged joint and :data:`ACCEPTED_UV_WEIGHT` (1/4) for a guess
+the annotator accepted without moving it (``FrameAnnotation.accepted``): an accepted guess lies
+anywhere within about 4 px (``review_loop.CLICK_PX``) of where the annotator would click (2.8
+px RMS if spread evenly over that disc), a click about 1.4 px, so an accepted position is about
+twice as uncertain and the clicks, depths and bones may move it further. On the suite's tune
+part 1/4 lifted the pre-filled references closer to the truth than 1 at the same clicks, and
+1/16 further from it (HISTORY.md, stop 37).
 
 ``D_k`` is the observed depth at the joint's 2D position (the median of the front surface in the
 3x3 block: its pixels within 10 mm of the closest one; the nearest valid pixel in a small window

@@ -23,9 +23,9 @@ from .surface import inclined_joints, inclined_surface_extra_mm, inclined_tips
 #: weight (px^2) of the pose prior's energy in ``lift_references``, chosen on the suite's tune part
 W_POSE = 0.3
 
-#: 2D weight of an accepted guess relative to a click: (1 px click / 4 px accept tolerance)^2
-#: (the package docstring; 1/16 chosen over 1/4 and 1 on the suite's tune part)
-ACCEPTED_UV_WEIGHT = 1.0 / 16.0
+#: 2D weight of an accepted guess relative to a click, about (click spread / accepted spread)^2
+#: (the package docstring; 1/4 chosen over 1 and 1/16 on the suite's tune part)
+ACCEPTED_UV_WEIGHT = 1.0 / 4.0
 
 
 # ---------------------------------------------------------------------------------------- results

@@ -6,9 +6,13 @@ in its work folder (``handanno bench SUITE --part P --work-dir WORK ...``: one f
 propagation. The constants are chosen on the suite's tune part and reported on its report part.
 
     handanno suite /tmp/suite --frames-scale 0.5
-    handanno bench /tmp/suite --part tune --ref-fraction 0.05 --strategy forest --work-dir /tmp/w
+    handanno bench /tmp/suite --part tune --ref-fraction 0.05 --strategy uniform --work-dir /tmp/w
     .venv/bin/python benchmarks/bench_refine_temporal.py /tmp/w --json tune.json
 
+Refinement runs as the pipeline runs it: with the hand model where the session has it on
+(``settings.hand_model``, the default). The variants ``scale-*`` weigh the constant-velocity prior
+by the hand's own acceleration (``RefineWeights.acceleration_scale_mm``, the default since stop
+38), ``speed-7`` by the law before it, ``(7 mm / v)²`` on the initialization's median joint step.
 Prints one line per dataset (mean / max mm of the initialization and of every variant) and the
 mean of means; writes the JSON.
 """
@@ -19,6 +23,7 @@ import argparse
 import json
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,11 +34,26 @@ from handanno_core.refine import RefineWeights, refine
 from handanno_core.session import Session
 
 VARIANTS = {
-    "none": RefineWeights(temporal=0.0, acceleration=0.0),
+    "none": RefineWeights(temporal=0.0, acceleration=0.0, acceleration_scale_mm=None),
     "velocity": RefineWeights(temporal=1.0, acceleration=0.0),  # the default until 2026-11
     "acceleration": RefineWeights(),
     "acceleration x3": RefineWeights(acceleration=3.0),
+    "constant": RefineWeights(acceleration_scale_mm=None),
+    "speed-7": "speed",  # (7 mm / v)², the law of stops 28-37; weighted per session below
+    "scale-1.5": RefineWeights(acceleration_scale_mm=1.5),
+    "scale-2": RefineWeights(acceleration_scale_mm=2.0),
+    "scale-3": RefineWeights(acceleration_scale_mm=3.0),
 }
+
+
+def _speed_law(init_mm: np.ndarray, speed_mm: float = 7.0) -> RefineWeights:
+    """Stops 28-37's weighting: ``(speed_mm / v)²`` within the factor range, ``v`` the median
+    joint step of the initialization (sessions without breaks)."""
+    w = RefineWeights(acceleration_scale_mm=None)
+    step = np.linalg.norm(np.diff(init_mm, axis=0), axis=-1)
+    v = max(float(np.nanmedian(step)), 1e-3)
+    factor = float(np.clip((speed_mm / v) ** 2, *w.acceleration_factor_range))
+    return replace(w, acceleration=w.acceleration * factor)
 
 
 def _errors(pred: np.ndarray, gt: np.ndarray) -> list[float]:
@@ -41,16 +61,22 @@ def _errors(pred: np.ndarray, gt: np.ndarray) -> list[float]:
     return [round(float(np.nanmean(e)), 3), round(float(np.nanmax(e)), 2)]
 
 
-def run_session(folder: Path, variants: dict[str, RefineWeights]) -> dict:
+def run_session(folder: Path, variants: dict[str, RefineWeights | str]) -> dict:
     """Initialization and final errors (mean, max mm) of every variant on one bench session."""
     session = Session.open(folder)
     try:
         gt = session.open_sequence().ground_truth.joints_mm
         init, problem = pipeline.refine_inputs(session, quiet=True)
+        model = bool(session.model.settings.hand_model)
         row = {"frames": session.num_frames, "init": _errors(init, gt), "variants": {}}
+        row["hand_model"] = model
         for name, weights in variants.items():
+            if weights == "speed":
+                if session.model.sequence_breaks:
+                    raise ValueError(f"{folder}: the speed law here ignores breaks")
+                weights = _speed_law(init)
             t = time.perf_counter()
-            out = refine(init, weights=weights, **problem)
+            out = refine(init, weights=weights, hand_model=model, **problem)
             row["variants"][name] = {
                 "final": _errors(out.joints_mm, gt),
                 "time_s": round(time.perf_counter() - t, 1),
@@ -63,7 +89,7 @@ def run_session(folder: Path, variants: dict[str, RefineWeights]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path, help="work folder of a suite bench (--work-dir)")
-    ap.add_argument("--run", default="forest-0.05", help="session folder inside each dataset")
+    ap.add_argument("--run", default="uniform-0.05", help="session folder inside each dataset")
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names")
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()

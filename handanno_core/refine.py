@@ -109,10 +109,14 @@ class RefineWeights:
       references towards their average pose and made refinement worse than its initialization;
       chosen on the benchmark suite's tune part (``benchmarks/bench_refine_temporal.py``, figures
       in ``benchmarks/results/refine_temporal_tune.json`` and the README). The weight is
-      multiplied per solve by :func:`acceleration_factor`: ``(acceleration_speed_mm / v)²``
-      (7 mm), within ``acceleration_factor_range`` (0.25-16), ``v`` the initialization's median
-      joint step per frame, so slow motion is smoothed more and fast motion less (chosen on the
-      tune part, stop 28 in the README); ``acceleration_speed_mm=None``: the constant weight.
+      multiplied per solve by :func:`acceleration_factor`: ``(acceleration_scale_mm / a)²``
+      (2 mm per frame²), within ``acceleration_factor_range`` (0.25-16), ``a`` the hand's own
+      median joint acceleration estimated from the initialization
+      (:func:`signal_acceleration`), so a hand that turns sharply is smoothed less and one that
+      moves steadily, fast or slow, more. It replaced (stop 38) a law on the initialization's
+      median speed, which could not tell a fast sharply turning fist from fast steady motion;
+      chosen on the suite's tune part (README); ``acceleration_scale_mm=None``: the constant
+      weight.
     * ``temporal`` (per mm² per joint and consecutive-frame pair, Huber ``temporal_huber_mm``):
       0, the velocity prior, kept for comparison.
     * ``reprojection`` (per px² on the references' annotated 2D): 20, used when the references
@@ -137,7 +141,7 @@ class RefineWeights:
     appearance_visible_only: bool = True
     acceleration: float = 1.0
     acceleration_huber_mm: float = 15.0
-    acceleration_speed_mm: float | None = 7.0
+    acceleration_scale_mm: float | None = 2.0
     acceleration_factor_range: tuple[float, float] = (0.25, 16.0)
     temporal: float = 0.0
     temporal_huber_mm: float = 15.0
@@ -249,25 +253,49 @@ class _Evaluation:
         return sum(self.terms.values())
 
 
+def signal_acceleration(init_mm: np.ndarray, pair_ok: np.ndarray) -> float | None:
+    """The hand's own median joint acceleration (mm per frame²) in ``init_mm`` (N, J, 3) mm,
+    over consecutive frames that do not cross a break (``pair_ok`` (N-1,) bool); None with
+    nothing to measure.
+
+    The initialization is the hand's motion plus the propagation's frame-to-frame jitter. Jitter
+    independent from frame to frame with spread σ has a second difference of variance 6σ² and a
+    third of 20σ²; the hand's motion is smooth, its third difference small against its second.
+    So the jitter's part of the median acceleration ``A`` is ``√(6/20)`` times the median third
+    difference ``D``, and the hand's own is what remains: ``√(max(A² − 0.3 D², 0))``."""
+    x = np.asarray(init_mm, dtype=np.float64)
+    ok = np.asarray(pair_ok, dtype=bool)
+    ok3 = ok[:-1] & ok[1:]
+    ok4 = ok3[:-1] & ok3[1:]
+    if len(x) < 4 or not ok4.any():
+        return None
+    acc = np.linalg.norm(np.diff(x, 2, axis=0), axis=-1)[ok3]
+    third = np.linalg.norm(np.diff(x, 3, axis=0), axis=-1)[ok4]
+    acc, third = acc[np.isfinite(acc)], third[np.isfinite(third)]
+    if not (len(acc) and len(third)):
+        return None
+    a, d = float(np.median(acc)), float(np.median(third))
+    return float(np.sqrt(max(a * a - 0.3 * d * d, 0.0)))
+
+
 def acceleration_factor(init_mm: np.ndarray, pair_ok: np.ndarray, w: RefineWeights) -> float:
     """The factor on ``w.acceleration`` for a sequence whose initialization ``init_mm`` (N, J, 3)
-    mm moves its joints by a median of ``v`` mm per frame (consecutive pairs ``pair_ok`` (N-1,)
-    bool, not across a break): ``(w.acceleration_speed_mm / v)²`` within
-    ``w.acceleration_factor_range``; 1 with ``acceleration_speed_mm`` None or nothing to measure.
+    mm shows the hand accelerating its joints by a median of ``a`` mm per frame²
+    (:func:`signal_acceleration`; consecutive pairs ``pair_ok`` (N-1,) bool, not across a
+    break): ``(w.acceleration_scale_mm / a)²`` within ``w.acceleration_factor_range``; 1 with
+    ``acceleration_scale_mm`` None or nothing to measure.
 
-    A constant-velocity prior's spread should grow with the motion it smooths (for motion of
-    similar frequencies the acceleration scales with the speed): one weight over-smoothed fast
-    motion and under-smoothed slow motion (tune part, README)."""
-    if w.acceleration_speed_mm is None or len(init_mm) < 2:
+    A constant-velocity prior's spread should be the hand's own acceleration: one weight
+    over-smoothed sharply turning motion and under-smoothed steady motion, and the speed alone
+    cannot tell them apart (two tune sequences move 8.6 mm per frame, one turning twice as
+    sharply as the other; README)."""
+    if w.acceleration_scale_mm is None:
         return 1.0
-    step = np.linalg.norm(np.diff(np.asarray(init_mm, dtype=np.float64), axis=0), axis=-1)
-    step = step[np.asarray(pair_ok, dtype=bool)]
-    step = step[np.isfinite(step)]
-    if not len(step):
+    a = signal_acceleration(init_mm, pair_ok)
+    if a is None:
         return 1.0
-    v = max(float(np.median(step)), 1e-3)
     lo, hi = w.acceleration_factor_range
-    return float(np.clip((w.acceleration_speed_mm / v) ** 2, lo, hi))
+    return float(np.clip((w.acceleration_scale_mm / max(a, 1e-3)) ** 2, lo, hi))
 
 
 class _Problem:

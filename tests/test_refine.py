@@ -226,36 +226,46 @@ def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
     assert err(vel.joints_mm) > 5.0 * max(err(acc.joints_mm), 0.5)
 
 
-def test_acceleration_weight_follows_the_sequences_own_speed():
-    """The constant-velocity prior is weighted by the initialization's median joint speed v:
-    (speed / v)² within the range, so slow sequences are smoothed more and fast ones less; a jump
-    across a sequence break is not motion; a static sequence takes the top of the range."""
-    from handanno_core.refine import acceleration_factor
+def test_acceleration_weight_follows_the_hands_own_acceleration():
+    """The constant-velocity prior is weighted by the hand's own median acceleration a, estimated
+    from the initialization with its frame-to-frame jitter taken out: (scale / a)² within the
+    range. Jitter alone, or fast motion at a constant velocity, is smoothed fully (the top of
+    the range); a sharply turning hand less, by its true acceleration whatever the jitter; a
+    jump across a sequence break is not motion."""
+    from handanno_core.refine import acceleration_factor, signal_acceleration
 
     w = RefineWeights()
     lo, hi = w.acceleration_factor_range
     rng = np.random.default_rng(0)
-    n, j = 40, MSRA21.num_joints
-    still = 300.0 + rng.normal(0.0, 0.05, (n, j, 3))
+    n, j = 60, MSRA21.num_joints
+    t = np.arange(n, dtype=np.float64)
     ok = np.ones(n - 1, dtype=bool)
-    assert acceleration_factor(still, ok, w) == hi
-    moving = still + (np.arange(n) * 10.0)[:, None, None] * np.array([1.0, 0.0, 0.0])
-    assert acceleration_factor(moving, ok, w) == pytest.approx(
-        (w.acceleration_speed_mm / 10.0) ** 2, rel=0.02
-    )
-    fast = still + (np.arange(n) * 40.0)[:, None, None] * np.array([1.0, 0.0, 0.0])
-    assert acceleration_factor(fast, ok, w) == lo
-    # two still recordings joined at a break: the jump between them is not counted
-    joined = still.copy()
-    joined[20:] += 200.0
-    assert acceleration_factor(joined, ok, w) == hi
+    along_x = np.array([1.0, 0.0, 0.0])
+    swing = 50.0 * np.sin(0.3 * t)  # true median acceleration ~3.15 mm per frame²
+    true_acc = float(np.median(np.abs(np.diff(swing, 2))))
+    pose = 300.0 + rng.normal(0.0, 20.0, (1, j, 3))
+    for jitter_mm in (0.0, 1.0):
+        still = pose + rng.normal(0.0, jitter_mm, (n, j, 3))
+        assert acceleration_factor(still, ok, w) == hi
+        steady = still + (40.0 * t)[:, None, None] * along_x
+        assert signal_acceleration(steady, ok) < 0.6
+        assert acceleration_factor(steady, ok, w) == hi
+        turning = still + swing[:, None, None] * along_x
+        assert signal_acceleration(turning, ok) == pytest.approx(true_acc, rel=0.2)
+        assert acceleration_factor(turning, ok, w) == pytest.approx(
+            (w.acceleration_scale_mm / signal_acceleration(turning, ok)) ** 2
+        )
+    sharp = pose + (8.0 * swing)[:, None, None] * along_x
+    assert acceleration_factor(sharp, ok, w) == lo
+    # the jump where a second recording starts is not motion: measured only within each
+    jumped = turning.copy()
+    jumped[30:] += 200.0
     cut = ok.copy()
-    cut[19] = False
-    joined[1::2, :, 0] += 5.0  # now 5 mm per frame everywhere but across the break
-    assert acceleration_factor(joined, cut, w) == pytest.approx(
-        (w.acceleration_speed_mm / 5.0) ** 2, rel=0.05
-    )
-    assert acceleration_factor(moving, ok, RefineWeights(acceleration_speed_mm=None)) == 1.0
+    cut[29] = False
+    assert signal_acceleration(jumped, cut) == pytest.approx(signal_acceleration(turning, cut))
+    assert signal_acceleration(jumped, ok) != pytest.approx(signal_acceleration(turning, ok))
+    assert acceleration_factor(turning, ok, RefineWeights(acceleration_scale_mm=None)) == 1.0
+    assert signal_acceleration(pose + np.zeros((3, j, 3)), np.ones(2, dtype=bool)) is None
 
 
 @pytest.mark.parametrize("second", [False, True])

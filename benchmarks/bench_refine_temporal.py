@@ -40,16 +40,20 @@ VARIANTS = {
     "acceleration x3": RefineWeights(acceleration=3.0),
     "constant": RefineWeights(acceleration_scale_mm=None),
     "speed-7": "speed",  # (7 mm / v)², the law of stops 28-37; weighted per session below
-    "scale-1.5": RefineWeights(acceleration_scale_mm=1.5),
-    "scale-2": RefineWeights(acceleration_scale_mm=2.0),
-    "scale-3": RefineWeights(acceleration_scale_mm=3.0),
+    # the acceleration law within stop 28's range 0.25-16, and (the default) within 0.25-64
+    "scale-1.5": RefineWeights(acceleration_scale_mm=1.5, acceleration_factor_range=(0.25, 16.0)),
+    "scale-2": RefineWeights(acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 16.0)),
+    "scale-3": RefineWeights(acceleration_scale_mm=3.0, acceleration_factor_range=(0.25, 16.0)),
+    "scale-2-top-64": RefineWeights(
+        acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 64.0)
+    ),
 }
 
 
 def _speed_law(init_mm: np.ndarray, speed_mm: float = 7.0) -> RefineWeights:
     """Stops 28-37's weighting: ``(speed_mm / v)²`` within the factor range, ``v`` the median
     joint step of the initialization (sessions without breaks)."""
-    w = RefineWeights(acceleration_scale_mm=None)
+    w = RefineWeights(acceleration_scale_mm=None, acceleration_factor_range=(0.25, 16.0))
     step = np.linalg.norm(np.diff(init_mm, axis=0), axis=-1)
     v = max(float(np.nanmedian(step)), 1e-3)
     factor = float(np.clip((speed_mm / v) ** 2, *w.acceleration_factor_range))

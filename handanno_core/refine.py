@@ -110,7 +110,7 @@ class RefineWeights:
       chosen on the benchmark suite's tune part (``benchmarks/bench_refine_temporal.py``, figures
       in ``benchmarks/results/refine_temporal_tune.json`` and the README). The weight is
       multiplied per solve by :func:`acceleration_factor`: ``(acceleration_scale_mm / a)²``
-      (2 mm per frame²), within ``acceleration_factor_range`` (0.25-16), ``a`` the hand's own
+      (2 mm per frame²), within ``acceleration_factor_range`` (0.25-64), ``a`` the hand's own
       median joint acceleration estimated from the initialization
       (:func:`signal_acceleration`), so a hand that turns sharply is smoothed less and one that
       moves steadily, fast or slow, more. It replaced (stop 38) a law on the initialization's
@@ -142,7 +142,7 @@ class RefineWeights:
     acceleration: float = 1.0
     acceleration_huber_mm: float = 15.0
     acceleration_scale_mm: float | None = 2.0
-    acceleration_factor_range: tuple[float, float] = (0.25, 16.0)
+    acceleration_factor_range: tuple[float, float] = (0.25, 64.0)
     temporal: float = 0.0
     temporal_huber_mm: float = 15.0
     reprojection: float = 20.0

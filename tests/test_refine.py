@@ -229,9 +229,9 @@ def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
 def test_acceleration_weight_follows_the_hands_own_acceleration():
     """The constant-velocity prior is weighted by the hand's own median acceleration a, estimated
     from the initialization with its frame-to-frame jitter taken out: (scale / a)² within the
-    range. Jitter alone, or fast motion at a constant velocity, is smoothed fully (the top of
-    the range); a sharply turning hand less, by its true acceleration whatever the jitter; a
-    jump across a sequence break is not motion."""
+    range. Jitter alone, or fast motion at a constant velocity, is smoothed strongly (at the top
+    of the range without jitter); a sharply turning hand less, by its true acceleration whatever
+    the jitter; a jump across a sequence break is not motion."""
     from handanno_core.refine import acceleration_factor, signal_acceleration
 
     w = RefineWeights()
@@ -244,12 +244,15 @@ def test_acceleration_weight_follows_the_hands_own_acceleration():
     swing = 50.0 * np.sin(0.3 * t)  # true median acceleration ~3.15 mm per frame²
     true_acc = float(np.median(np.abs(np.diff(swing, 2))))
     pose = 300.0 + rng.normal(0.0, 20.0, (1, j, 3))
+    assert acceleration_factor(pose + np.zeros((n, j, 3)), ok, w) == hi
     for jitter_mm in (0.0, 1.0):
         still = pose + rng.normal(0.0, jitter_mm, (n, j, 3))
-        assert acceleration_factor(still, ok, w) == hi
+        # what is left of 1 mm of jitter over 60 frames x 21 joints is ~0.5 mm per frame²: still
+        # a weight far above any moving hand's
+        assert acceleration_factor(still, ok, w) >= 16.0
         steady = still + (40.0 * t)[:, None, None] * along_x
         assert signal_acceleration(steady, ok) < 0.6
-        assert acceleration_factor(steady, ok, w) == hi
+        assert acceleration_factor(steady, ok, w) >= 16.0
         turning = still + swing[:, None, None] * along_x
         assert signal_acceleration(turning, ok) == pytest.approx(true_acc, rel=0.2)
         assert acceleration_factor(turning, ok, w) == pytest.approx(

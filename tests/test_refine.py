@@ -334,7 +334,9 @@ def test_a_frame_the_model_cannot_explain_is_fitted_again_after_the_solve(scene)
     init = gt.copy()
     c = gt[bad].mean(axis=1, keepdims=True)
     init[bad] = (gt[bad] - c) @ rot.T + c
-    kw = dict(iterations=8, hand_model=True)
+    # the prior at its base weight: this steady sequence's own (up to 64x) pulls a stretch this
+    # short back by itself, which is not what is tested here
+    kw = dict(iterations=8, hand_model=True, weights=RefineWeights(acceleration_scale_mm=None))
     without = _run(scene, init, recover=False, **kw)
     with_it = _run(scene, init, **kw)
     err = lambda x: np.linalg.norm(x[bad] - gt[bad], axis=-1).mean(axis=1)  # noqa: E731

@@ -287,8 +287,8 @@ def acceleration_factor(init_mm: np.ndarray, pair_ok: np.ndarray, w: RefineWeigh
 
     A constant-velocity prior's spread should be the hand's own acceleration: one weight
     over-smoothed sharply turning motion and under-smoothed steady motion, and the speed alone
-    cannot tell them apart (two tune sequences move 8.6 mm per frame, one turning twice as
-    sharply as the other; README)."""
+    cannot tell them apart (two sequences moving as fast can turn unequally sharply; README,
+    stop 38)."""
     if w.acceleration_scale_mm is None:
         return 1.0
     a = signal_acceleration(init_mm, pair_ok)

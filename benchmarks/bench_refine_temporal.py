@@ -23,6 +23,7 @@ import argparse
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,22 +33,6 @@ from handanno_core import pipeline
 from handanno_core.bench import machine_description
 from handanno_core.refine import RefineWeights, refine
 from handanno_core.session import Session
-
-VARIANTS = {
-    "none": RefineWeights(temporal=0.0, acceleration=0.0, acceleration_scale_mm=None),
-    "velocity": RefineWeights(temporal=1.0, acceleration=0.0),  # the default until 2026-11
-    "acceleration": RefineWeights(),
-    "acceleration x3": RefineWeights(acceleration=3.0),
-    "constant": RefineWeights(acceleration_scale_mm=None),
-    "speed-7": "speed",  # (7 mm / v)², the law of stops 28-37; weighted per session below
-    # the acceleration law within stop 28's range 0.25-16, and (the default) within 0.25-64
-    "scale-1.5": RefineWeights(acceleration_scale_mm=1.5, acceleration_factor_range=(0.25, 16.0)),
-    "scale-2": RefineWeights(acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 16.0)),
-    "scale-3": RefineWeights(acceleration_scale_mm=3.0, acceleration_factor_range=(0.25, 16.0)),
-    "scale-2-top-64": RefineWeights(
-        acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 64.0)
-    ),
-}
 
 
 def _speed_law(init_mm: np.ndarray, speed_mm: float = 7.0) -> RefineWeights:
@@ -60,12 +45,29 @@ def _speed_law(init_mm: np.ndarray, speed_mm: float = 7.0) -> RefineWeights:
     return replace(w, acceleration=w.acceleration * factor)
 
 
+VARIANTS = {
+    "none": RefineWeights(temporal=0.0, acceleration=0.0, acceleration_scale_mm=None),
+    "velocity": RefineWeights(temporal=1.0, acceleration=0.0),  # the default until 2026-11
+    "acceleration": RefineWeights(),
+    "acceleration x3": RefineWeights(acceleration=3.0),
+    "constant": RefineWeights(acceleration_scale_mm=None),
+    "speed-7": _speed_law,  # weights made per session from its initialization
+    # the acceleration law within stop 28's range 0.25-16, and (the default) within 0.25-64
+    "scale-1.5": RefineWeights(acceleration_scale_mm=1.5, acceleration_factor_range=(0.25, 16.0)),
+    "scale-2": RefineWeights(acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 16.0)),
+    "scale-3": RefineWeights(acceleration_scale_mm=3.0, acceleration_factor_range=(0.25, 16.0)),
+    "scale-2-top-64": RefineWeights(
+        acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 64.0)
+    ),
+}
+
+
 def _errors(pred: np.ndarray, gt: np.ndarray) -> list[float]:
     e = np.linalg.norm(pred - gt, axis=-1)
     return [round(float(np.nanmean(e)), 3), round(float(np.nanmax(e)), 2)]
 
 
-def run_session(folder: Path, variants: dict[str, RefineWeights | str]) -> dict:
+def run_session(folder: Path, variants: dict[str, RefineWeights | Callable]) -> dict:
     """Initialization and final errors (mean, max mm) of every variant on one bench session."""
     session = Session.open(folder)
     try:
@@ -75,10 +77,10 @@ def run_session(folder: Path, variants: dict[str, RefineWeights | str]) -> dict:
         row = {"frames": session.num_frames, "init": _errors(init, gt), "variants": {}}
         row["hand_model"] = model
         for name, weights in variants.items():
-            if weights == "speed":
+            if callable(weights):
                 if session.model.sequence_breaks:
-                    raise ValueError(f"{folder}: the speed law here ignores breaks")
-                weights = _speed_law(init)
+                    raise ValueError(f"{folder}: variant {name} ignores sequence breaks")
+                weights = weights(init)
             t = time.perf_counter()
             out = refine(init, weights=weights, hand_model=model, **problem)
             row["variants"][name] = {

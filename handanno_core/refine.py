@@ -269,8 +269,9 @@ def signal_acceleration(init_mm: np.ndarray, pair_ok: np.ndarray) -> float | Non
     ok4 = ok3[:-1] & ok3[1:]
     if len(x) < 4 or not ok4.any():
         return None
-    acc = np.linalg.norm(np.diff(x, 2, axis=0), axis=-1)[ok3]
-    third = np.linalg.norm(np.diff(x, 3, axis=0), axis=-1)[ok4]
+    second = np.diff(x, 2, axis=0)
+    acc = np.linalg.norm(second, axis=-1)[ok3]
+    third = np.linalg.norm(np.diff(second, axis=0), axis=-1)[ok4]
     acc, third = acc[np.isfinite(acc)], third[np.isfinite(third)]
     if not (len(acc) and len(third)):
         return None

@@ -330,13 +330,21 @@ def seed_annotation(
     margin_mm: float = VISIBILITY_MARGIN_MM,
 ) -> FrameAnnotation:
     """A reference annotation from a shown skeleton ``(J, 3)`` mm: every joint placed in 3D (and its
-    projection in 2D), visibility by :func:`sampling.visible_by_depth` against ``depth_mm`` (H, W)
-    when given."""
+    projection in 2D) as an accepted guess, visibility by :func:`sampling.visible_by_depth`
+    against ``depth_mm`` (H, W) when given.
+
+    Accepted, because the annotator only looked at the joints it did not move: the lift weighs
+    them below a placed joint (:data:`handanno_core.lift.ACCEPTED_UV_WEIGHT`, in 2D and 3D), and
+    an edit of a joint (a drag, a click) makes it the annotator's own. Seeded in 3D, not only
+    2D, because a shown joint within a few pixels of the truth can read another surface's depth
+    where it slips off a thin finger: lifted from 2D alone, a review correction that moved
+    nothing made good frames worse (HISTORY.md, stop 39)."""
     x = np.asarray(joints_mm, dtype=np.float64)
     nj = len(x)
     ann = FrameAnnotation.empty(nj)
     ann.xyz_mm[:] = x
     ann.uv_px[:] = camera.project(x)
+    ann.accepted[:] = np.all(np.isfinite(ann.uv_px), axis=1)
     if depth_mm is not None:
         off = 0.0 if surface_offsets_mm is None else surface_offsets_mm
         ann.visible[:] = visible_by_depth(x, depth_mm, camera, off, margin_mm)

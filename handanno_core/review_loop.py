@@ -4,11 +4,11 @@ Annotation effort is what the bench reports error against: **frames touched** (r
 review corrections) and **joints clicked**. The simulated annotator behaves as a person with the
 app would, from ground truth (2D positions, visibility and depth order only):
 
-* :func:`simulated_fix` - a frame opens with a skeleton already drawn (a pre-fill, or the result
-  shown in review); the annotator moves only the joints whose drawn 2D position is more than
-  ``click_px`` (4 px) from the truth (to the truth plus the bench's Gaussian ``noise_px``), accepts
-  the others where they are drawn, and sets visibility and depth order as the truth says. One click
-  per moved joint.
+* :func:`simulated_fix` - a review correction: the frame opens with the result drawn, seeded
+  as the app seeds it (every joint an accepted guess where it is shown, in 3D); the annotator
+  moves only the joints whose drawn 2D position is more than ``click_px`` (4 px) from the truth
+  (to the truth plus the bench's Gaussian ``noise_px``, with the truth's visibility and depth
+  order) and accepts the others. One click per moved joint.
 * :func:`interactive_fix` - what a person does in the app with a frame opened with guesses:
   move the guess furthest off, let the guesses refit to the joints placed so far (the app's live
   lift, :func:`handanno_core.guesses.refit_guesses`), repeat until every guess is within
@@ -22,11 +22,13 @@ app would, from ground truth (2D positions, visibility and depth order only):
   from opens with the template hand at its hand centre, as in the app.
 * :func:`review_rounds` - after the first pass, ``rounds`` times: the ranking
   (:func:`handanno_core.review.rank_priority`, no ground truth) picks ``budget`` frames not reviewed
-  before; each is fixed as above and becomes a reference (a correction, whether or not it needed
-  one); the corrected frames are lifted, only their descendants in the propagation's forests
-  re-propagate (:func:`handanno_core.pipeline.frames_to_repropagate`, as the app's review runner
-  does), then everything
-  is refined. One report entry per round (round 0 = the first pass).
+  before; each is fixed as above and becomes a reference (a correction), or, where no joint is
+  off by more than ``click_px``, is accepted as shown (the app's review *Accept*: no reference,
+  nothing recomputed; a reference that only repeats the propagated pose would be held as if
+  annotated and re-root its neighbours on it). Every shown frame counts as touched. The
+  corrected frames are lifted, only their descendants in the propagation's forests re-propagate
+  (:func:`handanno_core.pipeline.frames_to_repropagate`, as the app's review runner does), then
+  everything is refined. One report entry per round (round 0 = the first pass).
 * :func:`bench_review` - :func:`review_rounds` once per ranking, each on its own copy of a finished
   bench session, so that every ranking starts from the same first pass.
 """
@@ -42,7 +44,7 @@ import numpy as np
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .prefill import MODEL_MIN_REFERENCES
-from .session import Batch, Session, SetFrameAnnotation, SetReference
+from .session import Batch, Session, SetFrameAnnotation, SetReference, SetReview
 
 __all__ = [
     "BAD_MM",
@@ -72,19 +74,29 @@ def simulated_fix(
     rng: np.random.Generator | None = None,
     click_px: float = CLICK_PX,
 ) -> tuple[FrameAnnotation, int]:
-    """What the simulated annotator leaves on a frame drawn with ``shown_mm`` (J, 3) mm, and how
-    many joints it moved (clicks). ``gt_mm`` (J, 3) mm, ``depth`` (H, W) mm. Moved joints get the
-    true 2D plus ``noise_px`` Gaussian noise, the others keep their drawn 2D position; visibility
-    and depth order are the truth's (:func:`handanno_core.synth.simulate_annotation`)."""
+    """What the simulated annotator leaves on a propagated frame drawn with ``shown_mm`` (J, 3)
+    mm, and how many joints it moved (clicks), as in the app's review: the correction seeds the
+    frame's annotation from the shown skeleton (:func:`handanno_core.review.seed_annotation`:
+    every joint an accepted guess in 3D, visibility from the depth), and the annotator clicks
+    each joint drawn more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm: its 2D becomes the
+    truth's plus ``noise_px`` Gaussian noise, its 3D position is cleared (a click replaces it,
+    ``AnnotateState.place_2d``), and it gets the truth's visibility and depth order
+    (:func:`handanno_core.synth.simulate_annotation`). ``depth`` (H, W) mm."""
+    from .review import seed_annotation
     from .synth import simulate_annotation
 
-    ann = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
+    full = simulate_annotation(gt_mm, depth, camera, skeleton, noise_px, rng)
+    shown = np.asarray(shown_mm, dtype=np.float64)
+    ann = seed_annotation(shown, camera, depth, skeleton.surface_offsets_mm)
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
-    drawn = camera.project(np.asarray(shown_mm, dtype=np.float64))
     with np.errstate(invalid="ignore"):
-        keep = np.linalg.norm(drawn - truth, axis=-1) <= click_px  # NaN (not drawn): moved
-    ann.uv_px[keep] = drawn[keep]
-    return ann, int((~keep).sum())
+        moved = ~(np.linalg.norm(camera.project(shown) - truth, axis=-1) <= click_px)
+    ann.xyz_mm[moved] = np.nan  # NaN (not drawn): moved too
+    ann.uv_px[moved] = full.uv_px[moved]
+    ann.accepted[moved] = False
+    ann.visible[moved] = full.visible[moved]
+    ann.depth_order[moved] = full.depth_order[moved]
+    return ann, int(moved.sum())
 
 
 def interactive_fix(
@@ -395,9 +407,18 @@ def _frame_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(e), e, np.inf)
 
 
-def _entry(
-    session: Session, gt: np.ndarray, round_: int, touched: int, clicked: int, bad_mm: float
-) -> dict:
+def _accepted_frames(session: Session) -> np.ndarray:
+    """Frames a review accepted as shown (``SetReview`` status "accepted"), sorted."""
+    review = session.model.review
+    return np.array(sorted(int(f) for f, s in review.items() if s == "accepted"), dtype=np.int64)
+
+
+def _frames_touched(session: Session) -> int:
+    """References (incl. corrections) plus frames a review accepted as shown."""
+    return len(session.reference_frames) + len(_accepted_frames(session))
+
+
+def _entry(session: Session, gt: np.ndarray, round_: int, clicked: int, bad_mm: float) -> dict:
     from .evaluate import error_summary
 
     final = session.load_results()["final_mm"]
@@ -407,7 +428,8 @@ def _entry(
         "round": round_,
         "references": len(session.reference_frames) - len(session.model.corrections),
         "corrections": len(session.model.corrections),
-        "frames_touched": touched,
+        "accepted": len(_accepted_frames(session)),
+        "frames_touched": _frames_touched(session),
         "joints_clicked": clicked,
         "mean_mm": round(float(s["mean_mm"]), 3),
         "median_mm": round(float(s["median_mm"]), 3),
@@ -433,6 +455,24 @@ def _show(ranking: str, session: Session, results, k: int, reviewed, bad) -> tup
     return shown, recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
 
 
+def _review_frame(session: Session, sequence, frame: int, shown_mm, gt_mm, bones, **fix):
+    """The simulated annotator on one shown frame (:func:`simulated_fix`, keyword arguments
+    ``fix``): a correction journaled and lifted, or, with nothing to move, the frame accepted as
+    shown. Returns ``(lift or None when accepted, joints clicked)``."""
+    depth = sequence.depth(frame)
+    ann, clicks = simulated_fix(shown_mm, gt_mm, depth, sequence.camera, session.skeleton, **fix)
+    if clicks == 0:  # nothing to move: the annotator presses Accept (no new reference)
+        session.execute(SetReview(frame=frame, status="accepted"), client="simulated-annotator")
+        return None, 0
+    commands = [
+        SetReference(frame=frame, is_reference=True, correction=True).model_dump(),
+        SetFrameAnnotation(frame=frame, annotation=ann.to_json()).model_dump(),
+    ]
+    session.execute(Batch(commands=commands), client="simulated-annotator")
+    own = session.bone_lengths_of(frame)
+    return _lift(session, ann, depth, bones if own is None else own, shown_mm), clicks
+
+
 def review_rounds(
     session: Session,
     *,
@@ -452,8 +492,8 @@ def review_rounds(
 
     ``budget``: frames shown per round (``>= 1``), or a share of the sequence's frames (``< 1``).
     ``reference_clicks``: joints clicked on the references (default: every joint of every one).
-    Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references +
-    corrections), ``joints_clicked``, the error of all frames (``mean_mm``, ``median_mm``,
+    Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references,
+    corrections and frames accepted as shown), ``corrections``, ``accepted``, ``joints_clicked``, the error of all frames (``mean_mm``, ``median_mm``,
     ``max_mm``), ``bad_share`` (frames with a joint more than ``bad_mm`` off) and, for the frames
     the round showed: ``shown``, ``shown_bad`` (of them bad before the round), ``recall`` (share
     of the bad frames shown), ``recall_at_10`` (share of them in the ranking's first 10 %),
@@ -470,14 +510,14 @@ def review_rounds(
         raise ValueError(f"review budget {budget} shows no frame of {n}")
     refs0 = len(session.reference_frames) - len(session.model.corrections)
     clicked = int(reference_clicks if reference_clicks is not None else refs0 * gt.shape[1])
-    entries = [_entry(session, gt, 0, len(session.reference_frames), clicked, bad_mm)]
+    entries = [_entry(session, gt, 0, clicked, bad_mm)]
     if not quiet:
         print(f"  {ranking} round 0: {entries[0]}", flush=True)
     for r in range(1, rounds + 1):
         timings: dict[str, float] = {}
         t = time.perf_counter()
         results = session.load_results()
-        reviewed = np.asarray(session.reference_frames, dtype=np.int64)
+        reviewed = np.union1d(session.reference_frames, _accepted_frames(session))
         err = _frame_errors(best_joints(results)[0], gt)
         bad = err > bad_mm
         bad[reviewed] = False
@@ -490,43 +530,29 @@ def review_rounds(
         bones = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
         lifted, conf = results["lifted_mm"], results["confidence"]
         round_clicks = 0
+        corrected: list[int] = []
         for f in (int(x) for x in shown):
-            rng = np.random.default_rng([seed, f, 505])
-            depth = sequence.depth(f)
-            ann, c = simulated_fix(
-                shown_mm[f],
-                gt[f],
-                depth,
-                sequence.camera,
-                session.skeleton,
-                noise_px=noise_px,
-                rng=rng,
-                click_px=click_px,
+            fix = dict(
+                noise_px=noise_px, rng=np.random.default_rng([seed, f, 505]), click_px=click_px
             )
+            lift, c = _review_frame(session, sequence, f, shown_mm[f], gt[f], bones, **fix)
             round_clicks += c
-            session.execute(
-                Batch(
-                    commands=[
-                        SetReference(frame=f, is_reference=True, correction=True).model_dump(),
-                        SetFrameAnnotation(frame=f, annotation=ann.to_json()).model_dump(),
-                    ]
-                ),
-                client="simulated-annotator",
-            )
-            lift = _lift(session, ann, depth, session.bone_lengths_of(f) or bones, shown_mm[f])
-            lifted[f] = lift.joints_mm
-            conf[f] = lift.confidence
-        session.save_results(lifted_mm=lifted, confidence=conf)
+            if lift is not None:
+                lifted[f], conf[f] = lift.joints_mm, lift.confidence
+                corrected.append(f)
         timings["annotate_lift"] = round(time.perf_counter() - t, 3)
-        t = time.perf_counter()
-        frames = pipeline.frames_to_repropagate(session, shown)
-        pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
-        timings["propagate"] = round(time.perf_counter() - t, 3)
-        t = time.perf_counter()
-        pipeline.refine(session, quiet=True)
-        timings["refine"] = round(time.perf_counter() - t, 3)
+        frames = np.zeros(0, dtype=np.int64)
+        if corrected:  # frames accepted as shown change nothing
+            session.save_results(lifted_mm=lifted, confidence=conf)
+            t = time.perf_counter()
+            frames = pipeline.frames_to_repropagate(session, corrected)
+            pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
+            timings["propagate"] = round(time.perf_counter() - t, 3)
+            t = time.perf_counter()
+            pipeline.refine(session, quiet=True)
+            timings["refine"] = round(time.perf_counter() - t, 3)
         clicked += round_clicks
-        entry = _entry(session, gt, r, len(session.reference_frames), clicked, bad_mm)
+        entry = _entry(session, gt, r, clicked, bad_mm)
         entry.update(
             shown=int(shown.size),
             shown_bad=int(bad[shown].sum()),
@@ -649,7 +675,7 @@ def plot_effort(doc: dict, path: Path) -> None:
     ax1.set_ylabel("mean 3D joint error (mm)")
     ax2.set_ylabel(f"frames with a joint > {BAD_MM:g} mm (%)")
     for ax in (ax1, ax2):
-        ax.set_xlabel("frames touched: references + corrections (% of sequence)")
+        ax.set_xlabel("frames touched: references + reviewed (% of sequence)")
         ax.grid(alpha=0.3)
     ax1.legend(fontsize=7)
     fig.suptitle(f"{Path(doc['dataset']).name}: error against annotation effort")

@@ -152,6 +152,20 @@ def test_place_2d_advances_to_next_unplaced_joint(session):
     np.testing.assert_allclose(session.annotation(0).uv_px[1], [0.0, CAM.height - 1])
 
 
+def test_click_on_a_joint_placed_in_3d_replaces_its_3d_position_in_one_undo_step(session):
+    st = AnnotateState(session, "browser-1")
+    st.place_3d(np.array([10.0, 5.0, 398.0]), joint=4, advance=False)
+    entry = st.place_2d(np.array([150.0, 130.0]), joint=4)
+    ann = session.annotation(0)
+    assert entry.command["kind"] == "batch"
+    assert not ann.has_3d[4]  # the lift follows the click, not the old 3D position
+    np.testing.assert_allclose(ann.uv_px[4], [150.0, 130.0])
+    st.undo()
+    ann = session.annotation(0)
+    np.testing.assert_allclose(ann.xyz_mm[4], [10.0, 5.0, 398.0])
+    np.testing.assert_allclose(ann.uv_px[4], CAM.project(np.array([10.0, 5.0, 398.0])), atol=0.01)
+
+
 def test_toggles_clear_undo_redo(session):
     st = AnnotateState(session, "browser-1")
     other = AnnotateState(session, "browser-2")

@@ -224,7 +224,7 @@ def test_analytic_derivatives_match_finite_differences(frames):
     X, depth, ann = frames[0]
     ann = ann.copy()
     ann.xyz_mm[3] = X[3] + 1.0
-    ann.accepted[[5, 9, 14]] = True  # accepted guesses: their 2D residuals weigh less
+    ann.accepted[[3, 5, 9, 14]] = True  # accepted guesses: their 2D (and 3D) residuals weigh less
     bones = SK.bone_lengths(X)
     x0, d_obs = initial_pose(ann, depth, CAM, SK, bones)
     prob = _Problem(
@@ -282,6 +282,27 @@ def test_accepted_guesses_a_few_px_off_weigh_less_than_clicks():
             r = lift_frame(a, depth, CAM, SK, SK.bone_lengths(X))
             err[accepted].append(np.linalg.norm(r.joints_mm - X, axis=1).mean())
     assert np.mean(err[True]) < 0.95 * np.mean(err[False])
+
+
+def test_an_accepted_3d_position_weighs_less_than_one_placed_by_hand():
+    """A review correction seeds every joint in 3D where it was shown; the annotator accepts the
+    ones it does not move. Clicked 2D at the truth and a shown 3D position 8 mm off along the
+    ray: accepted, the clicks and depths pull the joint further to the truth than when the same
+    position was placed by hand."""
+    rng = np.random.default_rng(3)
+    err = {True: [], False: []}
+    for _ in range(4):
+        X = random_pose(rng)
+        depth = render(X)
+        ann = annotate(X, depth)
+        for accepted in (True, False):
+            a = ann.copy()
+            ray = X[[4, 8, 16]] / np.linalg.norm(X[[4, 8, 16]], axis=1, keepdims=True)
+            a.xyz_mm[[4, 8, 16]] = X[[4, 8, 16]] + 8.0 * ray
+            a.accepted[[4, 8, 16]] = accepted
+            r = lift_frame(a, depth, CAM, SK, SK.bone_lengths(X))
+            err[accepted].append(np.linalg.norm(r.joints_mm - X, axis=1)[[4, 8, 16]].mean())
+    assert np.mean(err[True]) < 0.9 * np.mean(err[False]), err
 
 
 def test_missing_joints_and_missing_depth_still_lift(frames):

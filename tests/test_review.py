@@ -451,7 +451,12 @@ def test_simulated_fix_moves_only_joints_off_by_more_than_4px(data_dir):
     assert clicks == 2
     assert np.allclose(ann.uv_px[[4, 9]], cam.project(gt)[[4, 9]])
     assert np.allclose(ann.uv_px[7], cam.project(shown)[7])
-    assert np.isnan(ann.xyz_mm).all() and ann.visible.any()
+    # seeded as the app seeds a correction: the joints not moved are accepted guesses in 3D where
+    # they were shown; a moved joint is a click, its 3D position gone
+    assert np.isnan(ann.xyz_mm[[4, 9]]).all() and not ann.accepted[[4, 9]].any()
+    keep = np.setdiff1d(np.arange(len(gt)), [4, 9])
+    np.testing.assert_allclose(ann.xyz_mm[keep], shown[keep])
+    assert ann.accepted[keep].all() and ann.visible.any()
 
 
 def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session):
@@ -463,6 +468,10 @@ def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session)
     pipeline.propagate(session, quiet=True)
     pipeline.refine(session, quiet=True)
     refs = session.reference_frames.tolist()
+    # an index fingertip 15 mm off on every propagated frame: each frame shown needs a click
+    final = session.load_results()["final_mm"]
+    final[np.setdiff1d(np.arange(session.num_frames), refs), 8, 0] += 15.0
+    session.save_results(final_mm=final)
     parent_before = session.parent.copy()
     entries = review_rounds(session, rounds=1, budget=2, ranking="evidence", quiet=True)
     first, second = entries
@@ -487,6 +496,28 @@ def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session)
         assert key in second
     assert effort_to_target(entries, mean_mm=1e3, bad_share=1.0) == len(refs)
     assert effort_to_target(entries, mean_mm=0.0) is None
+
+
+def test_a_shown_frame_with_nothing_to_move_is_accepted_not_made_a_reference(session):
+    """Skeletons within 4 px of the truth everywhere: the simulated annotator presses Accept on
+    every shown frame (as in the app's review), so no reference is added, nothing is lifted,
+    re-propagated or refined, and the next round shows other frames."""
+    from handanno_core.review_loop import review_rounds
+
+    gt = session.open_sequence().ground_truth.joints_mm
+    session.save_results(init_mm=gt + 0.5, final_mm=gt + 0.5)
+    refs = session.reference_frames.tolist()
+    before = session.load_results()
+    entries = review_rounds(session, rounds=2, budget=3, ranking="uniform", quiet=True)
+    after = session.load_results()
+    for key in ("lifted_mm", "init_mm", "final_mm"):
+        np.testing.assert_array_equal(after[key], before[key])
+    assert session.reference_frames.tolist() == refs and not session.model.corrections
+    accepted = sorted(int(f) for f, s in session.model.review.items() if s == "accepted")
+    assert len(accepted) == 6 and not set(accepted) & set(refs)  # two rounds, other frames
+    assert [e["frames_touched"] for e in entries] == [len(refs), len(refs) + 3, len(refs) + 6]
+    assert [e["accepted"] for e in entries] == [0, 3, 6] and entries[-1]["repropagated"] == 0
+    assert entries[-1]["joints_clicked"] == entries[0]["joints_clicked"]
 
 
 def test_review_evidence_reads_the_model_fit_of_propagation(session):

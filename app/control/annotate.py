@@ -102,16 +102,23 @@ class AnnotateState:
     def place_2d(
         self, uv_px: np.ndarray, joint: int | None = None, advance: bool = True
     ) -> JournalEntry:
-        """Set the (selected) joint's 2D position; the next unplaced joint becomes selected."""
+        """Set the (selected) joint's 2D position; the next unplaced joint becomes selected.
+
+        A joint placed in 3D before (by hand, or seeded from the shown skeleton by a review
+        correction) loses that 3D position in the same journal entry: the click says where the
+        joint is, and a 3D position elsewhere would pull the lift back to where it was."""
         j = self.joint if joint is None else int(joint)
         uv = np.asarray(uv_px, dtype=np.float64)
         cam = self.session.camera
         uv = np.clip(uv, [0.0, 0.0], [cam.width - 1.0, cam.height - 1.0])
-        entry = self._execute(
-            SetJoint2D(
-                frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))
-            )
+        click = SetJoint2D(
+            frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))
         )
+        if self.annotation().has_3d[j]:
+            clear = SetJoint3D(frame=self.frame, joint=j, xyz_mm=None)
+            entry = self._execute(Batch(commands=[clear.model_dump(), click.model_dump()]))
+        else:
+            entry = self._execute(click)
         self.joint = j
         if advance:
             self.advance_joint()

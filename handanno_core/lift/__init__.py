@@ -3,7 +3,7 @@
 For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jacobians,
 
     min_X  1/2 sum_k a_k |pi(X_k) - uv_k|^2                   (px^2, joints with 2D)
-         + 1/2 w_3d   sum_k |X_k - xyz_k|^2                    (px^2/mm^2 * mm^2, joints placed in 3D)
+         + 1/2 w_3d   sum_k a_k |X_k - xyz_k|^2                (px^2/mm^2 * mm^2, joints placed in 3D)
          + 1/2 w_surf sum_k (z_k - D_k - o_k - s)^2            (visible joints with depth)
          + 1/2 w_flat sum_k (z_k - z_parent)^2                 (hidden joints, no depth order)
          + 1/2 w_free sum_k |X_k - X0_k|^2                     (unannotated joints only)
@@ -15,7 +15,9 @@ For one frame, :func:`lift_frame` solves, with SLSQP and analytic gradients/Jaco
            sigma_k (z_k - z_parent) >= margin                  (annotated depth order, sigma = +-1)
 
 ``a_k`` is 1 for a clicked or dragged joint and :data:`ACCEPTED_UV_WEIGHT` (1/4) for a guess
-the annotator accepted without moving it (``FrameAnnotation.accepted``): an accepted guess lies
+the annotator accepted without moving it (``FrameAnnotation.accepted``; in 3D: a review
+correction's joints seeded where they were shown, :func:`handanno_core.review.seed_annotation`,
+weighed like an accepted 2D guess rather than with a constant of their own): an accepted guess lies
 anywhere within about 4 px (``review_loop.CLICK_PX``) of where the annotator would click (2.8
 px RMS if spread evenly over that disc), a click about 1.4 px, so an accepted position is about
 twice as uncertain and the clicks, depths and bones may move it further. On the suite's tune

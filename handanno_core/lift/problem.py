@@ -102,7 +102,9 @@ class _Problem(_AngleRows):
         self.w_uv = np.where(ann.accepted, w_accepted, 1.0)
         self.has3d = ann.has_3d
         self.xyz = np.where(self.has3d[:, None], ann.xyz_mm, 0.0)
-        self.w_3d = w_3d
+        #: (J,) weight of each joint's 3D residual: ``w_3d`` for a joint placed by hand, scaled
+        #: like its 2D for a shown position the annotator accepted (a review correction's seed)
+        self.w_3d = w_3d * self.w_uv
         self.free = ~(self.has2d | self.has3d)
         self.w_free = w_free
         offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
@@ -294,9 +296,10 @@ class _Problem(_AngleRows):
             gz = -(ru * (u - self.cam.cx) + rv * (v - self.cam.cy)) / z
             g[m] += np.stack([gx, gy, gz], axis=1)
         if np.any(self.has3d):
+            w = self.w_3d[self.has3d, None]
             r = (X - self.xyz)[self.has3d]
-            f += 0.5 * self.w_3d * float(np.sum(r**2))
-            g[self.has3d] += self.w_3d * r
+            f += 0.5 * float(np.sum(w * r**2))
+            g[self.has3d] += w * r
         if np.any(self.surf_mask) and self.w_surface > 0:
             r = (X[:, 2] - self.surf_target)[self.surf_mask]
             f += 0.5 * self.w_surface * float(np.sum(r**2))

@@ -803,6 +803,8 @@ def propagate(
     with session.lock:
         # Merge into fresh arrays: an edit may have re-lifted a reference while this ran.
         current = session.load_results()
+        if frames is not None:
+            computed &= ~_previous_fits_better(result.model_fit, current)
         init = np.where(computed[:, None, None], result.joints_mm, current["init_mm"])
         confidence = np.where(computed[:, None], result.confidence, current["confidence"])
         model_fit = np.where(computed[:, None], result.model_fit, current["model_fit"])
@@ -823,6 +825,19 @@ def propagate(
     if result.skipped:
         _log(f"propagation skipped {len(result.skipped)} frame(s): {result.skipped[:10]}", quiet)
     return result
+
+
+def _previous_fits_better(model_fit: np.ndarray, current: dict) -> np.ndarray:
+    """``(N,)`` bool: frames whose previous propagated pose (``current`` results) explains the
+    frame's own depth better than the new one: a lower hand-model fit level (``model_fit``
+    ``(N, T)``, column 0), the evidence that chooses among candidate forests. A re-propagation
+    keeps those: a review correction re-roots its neighbours on itself, and a correction's few
+    clicks are a weaker start than the references they were carried from (HISTORY.md, stop 39).
+    False everywhere without the hand model (no levels)."""
+    old, new = current["model_fit"][:, 0], model_fit[:, 0]
+    had = np.all(np.isfinite(current["init_mm"]), axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        return had & np.isfinite(old) & np.isfinite(new) & (old < new)
 
 
 #: checkpoints of a refinement in pieces (deleted once its result is saved)

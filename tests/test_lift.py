@@ -441,6 +441,23 @@ def test_impossible_depth_reading_is_dropped(frames):
     assert np.linalg.norm(r.joints_mm - X, axis=1).mean() < 3.0
 
 
+def test_a_joint_placed_in_3d_drops_a_depth_reading_behind_it(frames):
+    """A seeded 3D joint whose pixel reads the background 40 mm behind it keeps no depth
+    reading (the lift would push it there); one reading its own surface keeps it."""
+    X, depth, ann = frames[0]
+    ann = ann.copy()
+    ann.xyz_mm[[4, 8]] = X[[4, 8]]
+    u, v = np.rint(CAM.project(X[4])).astype(int)
+    seen = depth.copy()
+    seen[v - 2 : v + 3, u - 2 : u + 3] = X[4, 2] + 40.0
+    _, d_obs = initial_pose(ann, seen, CAM, SK, SK.bone_lengths(X))
+    assert np.isnan(d_obs[4]) and np.isfinite(d_obs[8])
+    plain = ann.copy()
+    plain.xyz_mm[:] = np.nan  # clicked only: the reading stays (the other checks decide)
+    _, d_plain = initial_pose(plain, seen, CAM, SK, SK.bone_lengths(X))
+    assert d_plain[4] > X[4, 2] + 30.0
+
+
 def test_vectorized_angle_rows_match_skeleton_angles(frames):
     """The flexion rows are zero exactly at the limits computed by Skeleton.joint_angles."""
     X = frames[0][0]

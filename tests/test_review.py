@@ -520,6 +520,22 @@ def test_a_shown_frame_with_nothing_to_move_is_accepted_not_made_a_reference(ses
     assert entries[-1]["joints_clicked"] == entries[0]["joints_clicked"]
 
 
+def test_repropagation_keeps_a_previous_pose_that_fits_the_depth_better():
+    """A re-propagated frame keeps its previous pose where that pose's hand-model fit level is
+    lower (it explains the frame's depth better); without levels, or without a previous pose,
+    the new one is taken."""
+    from handanno_core.pipeline import _previous_fits_better
+
+    new_fit = np.array([[2.0], [3.0], [1.0], [4.0], [1.0]])
+    current = {
+        "model_fit": np.array([[1.0], [5.0], [np.nan], [1.0], [0.5]]),
+        "init_mm": np.zeros((5, 21, 3)),
+    }
+    current["init_mm"][3] = np.nan  # never propagated before
+    keep = _previous_fits_better(new_fit, current)
+    assert keep.tolist() == [True, False, False, False, True]
+
+
 def test_review_evidence_reads_the_model_fit_of_propagation(session):
     """The propagation's model-fit evidence (results ``model_fit``) reaches the ranking as it
     is, without a refit: a frame whose fit the guard rejected, with a large residual, ranks

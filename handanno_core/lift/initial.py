@@ -129,7 +129,10 @@ def initial_pose(
     reading is wrong (synthetic sequence, 2 px noise: a thumb tip reading the palm 90 mm behind, an
     index DIP reading a finger 100 mm in front). A reading backed by another consistent visible
     bone is kept and the other dropped; with no backing on either side both are dropped; with
-    backing on both, the farther one. ``depth_check_mm=None`` disables the check.
+    backing on both, the farther one. A joint placed in 3D loses a reading more than
+    ``depth_check_mm`` behind its placed depth (its pixel sees past it: a review correction's
+    seeded joint just off a thin finger's edge read the background 29 mm behind and was pushed
+    there, HISTORY.md stop 39). ``depth_check_mm=None`` disables both checks.
 
     Joints with 2D are back-projected at the observed depth plus their surface offset (the median
     of the other joints' depths where there is no valid depth); joints placed in 3D start there;
@@ -152,6 +155,11 @@ def initial_pose(
         d_obs = _drop_inconsistent_depths(
             d_obs, ann.visible & has2d, offsets, skeleton, lengths, depth_check_mm
         )
+        # a joint placed in 3D whose pixel reads a surface behind it (the edge of a thin finger,
+        # the background) sees past the joint: the reading is not its surface
+        with np.errstate(invalid="ignore"):
+            past = has3d & (d_obs + offsets > ann.xyz_mm[:, 2] + depth_check_mm)
+        d_obs = np.where(past, np.nan, d_obs)
     z = d_obs + offsets
     known = np.isfinite(z) & has2d
     ref_depths = np.concatenate([z[known], ann.xyz_mm[has3d, 2]])

@@ -493,11 +493,12 @@ def review_rounds(
     ``budget``: frames shown per round (``>= 1``), or a share of the sequence's frames (``< 1``).
     ``reference_clicks``: joints clicked on the references (default: every joint of every one).
     Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references,
-    corrections and frames accepted as shown), ``corrections``, ``accepted``, ``joints_clicked``, the error of all frames (``mean_mm``, ``median_mm``,
-    ``max_mm``), ``bad_share`` (frames with a joint more than ``bad_mm`` off) and, for the frames
-    the round showed: ``shown``, ``shown_bad`` (of them bad before the round), ``recall`` (share
-    of the bad frames shown), ``recall_at_10`` (share of them in the ranking's first 10 %),
-    ``clicks`` and ``timings_s``. Ground truth feeds only the annotator and these statistics.
+    corrections and frames accepted as shown), ``corrections``, ``accepted``, ``joints_clicked``,
+    the error of all frames (``mean_mm``, ``median_mm``, ``max_mm``), ``bad_share`` (frames with
+    a joint more than ``bad_mm`` off) and, for the frames the round showed: ``shown``,
+    ``shown_bad`` (of them bad before the round), ``recall`` (share of the bad frames shown),
+    ``recall_at_10`` (share of them in the ranking's first 10 %), ``clicks`` and ``timings_s``.
+    Ground truth feeds only the annotator and these statistics.
     """
     from . import pipeline
     from .export import best_joints

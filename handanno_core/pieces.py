@@ -231,15 +231,6 @@ def _task_key(task: _Task, extra_key: str) -> str:
     )  # fmt: skip
 
 
-def _local_hold(kwargs: dict, frames: np.ndarray) -> dict:
-    """A piece's refine keywords: a ``hold_references`` mask (N,) of the whole problem taken at the
-    piece's global ``frames``."""
-    hold = kwargs.get("hold_references", True)
-    if isinstance(hold, bool):
-        return kwargs
-    return dict(kwargs, hold_references=np.asarray(hold, dtype=bool)[frames])
-
-
 def refine_pieces(
     init_mm: np.ndarray,
     *,
@@ -328,7 +319,7 @@ def refine_pieces(
             closest=sub.closest,
             breaks=sub.breaks,
             fixed=sub.extra,
-            kwargs=_local_hold(kwargs[hand_of_piece[p.index]], sub.frames),
+            kwargs=kwargs[hand_of_piece[p.index]],
         )
 
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None

@@ -924,13 +924,7 @@ def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
     problem: the keyword arguments :func:`handanno_core.refine.refine` and
     :func:`handanno_core.pieces.refine_pieces` share (crops, boxes, centres, camera, skeleton,
     bones (``(B,)``, or ``(N, B)`` with several hands), references and their annotations,
-    closest references, breaks, cube, and which references are held).
-
-    References are held at their lift; review corrections are not (``hold_references``: a mask
-    without them, True when there are none): a correction is a propagated pose with a few joints
-    clicked and the rest accepted as shown, and held it froze that pose's errors and leaned its
-    neighbours on them (HISTORY.md, stop 39); released, its annotation anchors it through the
-    reprojection term."""
+    closest references, breaks, cube)."""
     crops, centres, boxes = ensure_crops(session, quiet=quiet)
     results = session.load_results()
     init = np.array(results["init_mm"], dtype=np.float64)
@@ -953,19 +947,7 @@ def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
         "closest_reference": root_reference(session.parent),
         "sequence_breaks": session.model.sequence_breaks,
         "cube_mm": session.model.settings.cube_mm,
-        "hold_references": _held_references(session),
     }
-
-
-def _held_references(session: Session) -> bool | np.ndarray:
-    """``(N,)`` bool: the frames refinement holds, every frame but the review corrections (True
-    without corrections)."""
-    corrections = np.asarray(session.model.corrections, dtype=np.int64)
-    if corrections.size == 0:
-        return True
-    hold = np.ones(session.num_frames, dtype=bool)
-    hold[corrections[(corrections >= 0) & (corrections < session.num_frames)]] = False
-    return hold
 
 
 def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap, workers,

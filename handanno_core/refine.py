@@ -770,7 +770,7 @@ def refine(
     hand_model: bool | hmod.HandModel = False,
     fit_weights: hmod.FitWeights | None = None,
     threads: int = 1,
-    hold_references: bool | np.ndarray = True,
+    hold_references: bool = True,
     recover: bool = True,
 ) -> RefineResult:
     """Refine all frames' joints jointly (see the module docstring for the energy).
@@ -800,9 +800,7 @@ def refine(
         annotated and the lift made of it; refinement moved them (tune part: references 0.64 ->
         1.53 mm on tune-icvl, 1.00 -> 1.83 on tune-shape-fast), and their neighbours lean on them
         through the temporal and appearance terms. ``False``: refined with the rest, anchored
-        only by ``reprojection`` on their annotated 2D. A ``(N,)`` bool mask: only the
-        references it marks are held (the session holds its references but not its review
-        corrections, :func:`handanno_core.pipeline.refine_inputs`).
+        only by ``reprojection`` on their annotated 2D.
     hand_model : ``True`` adds the personalized hand model's energy of every frame (fitted to
         the frame's own crop; personalized from the reference frames' initialization, i.e. their
         lift), scales the temporal weight down where the initialization moves fast, and keeps a
@@ -848,12 +846,10 @@ def refine(
         fixed[np.asarray(list(fixed_frames), dtype=np.int64)] = True
     reference_frames = [int(r) for r in reference_frames]
     held = np.zeros(n, dtype=bool)
-    if hold_references is not False:
+    if hold_references:
         refs = np.asarray(reference_frames, dtype=np.int64)
         refs = refs[(refs >= 0) & (refs < n)]
         held[refs[finite[refs]]] = True
-        if hold_references is not True:  # a (N,) mask: only the references it marks
-            held &= np.asarray(hold_references, dtype=bool)
     table = bone_table(bone_lengths_mm, n, len(skeleton.bones))
     if not table.single:
         return _refine_by_hand(
@@ -1061,7 +1057,6 @@ def _refine_by_hand(table: BoneTable, init_mm, fixed: np.ndarray, t0: float, **k
     is_ref[np.asarray(list({int(r) for r in kw.pop("reference_frames")}), dtype=np.int64)] = True
     annotations = kw.pop("reference_annotations")
     breaks = kw.pop("sequence_breaks")
-    hold = kw.pop("hold_references", True)
     crops, boxes, centres = kw.pop("crops"), np.asarray(kw.pop("boxes")), kw.pop("centres_mm")
     centres = np.asarray(centres)
     joints = init.copy()
@@ -1081,7 +1076,6 @@ def _refine_by_hand(table: BoneTable, init_mm, fixed: np.ndarray, t0: float, **k
             closest_reference=sub.closest,
             sequence_breaks=sub.breaks,
             fixed_frames=np.concatenate([np.flatnonzero(fixed[frames[:m]]), sub.extra]),
-            hold_references=hold if isinstance(hold, bool) else np.asarray(hold)[frames],
             **kw,
         )
         joints[frames[:m]] = res.joints_mm[:m]

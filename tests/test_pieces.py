@@ -101,19 +101,6 @@ def test_windowed_solve_is_close_to_the_whole_solve(scene):
     assert d2.mean() < 0.5, d2.mean()
 
 
-def test_a_released_reference_is_released_in_its_piece(scene):
-    """``hold_references`` as a whole-problem mask reaches each piece at its own frames: the
-    released reference moves, the held ones keep their initialization."""
-    init, prob, refs = scene["init"], scene["problem"], scene["refs"]
-    mask = np.ones(len(init), dtype=bool)
-    mask[refs[5]] = False  # in the second window
-    res = refine_pieces(init, window=36, overlap=12, hold_references=mask, **prob)
-    every = refine_pieces(init, window=36, overlap=12, **prob)
-    held = np.setdiff1d(refs, refs[5])
-    np.testing.assert_allclose(res.joints_mm[held], every.joints_mm[held], atol=1e-9)
-    assert np.linalg.norm(res.joints_mm[refs[5]] - every.joints_mm[refs[5]], axis=-1).mean() > 0.1
-
-
 def test_checkpoints_resume_exactly_and_stale_ones_are_not_used(scene, tmp_path):
     init, prob = scene["init"], dict(scene["problem"], iterations=4)
     ck = tmp_path / "ck"

@@ -30,7 +30,6 @@ from handanno_core.session import (
     RESULTS_FILE,
     Session,
     SessionError,
-    SetReference,
     resolve_session,
     safe_session_path,
 )
@@ -535,17 +534,6 @@ def test_repropagation_keeps_a_previous_pose_that_fits_the_depth_better():
     current["init_mm"][3] = np.nan  # never propagated before
     keep = _previous_fits_better(new_fit, current)
     assert keep.tolist() == [True, False, False, False, True]
-
-
-def test_refinement_holds_the_references_but_not_the_review_corrections(session):
-    from handanno_core.pipeline import _held_references
-
-    assert _held_references(session) is True  # no correction: every reference held, as before
-    f = int(np.setdiff1d(np.arange(session.num_frames), session.reference_frames)[0])
-    session.execute(SetReference(frame=f, is_reference=True, correction=True), client="t")
-    hold = _held_references(session)
-    assert hold.shape == (session.num_frames,) and not hold[f]
-    assert hold[session.reference_frames[session.reference_frames != f]].all()
 
 
 def test_review_evidence_reads_the_model_fit_of_propagation(session):

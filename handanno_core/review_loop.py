@@ -413,23 +413,20 @@ def _accepted_frames(session: Session) -> np.ndarray:
     return np.array(sorted(int(f) for f, s in review.items() if s == "accepted"), dtype=np.int64)
 
 
-def _frames_touched(session: Session) -> int:
-    """References (incl. corrections) plus frames a review accepted as shown."""
-    return len(session.reference_frames) + len(_accepted_frames(session))
-
-
 def _entry(session: Session, gt: np.ndarray, round_: int, clicked: int, bad_mm: float) -> dict:
     from .evaluate import error_summary
 
     final = session.load_results()["final_mm"]
     s = error_summary(final, gt)
     e = _frame_errors(final, gt)
+    accepted = len(_accepted_frames(session))
     return {
         "round": round_,
         "references": len(session.reference_frames) - len(session.model.corrections),
         "corrections": len(session.model.corrections),
-        "accepted": len(_accepted_frames(session)),
-        "frames_touched": _frames_touched(session),
+        "accepted": accepted,
+        # references (incl. corrections) plus frames a review accepted as shown
+        "frames_touched": len(session.reference_frames) + accepted,
         "joints_clicked": clicked,
         "mean_mm": round(float(s["mean_mm"]), 3),
         "median_mm": round(float(s["median_mm"]), 3),
@@ -519,7 +516,8 @@ def review_rounds(
         t = time.perf_counter()
         results = session.load_results()
         reviewed = np.union1d(session.reference_frames, _accepted_frames(session))
-        err = _frame_errors(best_joints(results)[0], gt)
+        shown_mm, _ = best_joints(results)
+        err = _frame_errors(shown_mm, gt)
         bad = err > bad_mm
         bad[reviewed] = False
         shown, rec10 = _show(ranking, session, results, k, reviewed, bad)
@@ -527,7 +525,6 @@ def review_rounds(
         if shown.size == 0:
             break
         t = time.perf_counter()
-        shown_mm, _ = best_joints(results)
         bones = np.asarray(session.model.bone_lengths_mm, dtype=np.float64)
         lifted, conf = results["lifted_mm"], results["confidence"]
         round_clicks = 0

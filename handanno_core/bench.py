@@ -221,7 +221,7 @@ def run_bench(
     if sequence.ground_truth is None:
         raise ValueError(f"{dataset}: bench needs a dataset with ground truth")
     gt = sequence.ground_truth.joints_mm
-    pipeline.ensure_crops(base, quiet=quiet)
+    pipeline.ensure_crops(base, quiet=quiet, workers=workers)
     load_s = time.perf_counter() - t0
     gt_bone_lengths = sequence.skeleton.estimate_bone_lengths(gt) if gt_bones else None
 

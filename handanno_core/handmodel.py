@@ -93,6 +93,8 @@ __all__ = [
     "reference_level",
     "finger_targets",
     "frame_energy",
+    "frame_energy_rows",
+    "rows_normal_equations",
     "grid_flexions",
     "observe",
     "personalize",
@@ -152,7 +154,12 @@ class Kinematics:
         t = self.tangents(u)
         m = np.empty((n, j, 3, self.num_params))
         m[..., :3] = np.eye(3)
-        m[..., 3:] = np.einsum("kb,nbcd->nkcbd", self.ancestor_lengths, t).reshape(n, j, 3, 2 * b)
+        # dX_k/dδ_b = L_kb · T_b (the joint moves with every bone above it), written in place
+        np.multiply(
+            self.ancestor_lengths[None, :, None, :, None],
+            t.transpose(0, 2, 1, 3)[:, None],
+            out=m[..., 3:].reshape(n, j, 3, b, 2),
+        )
         return m.reshape(n, j * 3, self.num_params)
 
     def retract(self, root, u, step: np.ndarray):
@@ -881,6 +888,30 @@ def frame_energy(
     if want_jac:
         extra = _normal_equations(model, kin, root, u, weights, *extra)
     return e, terms, x, extra
+
+
+def frame_energy_rows(
+    model: HandModel,
+    kin: Kinematics,
+    root: np.ndarray,
+    u: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    weights: FitWeights,
+) -> tuple[np.ndarray, tuple]:
+    """:func:`frame_energy` ``(n,)`` of ``n`` frames at (root (n,3), u (n,B,3)) and its residual
+    rows (opaque); :func:`rows_normal_equations` makes the θ-space normal equations of them,
+    so that a solver takes them only at the evaluations it keeps (the same numbers as
+    ``frame_energy(..., want_jac=True)``)."""
+    e, _, _, rows = _energy(model, kin, root, u, obs, camera, weights, None, True, False, True)
+    return e, rows
+
+
+def rows_normal_equations(
+    model: HandModel, kin: Kinematics, root, u, weights: FitWeights, rows: tuple
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(H (n,P,P), g (n,P))`` of :func:`frame_energy_rows`'s ``rows`` taken at (root, u)."""
+    return _normal_equations(model, kin, root, u, weights, *rows)
 
 
 def _energy(

@@ -1293,11 +1293,11 @@ def locate_hand_geometry(
     Each frame is located using the previous frame's hand (:func:`_geometry_middle`, within the
     same segment) as a hint, and again without it if the hand found lies ``TRACK_JUMP_MM`` from
     it; frames without a hand and bad frames (``FrameError``, recorded in ``report``; raised if
-    ``report`` is None) are NaN rows. ``workers`` > 1: runs of whole segments are located in
-    that many processes (the hint chain starts afresh at every break anyway), the same result.
+    ``report`` is None) are NaN rows. ``workers`` > 1: located in that many processes, the same
+    result (:func:`_locate_parallel`).
     """
     n = len(sequence)
-    if workers > 1 and sequence.sequence_breaks:
+    if workers > 1 and (sequence.sequence_breaks or n >= LOCATE_PARALLEL_MIN_FRAMES):
         return _locate_parallel(sequence, report, progress, workers, locate_kwargs)
     return _locate_range(sequence, range(n), report, progress, locate_kwargs)
 
@@ -1442,26 +1442,90 @@ def anchored_geometry(
     return out
 
 
-def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int]):
-    """One process's share: frames ``job = (a, b)``, whole segments. Bad frames come back as
-    ``(path, frame, problem)`` (a FrameError does not pickle)."""
-    a, b = job
+#: frames a process locates past the end of its range when the range ends inside a segment: the
+#: next process starts there without a hint, and from the first frame both locate alike the
+#: chains are the same (:func:`_locate_parallel`)
+LOCATE_OVERLAP = 24
+#: a sequence without breaks is located in several processes from this length on (starting them
+#: costs about as long as locating a few hundred frames)
+LOCATE_PARALLEL_MIN_FRAMES = 500
+
+
+def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int, int]):
+    """One process's share: frames ``job = (a, b, stop)``, located over ``a..stop-1`` (``stop`` >=
+    ``b``: the overlap into the next range). Bad frames come back as ``(path, frame, problem)``
+    (a FrameError does not pickle)."""
+    a, _, stop = job
     report = BadFrameReport()
-    out = _locate_range(sequence, range(a, b), report, False, locate_kwargs)
+    out = _locate_range(sequence, range(a, stop), report, False, locate_kwargs)
     bad = [(e.path, e.frame, e.problem) for e in report.errors]
-    return out[a:b], bad
+    return out[a:stop], bad
+
+
+def merge_located(jobs, done, n: int, breaks, relocate) -> tuple[np.ndarray, list]:
+    """Rows ``(n, G)`` and bad frames ``[(path, frame, problem)]`` (by frame) of a hint chain
+    located in pieces, as one pass over all frames gives them. ``jobs`` ``[(a, b, stop)]`` cover
+    ``0..n-1`` in order; ``done`` ``[(rows (stop-a, G), bad)]`` each job's rows located over
+    ``a..stop-1`` starting without a hint; a range that starts inside a segment (not at 0 or one
+    of ``breaks``) is joined at the first frame of the previous job's overlap where both rows
+    are equal (the chain is Markov: the rows after it are the same), else
+    ``relocate(start, stop, last_row)`` gives ``(rows, bad)`` of ``start..stop-1`` located from
+    the previous frame's row ``last_row``."""
+    out = None
+    taken: list = []
+    prev_rows, prev_a, prev_bad = None, 0, []
+    for (a, _, stop), (rows, bad) in zip(jobs, done, strict=True):
+        if out is None:
+            out = np.full((n, np.shape(rows)[-1]), np.nan)
+        start = a  # this job's rows are taken from frame ``start`` on
+        if prev_rows is not None and a not in breaks and a > 0:
+            over = prev_rows[a - prev_a :]
+            same = [
+                k for k in range(min(len(over), len(rows)))
+                if np.array_equal(over[k], rows[k], equal_nan=True)
+            ]  # fmt: skip
+            if same:
+                start = a + same[0]
+            else:  # no agreement: go on from the previous job's last row
+                start = a + len(over)
+                new_rows, new_bad = relocate(start, stop, prev_rows[start - 1 - prev_a])
+                rows = np.concatenate([rows[: start - a], new_rows])
+                bad = [e for e in bad if e[1] < start] + list(new_bad)
+        if prev_rows is not None:
+            out[prev_a:start] = prev_rows[: start - prev_a]
+            taken += [e for e in prev_bad if e[1] < start]
+        prev_rows, prev_a, prev_bad = rows[start - a :], start, [e for e in bad if e[1] >= start]
+    if out is None:
+        return np.zeros((0, GEOMETRY_LEN)), []
+    out[prev_a:n] = prev_rows[: n - prev_a]
+    taken += [e for e in prev_bad if e[1] < n]
+    return out, sorted(taken, key=lambda e: e[1])
 
 
 def _locate_parallel(sequence, report, progress, workers, locate_kwargs) -> np.ndarray:
-    """:func:`_locate_range` of every frame, runs of whole segments in ``workers`` processes."""
+    """:func:`_locate_range` of every frame in ``workers`` processes, the same rows as one process.
+
+    Ranges start at breaks where the segments allow, else inside a segment: each such range runs
+    :data:`LOCATE_OVERLAP` frames into the next, which started without a hint. The chain is
+    Markov (a frame's row depends on its depth and the previous row only), so from the first
+    frame of the overlap where both rows are equal the next range's rows are the serial ones;
+    where none is, the rest of that range is located again here from the previous range's hint
+    (slower, never different)."""
     from functools import partial
 
     from .datasets.base import FrameError
     from .parallel import Runner, frame_ranges
 
     n = len(sequence)
-    jobs = frame_ranges(n, workers, breaks=sequence.sequence_breaks)
-    out = np.full((n, GEOMETRY_LEN), np.nan)
+    breaks = {int(b) for b in sequence.sequence_breaks}
+    whole = frame_ranges(n, workers, breaks=sorted(breaks))
+    longest = max(b - a for a, b in whole)
+    ranges = whole if longest <= -(-n // workers) else frame_ranges(n, workers)
+    ends = [b for _, b in ranges[1:]] + [n]  # an overlap stays inside the next range
+    jobs = [
+        (a, b, b if b == n or b in breaks else min(b + LOCATE_OVERLAP, end))
+        for (a, b), end in zip(ranges, ends, strict=True)
+    ]
     bar = None
     if progress:
         from tqdm import tqdm
@@ -1475,13 +1539,20 @@ def _locate_parallel(sequence, report, progress, workers, locate_kwargs) -> np.n
         )
     if bar is not None:
         bar.close()
-    for (a, b), (rows, bad) in zip(jobs, done, strict=True):
-        out[a:b] = rows
-        errors = [FrameError(*e) for e in bad]
-        if errors and report is None:
-            raise errors[0]
-        if report is not None:
-            report.errors.extend(errors)
+
+    def relocate(start: int, stop: int, last_row: np.ndarray):
+        mid = _geometry_middle(last_row)
+        again = BadFrameReport()
+        hints = {start: mid} if np.all(np.isfinite(mid)) else None
+        rows = _locate_range(sequence, range(start, stop), again, False, locate_kwargs, hints)
+        return rows[start:stop], [(e.path, e.frame, e.problem) for e in again.errors]
+
+    out, bad = merge_located(jobs, done, n, breaks, relocate)
+    errors = [FrameError(*e) for e in bad]
+    if errors and report is None:
+        raise errors[0]
+    if report is not None:
+        report.errors.extend(errors)
     return out
 
 

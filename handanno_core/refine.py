@@ -78,6 +78,7 @@ from .handmodel import Kinematics as _Kinematics
 from .handmodel import angle_jacobian, angle_violation
 from .hands import BoneTable, bone_table
 from .lm import Nielsen, NormalEquations, levenberg_marquardt, solve_banded
+from .memory import reuse_freed_memory
 from .sampling import bilinear_gradient
 from .skeleton import Skeleton
 
@@ -234,7 +235,8 @@ class _Evaluation:
     per-joint Hessian blocks and gradient of the per-frame terms; ``wt`` (N-1, J) / ``wa``
     (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations)`` of the frames
     outside their angle limits (None if none; their θ-Jacobian is taken in the normal equations
-    only, not at trial points the LM rejects); ``mod``: θ-space hand-model blocks and each
+    only, not at trial points the LM rejects); ``mod``: the hand model's residual rows per chunk
+    of frames (made into θ-space blocks in the normal equations only, like the angles) and each
     frame's model energy (unweighted) (None if off)."""
 
     root: np.ndarray
@@ -497,30 +499,47 @@ class _Problem:
         return w.appearance * float(np.sum(cost, dtype=np.float64))
 
     def _model_blocks(self, root, u, terms: dict[str, float]):
-        """Hand model fitted to each frame's own depth: θ-space blocks ``((N,P,P), (N,P))`` and
-        the per-frame energy ``(N,)`` (:func:`handmodel.frame_energy`, without the weight) (None
-        when off); sets ``terms["model"]``."""
+        """Hand model fitted to each frame's own depth: ``(rows, energy)``, the residual rows
+        of every chunk of frames ``[(frames, rows)]`` (their θ-space blocks are made by
+        :meth:`_model_normal_equations` for the evaluations the LM keeps) and the per-frame
+        energy ``(N,)`` (:func:`handmodel.frame_energy`, without the weight) (None when off);
+        sets ``terms["model"]``."""
         w = self.w
         if self.model is None or w.model <= 0:
             return None
-        n = self.n
         terms["model"] = 0.0
+        energy = np.zeros(self.n)
+
+        def rows(fr):
+            obs = self.obs.take(slice(fr[0], fr[-1] + 1))  # a view: chunks are ranges
+            e, r = hmod.frame_energy_rows(
+                self.model, self.kin, root[fr], u[fr], obs, self.cam, self.fit_w
+            )
+            return fr, e, r
+
+        chunks = []
+        for fr, e, r in self.map_chunks(rows, self.n, self.model_chunk):
+            terms["model"] += w.model * float(np.sum(e))
+            energy[fr] = e
+            chunks.append((fr, r))
+        return chunks, energy
+
+    def _model_normal_equations(self, ev: _Evaluation) -> tuple[np.ndarray, np.ndarray]:
+        """θ-space hand-model blocks ``((N,P,P), (N,P))`` (weighted) of ``ev``'s rows."""
         p = self.kin.num_params
-        mod = (np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n))
+        h_all, g_all = np.empty((self.n, p, p)), np.empty((self.n, p))
+        chunks = dict((int(fr[0]), (fr, r)) for fr, r in ev.mod[0])
 
         def blocks(fr):
-            obs = self.obs.take(slice(fr[0], fr[-1] + 1))  # a view: chunks are ranges
-            e, _, _, extra = hmod.frame_energy(
-                self.model, self.kin, root[fr], u[fr], obs, self.cam, self.fit_w, None, True
+            fr, r = chunks[int(fr[0])]
+            h, g = hmod.rows_normal_equations(
+                self.model, self.kin, ev.root[fr], ev.u[fr], self.fit_w, r
             )
-            return fr, e, extra
+            h_all[fr] = self.w.model * h
+            g_all[fr] = self.w.model * g
 
-        for fr, e, extra in self.map_chunks(blocks, n, self.model_chunk):
-            terms["model"] += w.model * float(np.sum(e))
-            mod[0][fr] = w.model * extra[0]
-            mod[1][fr] = w.model * extra[1]
-            mod[2][fr] = e
-        return mod
+        self.map_chunks(blocks, self.n, self.model_chunk)
+        return h_all, g_all
 
     def _reprojection(self, x, hd, gx) -> float:
         """Reprojection on the reference frames' annotated 2D."""
@@ -617,17 +636,55 @@ def _solve_fixed(system: NormalEquations, lam: float, frozen: np.ndarray) -> np.
     return step
 
 
-def _assemble(problem: _Problem, m: np.ndarray, ev: _Evaluation, fixed: np.ndarray):
+#: frames per chunk of :func:`_assemble`: the kinematic Jacobian and its products of a chunk stay
+#: in cache (one pass over all frames at once is memory-bound) and chunks run on the thread pool
+ASSEMBLE_CHUNK = 64
+
+
+def _assemble(problem: _Problem, ev: _Evaluation, fixed: np.ndarray):
     """θ-space diagonal blocks (N,P,P), first and second super-diagonal blocks (N-1,P,P) and
     (N-2,P,P) (None without the acceleration term) and gradient (N,P) from the X-space pieces of
-    ``ev`` and the kinematic Jacobian ``m`` (N, 3J, P)."""
+    ``ev`` and the kinematic Jacobian dX/dθ (taken per chunk of :data:`ASSEMBLE_CHUNK` frames,
+    with the two frames after it that the off-diagonal blocks pair with)."""
     hd, gx, wt, ang, mod = ev.hd, ev.gx, ev.wt, ev.ang, ev.mod
     n, j = problem.n, problem.j
-    p = m.shape[-1]
-    m4 = m.reshape(n, j, 3, p)
-    hm = np.matmul(hd, m4)  # (n,j,3,p)
-    diag = np.matmul(m.transpose(0, 2, 1), hm.reshape(n, j * 3, p))
-    grad = np.einsum("nrp,nr->np", m, gx.reshape(n, j * 3))
+    kin = problem.kin
+    p = kin.num_params
+    diag = np.empty((n, p, p))
+    grad = np.empty((n, p))
+    off = np.zeros((max(n - 1, 0), p, p))
+    off2 = np.empty((max(n - 2, 0), p, p)) if ev.wa is not None else None
+    c = None
+    if ev.wa is not None:
+        # residual X[i-1] - 2X[i] + X[i+1]: pairs (k, k+1) get -2w from the triples centred at k
+        # and at k+1, frames two apart get +w
+        c = np.zeros((max(n - 1, 0), j))
+        c[1:] -= 2.0 * ev.wa
+        c[:-1] -= 2.0 * ev.wa
+
+    def chunk(fr):
+        a, b = int(fr[0]), int(fr[-1]) + 1
+        m = kin.jacobian(ev.u[a : min(b + 2, n)])  # (h, 3J, P), local frame i - a
+        own = m[: b - a]
+        hm = np.matmul(hd[a:b], own.reshape(b - a, j, 3, p))
+        diag[a:b] = np.matmul(own.transpose(0, 2, 1), hm.reshape(b - a, j * 3, p))
+        grad[a:b] = np.einsum("nrp,nr->np", own, gx[a:b].reshape(b - a, j * 3))
+        e1 = min(b, n - 1)  # pairs (i, i+1) for i in a..e1-1
+        if e1 > a:
+            k = e1 - a
+            if wt is not None:
+                wrep = np.repeat(wt[a:e1], 3, axis=1)
+                off[a:e1] = -np.matmul((m[:k] * wrep[..., None]).transpose(0, 2, 1), m[1 : k + 1])
+            if c is not None:
+                crep = np.repeat(c[a:e1], 3, axis=1)[..., None]
+                off[a:e1] += np.matmul((m[:k] * crep).transpose(0, 2, 1), m[1 : k + 1])
+        e2 = min(b, n - 2)
+        if off2 is not None and e2 > a:
+            k = e2 - a
+            w2 = np.repeat(ev.wa[a:e2], 3, axis=1)[..., None]
+            off2[a:e2] = np.matmul((m[:k] * w2).transpose(0, 2, 1), m[2 : k + 2])
+
+    problem.map_chunks(chunk, n, ASSEMBLE_CHUNK)
     if ang is not None:
         frames, v0 = ang
         jm = problem._angle_jacobian(ev.root[frames], ev.u[frames], v0)  # (a, 2A, P) in θ
@@ -635,26 +692,9 @@ def _assemble(problem: _Problem, m: np.ndarray, ev: _Evaluation, fixed: np.ndarr
         diag[frames] += wa * np.matmul(jm.transpose(0, 2, 1), jm)
         grad[frames] += wa * np.einsum("arp,ar->ap", jm, v0)
     if mod is not None:
-        diag += mod[0]
-        grad += mod[1]
-    if n > 1:
-        if wt is None:
-            off = np.zeros((n - 1, p, p))
-        else:
-            wrep = np.repeat(wt, 3, axis=1)  # (n-1, J*3)
-            off = -np.matmul((m[:-1] * wrep[..., None]).transpose(0, 2, 1), m[1:])
-    else:
-        off = np.zeros((0, p, p))
-    off2 = None
-    if ev.wa is not None:
-        # residual X[i-1] - 2X[i] + X[i+1]: pairs (k, k+1) get -2w from the triples centred at k
-        # and at k+1, frames two apart get +w
-        c = np.zeros((n - 1, j))
-        c[1:] -= 2.0 * ev.wa
-        c[:-1] -= 2.0 * ev.wa
-        off += np.matmul((m[:-1] * np.repeat(c, 3, axis=1)[..., None]).transpose(0, 2, 1), m[1:])
-        w2 = np.repeat(ev.wa, 3, axis=1)[..., None]
-        off2 = np.matmul((m[:-2] * w2).transpose(0, 2, 1), m[2:])
+        h_model, g_model = problem._model_normal_equations(ev)
+        diag += h_model
+        grad += g_model
     if np.any(fixed):
         diag[fixed] = np.eye(p)
         grad[fixed] = 0.0
@@ -671,31 +711,28 @@ def _banded(diag: np.ndarray, off: np.ndarray, off2: np.ndarray | None = None) -
     ``diag`` (N,P,P), first super-diagonal blocks ``off`` (N-1,P,P) and, if given, second
     super-diagonal blocks ``off2`` (N-2,P,P); u = 2P-1 without ``off2``, 3P-1 with it.
 
-    ``ab[u + r - c, c] = A[r, c]`` for r <= c; filled one (block-)diagonal at a time.
+    ``ab[u + r - c, c] = A[r, c]`` for r <= c, in Fortran order (the layout LAPACK reads; a
+    C-ordered band is transposed on every solve). Column ``c = iP + k`` of the band is column
+    ``k`` of block column ``i`` (the blocks above the diagonal stacked, ``off2[i-2]``,
+    ``off[i-1]``, ``diag[i]``) from its row ``k + 1 - P`` on: one sheared view of the block
+    columns, copied once.
     """
     n, p = diag.shape[:2]
     second = off2 is not None and n > 2
-    u = 3 * p - 1 if second else 2 * p - 1
-    ab = np.zeros((u + 1, n, p))
-    for d in range(p):  # inside the diagonal blocks: A[ip+k, ip+k+d]
-        ab[u - d, :, d:] = np.diagonal(diag, offset=d, axis1=1, axis2=2)
+    width = 3 * p if second else 2 * p  # u + 1
+    # columns[i, k, P + q] = A[block i - (width/P - 1), row q; block i, column k]; P zeros in
+    # front stand for the rows above the band
+    columns = np.zeros((n, p, p + width))
+    columns[:, :, width:] = diag.transpose(0, 2, 1)
     if n > 1:
-        for s in range(1, 2 * p):  # block (i, i+1): A[ip+a, (i+1)p+b] with p+b-a = s
-            o = s - p  # b - a
-            vals = np.diagonal(off, offset=o, axis1=1, axis2=2)  # (n-1, p-|o|)
-            if o >= 0:
-                ab[u - s, 1:, o:] = vals
-            else:
-                ab[u - s, 1:, : p + o] = vals
+        columns[1:, :, width - p : width] = off.transpose(0, 2, 1)
     if second:
-        for s in range(p + 1, 3 * p):  # block (i, i+2): A[ip+a, (i+2)p+b] with 2p+b-a = s
-            o = s - 2 * p
-            vals = np.diagonal(off2, offset=o, axis1=1, axis2=2)
-            if o >= 0:
-                ab[u - s, 2:, o:] = vals
-            else:
-                ab[u - s, 2:, : p + o] = vals
-    return ab.reshape(u + 1, n * p)
+        columns[2:, :, p : 2 * p] = off2.transpose(0, 2, 1)
+    s0, s1, s2 = columns.strides
+    sheared = np.lib.stride_tricks.as_strided(
+        columns[:, :, 1:], shape=(n, p, width), strides=(s0, s1 + s2, s2), writeable=False
+    )  # sheared[i, k, t] = columns[i, k, k + 1 + t]
+    return np.ascontiguousarray(sheared).reshape(n * p, width).T
 
 
 def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, centres, cube_mm):
@@ -880,7 +917,7 @@ def refine(
         cube_mm,
         chunk_frames,
     )
-    with _thread_pool(problem, threads):
+    with _thread_pool(problem, threads), reuse_freed_memory():
         if hand_model is not False and hand_model is not None:
             _use_model(problem, hand_model, fit_weights, init, crops, boxes, centres_mm, cube_mm)
         fit, e0 = _solve(problem, root, u, fixed | held, iterations, tol, progress)
@@ -955,12 +992,12 @@ def _solve(problem: _Problem, root, u, fixed: np.ndarray, iterations: int, tol: 
     p = kin.num_params
 
     def normal_equations(_x, ev: _Evaluation) -> NormalEquations:
-        diag, off, off2, grad = _assemble(problem, kin.jacobian(ev.u), ev, fixed)
+        diag, off, off2, grad = _assemble(problem, ev, fixed)
         scale = np.einsum("npp->np", diag).reshape(-1) + 1e-6
         return NormalEquations(_banded(diag, off, off2), grad.reshape(-1), scale)
 
     start = [problem.evaluate(root, u)]
-    e0 = None if start[0].mod is None else start[0].mod[2]
+    e0 = None if start[0].mod is None else start[0].mod[1]
     fit = levenberg_marquardt(
         lambda pose: problem.evaluate(*pose),
         (root, u),
@@ -985,7 +1022,7 @@ def _keep_check(problem: _Problem, fit, e0, start: tuple, fixed: np.ndarray) -> 
         return np.zeros(0, dtype=np.int64)
     mod = fit.evaluation.mod
     e0 = _model_energy(problem, *start) if e0 is None else e0
-    e1 = _model_energy(problem, *fit.x) if mod is None else mod[2]
+    e1 = _model_energy(problem, *fit.x) if mod is None else mod[1]
     rise = np.maximum(problem.w.model_keep_ratio * e0, 1.0)
     return np.flatnonzero((e1 > e0 + rise) & ~fixed)
 

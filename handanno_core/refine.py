@@ -722,11 +722,14 @@ def _banded(diag: np.ndarray, off: np.ndarray, off2: np.ndarray | None = None) -
     width = 3 * p if second else 2 * p  # u + 1
     # columns[i, k, P + q] = A[block i - (width/P - 1), row q; block i, column k]; P zeros in
     # front stand for the rows above the band
-    columns = np.zeros((n, p, p + width))
+    columns = np.empty((n, p, p + width))  # every entry the view reads is written below
+    columns[:, :, :p] = 0.0
     columns[:, :, width:] = diag.transpose(0, 2, 1)
+    columns[:1, :, width - p : width] = 0.0
     if n > 1:
         columns[1:, :, width - p : width] = off.transpose(0, 2, 1)
     if second:
+        columns[:2, :, p : 2 * p] = 0.0
         columns[2:, :, p : 2 * p] = off2.transpose(0, 2, 1)
     s0, s1, s2 = columns.strides
     sheared = np.lib.stride_tricks.as_strided(

@@ -890,18 +890,11 @@ def frame_energy(
     return e, terms, x, extra
 
 
-def frame_energy_rows(
-    model: HandModel,
-    kin: Kinematics,
-    root: np.ndarray,
-    u: np.ndarray,
-    obs: FrameObservations,
-    camera: CameraIntrinsics,
-    weights: FitWeights,
-) -> tuple[np.ndarray, tuple]:
-    """:func:`frame_energy` ``(n,)`` of ``n`` frames at (root (n,3), u (n,B,3)) and its residual
-    rows (opaque); :func:`rows_normal_equations` makes the θ-space normal equations of them,
-    so that a solver takes them only at the evaluations it keeps (the same numbers as
+def frame_energy_rows(model: HandModel, kin: Kinematics, root, u, obs, camera, weights) -> tuple:
+    """:func:`frame_energy` ``(n,)`` of ``n`` frames at (root (n,3), u (n,B,3)) with
+    :class:`FrameObservations` ``obs``, the camera's intrinsics and :class:`FitWeights`, and its
+    residual rows (opaque): :func:`rows_normal_equations` makes the θ-space normal equations of
+    them, so that a solver takes them only at the evaluations it keeps (the same numbers as
     ``frame_energy(..., want_jac=True)``)."""
     e, _, _, rows = _energy(model, kin, root, u, obs, camera, weights, None, True, False, True)
     return e, rows

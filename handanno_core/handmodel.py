@@ -584,8 +584,10 @@ def observe(
     *,
     cube_mm: float = DEFAULT_CROP.cube_mm,
     max_points: int | None = None,
+    out: FrameObservations | None = None,
 ) -> FrameObservations:
-    """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1).
+    """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1); written
+    into ``out`` (``n`` frames, e.g. a slice of a longer sequence's) and returned when given.
 
     Hand pixels are the crop values strictly inside (-1, 1); up to ``max_points`` of them, evenly
     spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``
@@ -596,10 +598,20 @@ def observe(
     boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
     zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
     half = 0.5 * cube_mm
-    points = np.zeros((n, max_points, 3))
-    valid = np.zeros((n, max_points), dtype=bool)
-    depth = np.full((n, s, s), np.nan, dtype=np.float32)
-    nearest = np.zeros((n, s, s), dtype=np.int32)
+    if out is None:
+        points = np.zeros((n, max_points, 3))
+        valid = np.zeros((n, max_points), dtype=bool)
+        depth = np.full((n, s, s), np.nan, dtype=np.float32)
+        nearest = np.zeros((n, s, s), dtype=np.int32)
+    else:
+        if out.points.shape != (n, max_points, 3) or out.depth.shape != (n, s, s):
+            raise ValueError(
+                f"out holds {out.points.shape} points and {out.depth.shape} depth, "
+                f"not ({n}, {max_points}, 3) and ({n}, {s}, {s})"
+            )
+        points, valid, depth, nearest = out.points, out.valid, out.depth, out.nearest
+        points[:], valid[:], depth[:], nearest[:] = 0.0, False, np.nan, 0
+        out.boxes[:] = boxes
     grid = np.arange(s * s, dtype=np.int32).reshape(s, s)
     for i in range(n):
         crop = np.asarray(crops[i], dtype=np.float32)
@@ -621,7 +633,7 @@ def observe(
         valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~fg, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
-    return FrameObservations(points, valid, depth, nearest, boxes)
+    return FrameObservations(points, valid, depth, nearest, boxes) if out is None else out
 
 
 # ------------------------------------------------------------------------------------------------

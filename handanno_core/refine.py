@@ -746,15 +746,23 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
     # the palm shape and the session's pose prior
     fit_w = replace(fit_weights or hmod.FitWeights(), angle=0.0, pose=0.0, uv=0.0)
 
-    def observe(frames, points=fit_w.points):
+    def observe(frames, points=fit_w.points, out=None):
         return hmod.observe(
             crops[frames], np.asarray(boxes)[frames], np.asarray(centres)[frames], problem.cam,
-            cube_mm=cube_mm, max_points=points,
+            cube_mm=cube_mm, max_points=points, out=out,
         )  # fmt: skip
 
-    obs = hmod.FrameObservations.concatenate(
-        problem.map_chunks(lambda fr: observe(slice(fr[0], fr[-1] + 1)), problem.n, 128)
-    )
+    # every chunk written into the sequence's arrays (no second copy of all frames)
+    n, size = problem.n, crops.shape[-1]
+    m = hmod.OBSERVED_POINTS if fit_w.points is None else int(fit_w.points)
+    obs = hmod.FrameObservations(
+        np.empty((n, m, 3)), np.empty((n, m), dtype=bool), np.empty((n, size, size), np.float32),
+        np.empty((n, size, size), np.int32), np.empty((n, 4)),
+    )  # fmt: skip
+    problem.map_chunks(
+        lambda fr: observe(slice(fr[0], fr[-1] + 1), out=obs.take(slice(fr[0], fr[-1] + 1))),
+        n, 128,
+    )  # fmt: skip
     if isinstance(hand_model, hmod.HandModel):
         model = hand_model
     elif len(refs):

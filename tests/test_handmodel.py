@@ -91,6 +91,31 @@ def scene():
     return x, model, _observe(model, [x])
 
 
+def test_observations_written_into_a_longer_sequences_arrays_are_the_same():
+    poses = [_pose("open"), _pose("fist")]
+    model = _model(poses[0])
+    crops, boxes, centres = [], [], []
+    for x in poses:
+        c = x.mean(axis=0)
+        crops.append(crop_depth(_render(model, x), CAM, c))
+        boxes.append(crop_boxes(c, CAM))
+        centres.append(c)
+    crops, boxes, centres = np.stack(crops), np.stack(boxes), np.stack(centres)
+    alone = hm.observe(crops, boxes, centres, CAM, max_points=128)
+    s = crops.shape[-1]
+    seq = hm.FrameObservations(  # 3 frames with garbage in them, the last two observed
+        np.full((3, 128, 3), 7.0), np.ones((3, 128), bool), np.zeros((3, s, s), np.float32),
+        np.full((3, s, s), 5, np.int32), np.zeros((3, 4)),
+    )  # fmt: skip
+    got = hm.observe(crops, boxes, centres, CAM, max_points=128, out=seq.take(slice(1, 3)))
+    for field in ("points", "valid", "depth", "nearest", "boxes"):
+        np.testing.assert_array_equal(getattr(seq, field)[1:], getattr(alone, field))
+        np.testing.assert_array_equal(getattr(got, field), getattr(alone, field))
+    assert np.all(seq.points[0] == 7.0)  # the frame before the slice untouched
+    with pytest.raises(ValueError, match="not"):
+        hm.observe(crops, boxes, centres, CAM, max_points=64, out=seq.take(slice(1, 3)))
+
+
 def test_energy_is_zero_at_the_rendered_pose(scene):
     x, model, obs = scene
     kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)

@@ -41,16 +41,19 @@ def _render(model: hm.HandModel, x: np.ndarray) -> np.ndarray:
     return render_depth(Primitives(a[0], b[0], model.radii, empty, np.zeros((0, 3, 3)), empty), CAM)
 
 
-def _observe(model: hm.HandModel, poses: list[np.ndarray], max_points: int = 512):
+def _crops(model: hm.HandModel, poses: list[np.ndarray]):
+    """Crops (n, S, S), boxes (n, 4) and centres (n, 3) of the model rendered at ``poses``."""
     crops, boxes, centres = [], [], []
     for x in poses:
         c = x.mean(axis=0)
         crops.append(crop_depth(_render(model, x), CAM, c))
         boxes.append(crop_boxes(c, CAM))
         centres.append(c)
-    return hm.observe(
-        np.stack(crops), np.stack(boxes), np.stack(centres), CAM, max_points=max_points
-    )
+    return np.stack(crops), np.stack(boxes), np.stack(centres)
+
+
+def _observe(model: hm.HandModel, poses: list[np.ndarray], max_points: int = 512):
+    return hm.observe(*_crops(model, poses), CAM, max_points=max_points)
 
 
 def _model(x: np.ndarray, radii: np.ndarray | None = None) -> hm.HandModel:
@@ -93,14 +96,7 @@ def scene():
 
 def test_observations_written_into_a_longer_sequences_arrays_are_the_same():
     poses = [_pose("open"), _pose("fist")]
-    model = _model(poses[0])
-    crops, boxes, centres = [], [], []
-    for x in poses:
-        c = x.mean(axis=0)
-        crops.append(crop_depth(_render(model, x), CAM, c))
-        boxes.append(crop_boxes(c, CAM))
-        centres.append(c)
-    crops, boxes, centres = np.stack(crops), np.stack(boxes), np.stack(centres)
+    crops, boxes, centres = _crops(_model(poses[0]), poses)
     alone = hm.observe(crops, boxes, centres, CAM, max_points=128)
     s = crops.shape[-1]
     seq = hm.FrameObservations(  # 3 frames with garbage in them, the last two observed

@@ -561,6 +561,17 @@ class FrameObservations:
         )
 
     @staticmethod
+    def allocate(n: int, size: int, max_points: int | None = None) -> FrameObservations:
+        """``n`` frames of crops ``size`` px seeing nothing yet (no points, NaN depth), up to
+        ``max_points`` points each (None: :data:`OBSERVED_POINTS`); :func:`observe` fills them."""
+        m = OBSERVED_POINTS if max_points is None else int(max_points)
+        return FrameObservations(
+            np.zeros((n, m, 3)), np.zeros((n, m), dtype=bool),
+            np.full((n, size, size), np.nan, dtype=np.float32),
+            np.zeros((n, size, size), dtype=np.int32), np.zeros((n, 4)),
+        )  # fmt: skip
+
+    @staticmethod
     def concatenate(parts: list[FrameObservations]) -> FrameObservations:
         """The frames of ``parts`` (non-empty), in order."""
         return FrameObservations(
@@ -599,19 +610,16 @@ def observe(
     zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
     half = 0.5 * cube_mm
     if out is None:
-        points = np.zeros((n, max_points, 3))
-        valid = np.zeros((n, max_points), dtype=bool)
-        depth = np.full((n, s, s), np.nan, dtype=np.float32)
-        nearest = np.zeros((n, s, s), dtype=np.int32)
-    else:
-        if out.points.shape != (n, max_points, 3) or out.depth.shape != (n, s, s):
-            raise ValueError(
-                f"out holds {out.points.shape} points and {out.depth.shape} depth, "
-                f"not ({n}, {max_points}, 3) and ({n}, {s}, {s})"
-            )
-        points, valid, depth, nearest = out.points, out.valid, out.depth, out.nearest
-        points[:], valid[:], depth[:], nearest[:] = 0.0, False, np.nan, 0
-        out.boxes[:] = boxes
+        out = FrameObservations.allocate(n, s, max_points)
+    elif out.points.shape != (n, max_points, 3) or out.depth.shape != (n, s, s):
+        raise ValueError(
+            f"out holds {out.points.shape} points and {out.depth.shape} depth, "
+            f"not ({n}, {max_points}, 3) and ({n}, {s}, {s})"
+        )
+    else:  # whatever it held: nothing seen yet
+        out.points[:], out.valid[:], out.depth[:], out.nearest[:] = 0.0, False, np.nan, 0
+    out.boxes[:] = boxes
+    points, valid, depth, nearest = out.points, out.valid, out.depth, out.nearest
     grid = np.arange(s * s, dtype=np.int32).reshape(s, s)
     for i in range(n):
         crop = np.asarray(crops[i], dtype=np.float32)
@@ -633,7 +641,7 @@ def observe(
         valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~fg, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
-    return FrameObservations(points, valid, depth, nearest, boxes) if out is None else out
+    return out
 
 
 # ------------------------------------------------------------------------------------------------

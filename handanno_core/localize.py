@@ -1480,12 +1480,13 @@ def merge_located(jobs, done, n: int, breaks, relocate) -> tuple[np.ndarray, lis
         start = a  # this job's rows are taken from frame ``start`` on
         if prev_rows is not None and a not in breaks and a > 0:
             over = prev_rows[a - prev_a :]
-            same = [
-                k for k in range(min(len(over), len(rows)))
-                if np.array_equal(over[k], rows[k], equal_nan=True)
-            ]  # fmt: skip
-            if same:
-                start = a + same[0]
+            same = next(
+                (k for k in range(min(len(over), len(rows)))
+                 if np.array_equal(over[k], rows[k], equal_nan=True)),
+                None,
+            )  # fmt: skip
+            if same is not None:
+                start = a + same
             else:  # no agreement: go on from the previous job's last row
                 start = a + len(over)
                 new_rows, new_bad = relocate(start, stop, prev_rows[start - 1 - prev_a])

@@ -380,10 +380,13 @@ class _Problem:
         """``[fn(frames) for frames in chunks of range(n)]`` in order, on the thread pool if there
         is one (numpy releases the GIL in its array loops; each chunk writes only its own rows, and
         the caller sums the results in chunk order, so threads change no bit of the result)."""
-        chunks = [np.arange(a, min(n, a + chunk)) for a in range(0, n, chunk)]
-        if self.pool is None or len(chunks) < 2:
-            return [fn(fr) for fr in chunks]
-        return list(self.pool.map(fn, chunks))
+        return self.map_items(fn, [np.arange(a, min(n, a + chunk)) for a in range(0, n, chunk)])
+
+    def map_items(self, fn: Callable, items: list) -> list:
+        """``[fn(item) for item in items]`` in order, on the thread pool if there is one."""
+        if self.pool is None or len(items) < 2:
+            return [fn(item) for item in items]
+        return list(self.pool.map(fn, items))
 
     # -------------------------------------------------------------------- geometry
     def _crop_xy(self, x: np.ndarray, frames: np.ndarray):
@@ -528,17 +531,16 @@ class _Problem:
         """θ-space hand-model blocks ``((N,P,P), (N,P))`` (weighted) of ``ev``'s rows."""
         p = self.kin.num_params
         h_all, g_all = np.empty((self.n, p, p)), np.empty((self.n, p))
-        chunks = dict((int(fr[0]), (fr, r)) for fr, r in ev.mod[0])
 
-        def blocks(fr):
-            fr, r = chunks[int(fr[0])]
+        def blocks(chunk):
+            fr, r = chunk
             h, g = hmod.rows_normal_equations(
                 self.model, self.kin, ev.root[fr], ev.u[fr], self.fit_w, r
             )
             h_all[fr] = self.w.model * h
             g_all[fr] = self.w.model * g
 
-        self.map_chunks(blocks, self.n, self.model_chunk)
+        self.map_items(blocks, ev.mod[0])
         return h_all, g_all
 
     def _reprojection(self, x, hd, gx) -> float:
@@ -753,15 +755,10 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
         )  # fmt: skip
 
     # every chunk written into the sequence's arrays (no second copy of all frames)
-    n, size = problem.n, crops.shape[-1]
-    m = hmod.OBSERVED_POINTS if fit_w.points is None else int(fit_w.points)
-    obs = hmod.FrameObservations(
-        np.empty((n, m, 3)), np.empty((n, m), dtype=bool), np.empty((n, size, size), np.float32),
-        np.empty((n, size, size), np.int32), np.empty((n, 4)),
-    )  # fmt: skip
+    obs = hmod.FrameObservations.allocate(problem.n, crops.shape[-1], fit_w.points)
     problem.map_chunks(
         lambda fr: observe(slice(fr[0], fr[-1] + 1), out=obs.take(slice(fr[0], fr[-1] + 1))),
-        n, 128,
+        problem.n, 128,
     )  # fmt: skip
     if isinstance(hand_model, hmod.HandModel):
         model = hand_model

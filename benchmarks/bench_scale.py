@@ -77,7 +77,7 @@ def generate(data: Path, folders: int, frames: int, workers: int, hands: str) ->
         motion = synth.synthesize_motion(frames, seed, model=synth.make_hand_model(subject))
         synth.write_sequence(
             out, motion.model, motion.joints_mm, motion.rotation, seed=seed,
-            forearm=synth.forearm_directions(motion.joints_mm, motion.rotation, "hand", seed),
+            forearm=None,
             info=synth.describe_motion(motion, seed), progress=False, workers=workers,
         )  # fmt: skip
     return time.perf_counter() - t0

@@ -39,9 +39,9 @@ from .camera import MSRA_CAMERA, NYU_CAMERA, CameraIntrinsics
 from .skeleton import MSRA21
 from .synth import (
     SENSORS,
-    forearm_directions,
     make_hand_model,
     make_varied_hand_model,
+    pose_arm,
     synthesize_motion,
     write_sequence,
 )
@@ -248,7 +248,7 @@ def render_suite_sequence(
         raise ValueError(f"{row.name}: unknown motion {row.motion!r}")
     if row.depth_mm is not None:
         joints = _move_to_depth(joints, row.depth_mm)
-    forearm = forearm_directions(joints, rotation, row.arm, row.seed)
+    joints, rotation, forearm = pose_arm(joints, rotation, row.arm, row.seed)
     camera = CAMERAS[row.camera]
     entry = {**asdict(row), "frames": len(joints), "path": row.name}
     stats.update(

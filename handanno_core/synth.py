@@ -908,22 +908,33 @@ def _smooth_wave(n: int, rng: np.random.Generator, count: int) -> np.ndarray:
     return out
 
 
-def forearm_directions(
+def pose_arm(
     joints_mm: np.ndarray, rotation: np.ndarray, mode: str, seed: int = 0
-) -> np.ndarray | None:
-    """Unit wrist-to-elbow directions ``(N, 3)`` in the camera frame for an :data:`ARM_MODES` mode.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The hand and its forearm for an :data:`ARM_MODES` mode: ``(joints_mm, rotation, forearm)``.
 
-    ``joints_mm`` ``(N, 21, 3)``, ``rotation`` ``(N, 3, 3)`` local-to-camera. ``hand`` returns None.
-    ``wrist``: flexion -60..+70 deg and deviation -25..+30 deg of the wrist (its range of motion,
-    about 70/80 and 20/30 deg), so with the hand's own rotation the arm takes every direction,
-    towards the camera included. ``top-down``: one full in-plane turn every 240 frames, the elbow
-    5-25 deg farther than the wrist. ``egocentric``: the elbow 100-200 mm nearer than the wrist and
-    60-180 mm below it in the image.
+    ``joints_mm`` ``(N, 21, 3)``, ``rotation`` ``(N, 3, 3)`` local-to-camera (the hand's local
+    ``-y`` is its forearm's natural direction, wrist straight); ``forearm`` ``(N, 3)`` unit
+    wrist-to-elbow directions in the camera frame (None for ``hand``). Every mode keeps the arm
+    within a wrist's reach of the hand.
+
+    * ``wrist``: flexion -60..+70 deg and deviation -25..+30 deg of the wrist (its range of motion,
+      about 70/80 and 20/30 deg), so with the hand's own rotation the arm takes every direction,
+      towards the camera included; the hand is returned as given.
+    * ``top-down``: the arm turns once through every in-plane direction every 240 frames, the
+      elbow 5-25 deg farther than the wrist, and the hand turns with it about the camera's axis
+      through its centre (the mean of its joints: it stays in view), so that its natural forearm direction stays within the wrist's deviation
+      (-25..+30 deg) of the arm in the image. Until stop 41 the hand did not turn: the arm ran
+      through the fingers in 40-65 % of the frames (more than 90 deg from the natural direction,
+      up to 175), which no wrist allows.
+    * ``egocentric``: the elbow 100-200 mm nearer than the wrist and 60-180 mm below it in the
+      image; the hand is returned as given.
     """
     if mode not in ARM_MODES:
         raise ValueError(f"unknown arm mode {mode!r}; known: {', '.join(ARM_MODES)}")
+    joints_mm, rotation = np.asarray(joints_mm, float), np.asarray(rotation, float)
     if mode == "hand":
-        return None
+        return joints_mm, rotation, None
     n = len(joints_mm)
     rng = np.random.default_rng([seed, 505])
     w = _smooth_wave(n, rng, 3)
@@ -933,15 +944,32 @@ def forearm_directions(
         local = np.stack(
             [np.sin(dev), -np.cos(dev) * np.cos(flex), np.cos(dev) * np.sin(flex)], axis=-1
         )
-        return np.einsum("nij,nj->ni", rotation, local)
+        return joints_mm, rotation, np.einsum("nij,nj->ni", rotation, local)
     if mode == "top-down":
         theta = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / 240.0 + 0.3 * w[:, 0]
         tilt = np.radians(15.0 + 10.0 * w[:, 1])
-        return np.stack(
+        arm = np.stack(
             [np.cos(theta) * np.cos(tilt), np.sin(theta) * np.cos(tilt), np.sin(tilt)], axis=-1
         )
+        # turn the hand so that its natural forearm direction points where the arm does, give or
+        # take the wrist's deviation; smoothed over a few frames (causally: a shorter sequence
+        # stays a prefix of a longer one), since the image azimuth of a hand pointing along the
+        # camera's axis is ill-defined
+        natural = -rotation[:, :, 1]
+        deviation = np.radians(2.5 + 27.5 * w[:, 2])
+        target = np.unwrap(theta - deviation - np.arctan2(natural[:, 1], natural[:, 0]))
+        turn = np.empty(n)
+        turn[0] = target[0]
+        for i in range(1, n):
+            turn[i] = turn[i - 1] + 0.5 * (target[i] - turn[i - 1])
+        c, s = np.cos(turn), np.sin(turn)
+        rz = np.zeros((n, 3, 3))
+        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+        centre = joints_mm.mean(axis=1, keepdims=True)  # the hand stays where the camera sees it
+        joints_mm = np.einsum("nij,nkj->nki", rz, joints_mm - centre) + centre
+        return joints_mm, rz @ rotation, arm
     offset = np.stack([60.0 * w[:, 0], 120.0 + 60.0 * w[:, 1], -(150.0 + 50.0 * w[:, 2])], -1)
-    return _unit(offset)
+    return joints_mm, rotation, _unit(offset)
 
 
 # ---------------------------------------------------------------------------- sequence writer
@@ -1072,15 +1100,15 @@ def generate_sequence(
     Returns ``out_dir`` as a Path.
     """
     motion = synthesize_motion(frames, seed)
-    forearm = forearm_directions(motion.joints_mm, motion.rotation, arm, seed)
+    joints, rotation, forearm = pose_arm(motion.joints_mm, motion.rotation, arm, seed)
     info = describe_motion(motion, seed)
     if arm != "hand" or sleeve:
         info["arm"] = {"mode": arm, "sleeve": sleeve}
     return write_sequence(
         out_dir,
         motion.model,
-        motion.joints_mm,
-        motion.rotation,
+        joints,
+        rotation,
         seed=seed,
         forearm=forearm,
         sleeve=sleeve,
@@ -1191,7 +1219,7 @@ __all__ = [
     "SENSORS",
     "SR300_SENSOR",
     "SensorModel",
-    "forearm_directions",
+    "pose_arm",
     "write_sequence",
     "PARAM_NAMES",
     "HandModel",

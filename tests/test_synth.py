@@ -281,9 +281,7 @@ def test_simulate_annotations_on_sequence(sequence_dir):
 
 def test_egocentric_arm_is_nearer_to_the_camera_than_the_hand(motion):
     frames = np.arange(0, 600, 50)
-    dirs = synth.forearm_directions(
-        motion.joints_mm[:600], motion.rotation[:600], "egocentric", seed=0
-    )
+    _, _, dirs = synth.pose_arm(motion.joints_mm[:600], motion.rotation[:600], "egocentric", seed=0)
     assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
     assert np.all(dirs[:, 2] < -0.5) and np.all(dirs[:, 1] > 0.0)  # towards the camera, below
     for f in frames[:4]:
@@ -298,17 +296,31 @@ def test_egocentric_arm_is_nearer_to_the_camera_than_the_hand(motion):
 
 def test_arm_modes_cover_directions(motion):
     n = 480
-    top = synth.forearm_directions(motion.joints_mm[:n], motion.rotation[:n], "top-down", seed=2)
+    joints, rotation, top = synth.pose_arm(
+        motion.joints_mm[:n], motion.rotation[:n], "top-down", seed=2
+    )
     angle = np.degrees(np.arctan2(top[:, 1], top[:, 0])) % 360
     assert np.histogram(angle, bins=8, range=(0, 360))[0].min() > 0  # every in-plane direction
     assert np.all(top[:, 2] > 0)  # the elbow is farther than the wrist
-    wrist = synth.forearm_directions(motion.joints_mm[:n], motion.rotation[:n], "wrist", seed=2)
+    # the hand turns with the arm: the forearm stays within a wrist's reach of the hand's axis
+    axis = joints[:, 5] - joints[:, 0]  # wrist -> middle finger's knuckle
+    away = np.degrees(np.arccos(np.sum(top * -axis, 1) / np.linalg.norm(axis, axis=1)))
+    assert away.max() < 60.0
+    # a turned hand is the same hand, where it was: bones and the joints' mean kept
+    assert np.allclose(joints.mean(axis=1), motion.joints_mm[:n].mean(axis=1))
+    bones = lambda x: np.linalg.norm(x[:, 1:] - x[:, list(MSRA21.parents[1:])], axis=-1)  # noqa: E731
+    assert np.allclose(bones(joints), bones(motion.joints_mm[:n]))
+    assert np.allclose(np.einsum("nji,njk->nik", rotation, rotation), np.eye(3), atol=1e-9)
+    # a shorter sequence is a prefix of a longer one
+    short = synth.pose_arm(motion.joints_mm[:200], motion.rotation[:200], "top-down", seed=2)
+    assert np.allclose(short[0], joints[:200]) and np.allclose(short[2], top[:200])
+    _, _, wrist = synth.pose_arm(motion.joints_mm[:n], motion.rotation[:n], "wrist", seed=2)
     local = np.einsum("nji,nj->ni", motion.rotation[:n], wrist)  # back to the hand frame
     flex = np.degrees(np.arctan2(local[:, 2], -local[:, 1]))
     assert flex.min() < -40 and flex.max() > 50 and np.all(np.abs(flex) <= 71)
-    assert synth.forearm_directions(motion.joints_mm, motion.rotation, "hand") is None
+    assert synth.pose_arm(motion.joints_mm, motion.rotation, "hand")[2] is None
     with pytest.raises(ValueError, match="arm mode"):
-        synth.forearm_directions(motion.joints_mm, motion.rotation, "sideways")
+        synth.pose_arm(motion.joints_mm, motion.rotation, "sideways")
 
 
 def test_sleeve_widens_the_arm(motion):

@@ -1103,7 +1103,8 @@ def generate_sequence(
     joints, rotation, forearm = pose_arm(motion.joints_mm, motion.rotation, arm, seed)
     info = describe_motion(motion, seed)
     if arm != "hand" or sleeve:
-        info["arm"] = {"mode": arm, "sleeve": sleeve}
+        # a top-down arm turns the hand with it: the motion summary is of the hand before the turn
+        info["arm"] = {"mode": arm, "sleeve": sleeve, "hand_turned": arm == "top-down"}
     return write_sequence(
         out_dir,
         motion.model,

@@ -343,7 +343,7 @@ def test_generate_sequence_with_arm(tmp_path):
     seq = open_sequence(out)
     assert len(seq) == 6
     info = __import__("json").loads((out / "synth.json").read_text())
-    assert info["arm"] == {"mode": "egocentric", "sleeve": True}
+    assert info["arm"] == {"mode": "egocentric", "sleeve": True, "hand_turned": False}
     depth = seq.depth(0)
     assert depth[depth > 0].min() < seq.ground_truth.joints_mm[0, 0, 2] - 80.0
 

@@ -915,20 +915,20 @@ def pose_arm(
 
     ``joints_mm`` ``(N, 21, 3)``, ``rotation`` ``(N, 3, 3)`` local-to-camera (the hand's local
     ``-y`` is its forearm's natural direction, wrist straight); ``forearm`` ``(N, 3)`` unit
-    wrist-to-elbow directions in the camera frame (None for ``hand``). Every mode keeps the arm
-    within a wrist's reach of the hand.
+    wrist-to-elbow directions in the camera frame (None for ``hand``).
 
     * ``wrist``: flexion -60..+70 deg and deviation -25..+30 deg of the wrist (its range of motion,
       about 70/80 and 20/30 deg), so with the hand's own rotation the arm takes every direction,
       towards the camera included; the hand is returned as given.
     * ``top-down``: the arm turns once through every in-plane direction every 240 frames, the
       elbow 5-25 deg farther than the wrist, and the hand turns with it about the camera's axis
-      through its centre (the mean of its joints: it stays in view), so that its natural forearm direction stays within the wrist's deviation
-      (-25..+30 deg) of the arm in the image. Until stop 41 the hand did not turn: the arm ran
-      through the fingers in 40-65 % of the frames (more than 90 deg from the natural direction,
-      up to 175), which no wrist allows.
+      through its centre (the mean of its joints, so it stays in view), its natural forearm
+      direction within the wrist's deviation (-25..+30 deg) of the arm in the image. Before stop
+      41 the hand did not turn and the arm could run through its fingers, which no wrist allows
+      (benchmarks/HISTORY.md).
     * ``egocentric``: the elbow 100-200 mm nearer than the wrist and 60-180 mm below it in the
-      image; the hand is returned as given.
+      image, whatever the hand's orientation (the hand is returned as given), so the arm can
+      leave the wrist a little beyond its range of motion.
     """
     if mode not in ARM_MODES:
         raise ValueError(f"unknown arm mode {mode!r}; known: {', '.join(ARM_MODES)}")

@@ -1451,11 +1451,11 @@ LOCATE_OVERLAP = 24
 LOCATE_PARALLEL_MIN_FRAMES = 500
 
 
-def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int, int]):
-    """One process's share: frames ``job = (a, b, stop)``, located over ``a..stop-1`` (``stop`` >=
-    ``b``: the overlap into the next range). Bad frames come back as ``(path, frame, problem)``
-    (a FrameError does not pickle)."""
-    a, _, stop = job
+def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int]):
+    """One process's share: frames ``job = (a, stop)``, located over ``a..stop-1`` (its range and
+    the overlap into the next one). Bad frames come back as ``(path, frame, problem)`` (a
+    FrameError does not pickle)."""
+    a, stop = job
     report = BadFrameReport()
     out = _locate_range(sequence, range(a, stop), report, False, locate_kwargs)
     bad = [(e.path, e.frame, e.problem) for e in report.errors]
@@ -1464,8 +1464,8 @@ def _locate_job(sequence, locate_kwargs: dict, job: tuple[int, int, int]):
 
 def merge_located(jobs, done, n: int, breaks, relocate) -> tuple[np.ndarray, list]:
     """Rows ``(n, G)`` and bad frames ``[(path, frame, problem)]`` (by frame) of a hint chain
-    located in pieces, as one pass over all frames gives them. ``jobs`` ``[(a, b, stop)]`` cover
-    ``0..n-1`` in order; ``done`` ``[(rows (stop-a, G), bad)]`` each job's rows located over
+    located in pieces, as one pass over all frames gives them. ``jobs`` ``[(a, stop)]`` start at
+    ``0`` and cover ``0..n-1`` in order (a range ends where the next starts); ``done`` ``[(rows (stop-a, G), bad)]`` each job's rows located over
     ``a..stop-1`` starting without a hint; a range that starts inside a segment (not at 0 or one
     of ``breaks``) is joined at the first frame of the previous job's overlap where both rows
     are equal (the chain is Markov: the rows after it are the same), else
@@ -1474,7 +1474,7 @@ def merge_located(jobs, done, n: int, breaks, relocate) -> tuple[np.ndarray, lis
     out = None
     taken: list = []
     prev_rows, prev_a, prev_bad = None, 0, []
-    for (a, _, stop), (rows, bad) in zip(jobs, done, strict=True):
+    for (a, stop), (rows, bad) in zip(jobs, done, strict=True):
         if out is None:
             out = np.full((n, np.shape(rows)[-1]), np.nan)
         start = a  # this job's rows are taken from frame ``start`` on
@@ -1524,7 +1524,7 @@ def _locate_parallel(sequence, report, progress, workers, locate_kwargs) -> np.n
     ranges = whole if longest <= -(-n // workers) else frame_ranges(n, workers)
     ends = [b for _, b in ranges[1:]] + [n]  # an overlap stays inside the next range
     jobs = [
-        (a, b, b if b == n or b in breaks else min(b + LOCATE_OVERLAP, end))
+        (a, b if b == n or b in breaks else min(b + LOCATE_OVERLAP, end))
         for (a, b), end in zip(ranges, ends, strict=True)
     ]
     bar = None

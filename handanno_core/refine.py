@@ -67,6 +67,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
+from typing import NamedTuple
 
 import numpy as np
 
@@ -227,6 +228,15 @@ def _sample_crops(crops: np.ndarray, frame: np.ndarray, x: np.ndarray, y: np.nda
 # ------------------------------------------------------------------------------------------------
 # the problem
 # ------------------------------------------------------------------------------------------------
+class _ModelRows(NamedTuple):
+    """The hand model's part of an evaluation: ``chunks`` ``[(frames, rows)]``, the residual rows
+    of every chunk of frames (:func:`handmodel.frame_energy_rows`), and ``energy`` ``(N,)`` each
+    frame's model energy (unweighted)."""
+
+    chunks: list
+    energy: np.ndarray
+
+
 @dataclass
 class _Evaluation:
     """The energy at poses ``(root (N, 6), u (N, P-6))`` and its X-space normal-equation pieces.
@@ -235,9 +245,8 @@ class _Evaluation:
     per-joint Hessian blocks and gradient of the per-frame terms; ``wt`` (N-1, J) / ``wa``
     (N-2, J): IRLS weights of the velocity / acceleration terms (None without the term); ``ang``: ``(frames, violations)`` of the frames
     outside their angle limits (None if none; their θ-Jacobian is taken in the normal equations
-    only, not at trial points the LM rejects); ``mod``: the hand model's residual rows per chunk
-    of frames (made into θ-space blocks in the normal equations only, like the angles) and each
-    frame's model energy (unweighted) (None if off)."""
+    only, not at trial points the LM rejects); ``mod``: the hand model's :class:`_ModelRows`
+    (made into θ-space blocks in the normal equations only, like the angles; None if off)."""
 
     root: np.ndarray
     u: np.ndarray
@@ -248,7 +257,7 @@ class _Evaluation:
     wt: np.ndarray | None
     wa: np.ndarray | None
     ang: tuple | None
-    mod: tuple | None
+    mod: _ModelRows | None
 
     @property
     def cost(self) -> float:
@@ -502,11 +511,9 @@ class _Problem:
         return w.appearance * float(np.sum(cost, dtype=np.float64))
 
     def _model_blocks(self, root, u, terms: dict[str, float]):
-        """Hand model fitted to each frame's own depth: ``(rows, energy)``, the residual rows
-        of every chunk of frames ``[(frames, rows)]`` (their θ-space blocks are made by
-        :meth:`_model_normal_equations` for the evaluations the LM keeps) and the per-frame
-        energy ``(N,)`` (:func:`handmodel.frame_energy`, without the weight) (None when off);
-        sets ``terms["model"]``."""
+        """Hand model fitted to each frame's own depth: its :class:`_ModelRows` (their θ-space
+        blocks are made by :meth:`_model_normal_equations` for the evaluations the LM keeps;
+        None when off); sets ``terms["model"]``."""
         w = self.w
         if self.model is None or w.model <= 0:
             return None
@@ -525,7 +532,7 @@ class _Problem:
             terms["model"] += w.model * float(np.sum(e))
             energy[fr] = e
             chunks.append((fr, r))
-        return chunks, energy
+        return _ModelRows(chunks, energy)
 
     def _model_normal_equations(self, ev: _Evaluation) -> tuple[np.ndarray, np.ndarray]:
         """θ-space hand-model blocks ``((N,P,P), (N,P))`` (weighted) of ``ev``'s rows."""
@@ -540,7 +547,7 @@ class _Problem:
             h_all[fr] = self.w.model * h
             g_all[fr] = self.w.model * g
 
-        self.map_items(blocks, ev.mod[0])
+        self.map_items(blocks, ev.mod.chunks)
         return h_all, g_all
 
     def _reprojection(self, x, hd, gx) -> float:
@@ -1005,7 +1012,7 @@ def _solve(problem: _Problem, root, u, fixed: np.ndarray, iterations: int, tol: 
         return NormalEquations(_banded(diag, off, off2), grad.reshape(-1), scale)
 
     start = [problem.evaluate(root, u)]
-    e0 = None if start[0].mod is None else start[0].mod[1]
+    e0 = None if start[0].mod is None else start[0].mod.energy
     fit = levenberg_marquardt(
         lambda pose: problem.evaluate(*pose),
         (root, u),
@@ -1030,7 +1037,7 @@ def _keep_check(problem: _Problem, fit, e0, start: tuple, fixed: np.ndarray) -> 
         return np.zeros(0, dtype=np.int64)
     mod = fit.evaluation.mod
     e0 = _model_energy(problem, *start) if e0 is None else e0
-    e1 = _model_energy(problem, *fit.x) if mod is None else mod[1]
+    e1 = _model_energy(problem, *fit.x) if mod is None else mod.energy
     rise = np.maximum(problem.w.model_keep_ratio * e0, 1.0)
     return np.flatnonzero((e1 > e0 + rise) & ~fixed)
 

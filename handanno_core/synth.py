@@ -238,13 +238,19 @@ def rotation_matrices(yaw_pitch_roll_deg: np.ndarray) -> np.ndarray:
     ang = np.radians(np.atleast_2d(yaw_pitch_roll_deg))
     cy, sy = np.cos(ang[:, 0]), np.sin(ang[:, 0])
     cp, sp = np.cos(ang[:, 1]), np.sin(ang[:, 1])
-    cr, sr = np.cos(ang[:, 2]), np.sin(ang[:, 2])
     one, zero = np.ones_like(cy), np.zeros_like(cy)
     ry = np.stack([cy, zero, sy, zero, one, zero, -sy, zero, cy], -1).reshape(-1, 3, 3)
     rx = np.stack([one, zero, zero, zero, cp, -sp, zero, sp, cp], -1).reshape(-1, 3, 3)
-    rz = np.stack([cr, -sr, zero, sr, cr, zero, zero, zero, one], -1).reshape(-1, 3, 3)
     base = np.diag([1.0, -1.0, -1.0])
-    return rz @ rx @ ry @ base
+    return _rotation_z(ang[:, 2]) @ rx @ ry @ base
+
+
+def _rotation_z(angle_rad: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` rotations about the camera's z axis by ``angle_rad`` ``(N,)`` (in the image:
+    from +x towards +y)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    return np.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
 
 
 def forward_kinematics(
@@ -962,9 +968,7 @@ def pose_arm(
         turn[0] = target[0]
         for i in range(1, n):
             turn[i] = turn[i - 1] + 0.5 * (target[i] - turn[i - 1])
-        c, s = np.cos(turn), np.sin(turn)
-        rz = np.zeros((n, 3, 3))
-        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+        rz = _rotation_z(turn)
         centre = joints_mm.mean(axis=1, keepdims=True)  # the hand stays where the camera sees it
         joints_mm = np.einsum("nij,nkj->nki", rz, joints_mm - centre) + centre
         return joints_mm, rz @ rotation, arm

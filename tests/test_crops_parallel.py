@@ -128,10 +128,10 @@ def test_pieces_of_a_markov_chain_merge_into_the_serial_chain(overlap):
     serial, serial_bad = _toy_chain(range(n), bad, breaks)
     cuts = [0, 13, 22, 31, 44, 50, 57, n]
     jobs = [
-        (a, b, b if b == n or b in breaks else min(b + overlap, c))
+        (a, b if b == n or b in breaks else min(b + overlap, c))
         for a, b, c in zip(cuts[:-1], cuts[1:], [*cuts[2:], n], strict=True)
     ]
-    done = [_toy_chain(range(a, stop), bad, breaks) for a, _, stop in jobs]
+    done = [_toy_chain(range(a, stop), bad, breaks) for a, stop in jobs]
     calls = []
 
     def relocate(start, stop, last_row):

@@ -11,7 +11,9 @@ reaches the tip, which lies on the surface; the knuckle line adds capsules betwe
 MCPs. Bone lengths come from the lift; radii from the references' point clouds
 (:func:`estimate_radii`: iteratively reweighted fit of each observed point's distance to its
 capsule's axis segment); the palm's shape (distances between the root's children) from the
-references' lifted poses. Ground truth is never used.
+references' lifted poses, and the thumb base's place in the palm's frame (:func:`palm_frame`;
+the palm distances hold it only weakly, it lies near the wrist with every MCP on one side) from
+their median. Ground truth is never used.
 
 **Pose**: :class:`Kinematics`, a root position (3) plus one unit direction per bone updated on the
 sphere through a 2-D tangent step, joints ``X_k = root + Σ_{b on path to k} L_b·u_b``: bones are
@@ -25,6 +27,7 @@ inside the skeleton's limits and the palm term keeps the palm rigid.
                                                 observed surface (mm) or off the silhouette (px → mm)
     + λ_angle ½ Σ (angle outside limits)²        skeleton.angle_limits(), degrees
     + λ_palm  ½ Σ (‖X_a − X_b‖ − d_ab)²          palm shape from the references, mm
+    + λ_palm  ½ Σ ‖X_t − X_root − R c_t‖²         thumb base in the palm's frame R, mm
     + λ_pose  Σ_k w_k ρ_H(‖X_k − Y_k‖)           closeness to a given pose (temporal / start), mm
     + λ_uv    ½ Σ_k w_k ‖π(X_k) − uv_k‖²         weak pull to propagated 2D positions, px
     + λ_prior ½ ‖W (φ(X) − μ)‖²                   the session's pose prior, dimensionless``
@@ -431,6 +434,12 @@ class HandModel:
     #: ``FitWeights.prior`` (smaller for a hand that moves more widely than the recordings)
     pose_prior: PosePrior | None = None
     pose_prior_weight: float = 1.0
+    #: (A,) root children off the knuckle line (the thumb's CMC) held in the palm's frame
+    #: (:func:`palm_frame`) at ``palm_anchor_mm`` (A, 3) mm, the references' median (NaN: no
+    #: term). The palm distances hold them only weakly: such a joint lies near the wrist with
+    #: every MCP on one side, so it swings about the knuckle line at nearly constant distances
+    palm_anchor_joints: np.ndarray | None = None
+    palm_anchor_mm: np.ndarray | None = None
 
     @cached_property
     def finger_of(self) -> np.ndarray:
@@ -490,6 +499,27 @@ class HandModel:
         return xa + s0[:, None] * d, xa + s1[:, None] * d
 
 
+def palm_frame(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
+    """Rotations ``(..., 3, 3)`` of the palm for joints ``x`` (..., J, 3) mm, columns: wrist to
+    the knuckles' midpoint, index to little MCP (made orthogonal to the first), their cross
+    product (:attr:`Skeleton.palm_joints`)."""
+    w, i, lt = skeleton.palm_joints
+    e1 = 0.5 * (x[..., i, :] + x[..., lt, :]) - x[..., w, :]
+    e1 = e1 / np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-9)
+    e2 = x[..., lt, :] - x[..., i, :]
+    e2 = e2 - np.sum(e2 * e1, axis=-1, keepdims=True) * e1
+    e2 = e2 / np.maximum(np.linalg.norm(e2, axis=-1, keepdims=True), 1e-9)
+    return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
+
+
+def palm_anchor_offsets(model: HandModel, x: np.ndarray) -> np.ndarray:
+    """``(..., A, 3)`` mm: the anchored joints (``HandModel.palm_anchor_joints``) of poses ``x``
+    (..., J, 3) relative to the wrist, in the palm's frame (:func:`palm_frame`)."""
+    rot = palm_frame(model.skeleton, x)
+    rel = x[..., model.palm_anchor_joints, :] - x[..., model.skeleton.root, None, :]
+    return np.einsum("...ak,...kc->...ac", rel, rot)
+
+
 def _palm_chain(skeleton: Skeleton) -> np.ndarray:
     """The root's children from the index to the little finger (MCPs), or empty."""
     if skeleton.palm_joints is None:
@@ -534,7 +564,12 @@ def build_model(
     dist = np.full(len(pp), np.nan) if palm_dist_mm is None else np.asarray(palm_dist_mm, float)
     if radii.shape != (len(pairs),):
         raise ValueError(f"radii_mm must be ({len(pairs)},), got {radii.shape}")
-    return HandModel(sk, lengths, pairs, radii, tip, pp, dist)
+    anchors = np.setdiff1d(kids, mcps) if sk.palm_joints is not None else np.zeros(0, np.int64)
+    return HandModel(
+        sk, lengths, pairs, radii, tip, pp, dist,
+        palm_anchor_joints=anchors.astype(np.int64),
+        palm_anchor_mm=np.full((len(anchors), 3), np.nan),
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1090,6 +1125,22 @@ def _energy(
         if want_jac:
             unit = dv / np.maximum(ln, 1e-9)[..., None]
             acc.add_points(qa, qb, 1.0, -1.0, unit, np.full((n, len(qa)), w.palm), r)
+    anchored = (
+        np.all(np.isfinite(model.palm_anchor_mm), axis=-1)
+        if model.palm_anchor_mm is not None
+        else np.zeros(0, dtype=bool)
+    )
+    if w.palm > 0 and np.any(anchored):
+        # X_a - X_root - R c_a, R the palm's frame of this pose (held fixed in the Jacobian)
+        ja = model.palm_anchor_joints[anchored]
+        rot = palm_frame(model.skeleton, x)  # (n, 3, 3)
+        want = np.einsum("nkc,ac->nak", rot, model.palm_anchor_mm[anchored])
+        v = (x[:, ja] - x[:, model.skeleton.root, None] - want).reshape(n, -1)  # (n, 3A)
+        terms["palm"] = terms["palm"] + w.palm * 0.5 * np.sum(v**2, axis=1)
+        if want_jac:
+            rows = np.repeat(ja, 3)
+            unit = np.broadcast_to(np.tile(np.eye(3), (len(ja), 1)), (n, 3 * len(ja), 3))
+            acc.add_points(rows, model.skeleton.root, 1.0, -1.0, unit, np.full(v.shape, w.palm), v)
 
     # ---------------- priors: pose (temporal closeness / start) and 2D
     terms["pose"] = np.zeros(n)
@@ -1527,7 +1578,8 @@ def personalize(
     obs: FrameObservations,
 ) -> HandModel:
     """The hand model of a sequence: bone lengths (from the lift), radii fitted to the references'
-    point clouds, palm distances = median over the references' lifted poses (K,J,3), and the
+    point clouds, palm distances and the thumb base's place in the palm's frame = medians over
+    the references' lifted poses (K,J,3), and the
     pose prior of the skeleton's layout (if packaged) made the session's own from those poses
     (:func:`handanno_core.pose_prior.session_prior`)."""
     model = build_model(skeleton, bone_lengths_mm)
@@ -1536,6 +1588,9 @@ def personalize(
     if np.any(fin):
         dv = x[fin][:, model.palm_pairs[:, 0]] - x[fin][:, model.palm_pairs[:, 1]]
         model = replace(model, palm_dist_mm=np.median(np.linalg.norm(dv, axis=-1), axis=0))
+        if len(model.palm_anchor_joints):
+            off = np.median(palm_anchor_offsets(model, x[fin]), axis=0)
+            model = replace(model, palm_anchor_mm=off)
         learned = packaged_pose_prior(skeleton)
         if learned is not None:
             own, weight = session_prior(learned, skeleton, x[fin], 1.0, widen=True)

@@ -417,3 +417,45 @@ def test_a_layout_without_three_bone_fingers_has_no_hand_model():
     with pytest.raises(ValueError, match="nyu14"):
         hm.build_model(NYU14, np.full(len(NYU14.bones), 30.0))
     hm.build_model(MSRA21, np.full(len(MSRA21.bones), 30.0))  # the default layout has one
+
+
+def test_palm_anchor_holds_the_thumb_base_where_the_palm_distances_cannot():
+    """A thumb CMC near the wrist (16 mm, as in FPHA's hands) with every MCP on one side: swung
+    about the wrist -> knuckles axis it keeps its distances to the MCPs almost exactly, so the
+    palm distances barely resist a pull on it; the anchor in the palm's frame (the references'
+    median) does."""
+    cmc = MSRA21.joint_names.index("thumb_cmc")
+    thumb = [k for k in range(21) if MSRA21.joint_names[k].startswith("thumb_")]
+    w, i, lt = MSRA21.palm_joints
+
+    def near_wrist(x):
+        x = x.copy()
+        x[thumb] += x[w] + 16.0 * (x[cmc] - x[w]) / np.linalg.norm(x[cmc] - x[w]) - x[cmc]
+        return x
+
+    x = near_wrist(_pose("open", (20.0, -10.0, 5.0)))
+    refs = np.stack([x, near_wrist(_pose("fist", (-15.0, 25.0, 0.0), (30.0, -20.0, 420.0)))])
+    model = _model(x)
+    obs = _observe(model, list(refs))
+    own = hm.personalize(MSRA21, model.bone_lengths_mm, refs, obs)
+    assert list(own.palm_anchor_joints) == [cmc]
+    # the anchor is the same for both references: the palm's frame moves with the hand
+    offsets = hm.palm_anchor_offsets(own, refs)
+    assert np.abs(offsets[0] - offsets[1]).max() < 1e-6
+    assert np.allclose(own.palm_anchor_mm, offsets[0])
+    # a pull (the pose term) towards the thumb swung by 30 degrees about the wrist -> knuckles axis
+    swung = x.copy()
+    swung[thumb] = (x[thumb] - x[w]) @ _rot(0.5 * (x[i] + x[lt]) - x[w], 30.0).T + x[w]
+    assert np.linalg.norm(swung[cmc] - x[cmc]) > 5.0
+    off = dict(data=0.0, free_space=0.0, collision=0.0, angle=0.0, uv=0.0, prior=0.0)
+    wts = replace(hm.FitWeights(), palm=1.0, pose=0.05, **off)
+    pull = hm.Priors(pose=swung[None], pose_w=np.ones((1, 21)))
+    anchored = replace(model, palm_anchor_mm=own.palm_anchor_mm)
+    miss = []
+    for m in (anchored, model):
+        res = hm.fit_frames(m, x[None], obs.take([0]), CAM, weights=wts, priors=pull, iterations=30)
+        miss.append(
+            np.linalg.norm(hm.palm_anchor_offsets(own, res.joints_mm)[0, 0] - offsets[0, 0])
+        )
+    assert miss[1] > 1.5, miss  # the distances give way ...
+    assert miss[0] < 0.2 * miss[1], miss  # ... the anchor holds

@@ -421,9 +421,9 @@ def test_a_layout_without_three_bone_fingers_has_no_hand_model():
 
 def test_palm_anchor_holds_the_thumb_base_where_the_palm_distances_cannot():
     """A thumb CMC near the wrist (16 mm, as in FPHA's hands) with every MCP on one side: swung
-    about the wrist -> knuckles axis it keeps its distances to the MCPs almost exactly, so the
-    palm distances barely resist a pull on it; the anchor in the palm's frame (the references'
-    median) does."""
+    about the wrist -> knuckles axis it changes its distances to the MCPs little, so the palm
+    distances resist a pull on it weakly; the anchor in the palm's frame (the references'
+    median) holds it."""
     cmc = MSRA21.joint_names.index("thumb_cmc")
     thumb = [k for k in range(21) if MSRA21.joint_names[k].startswith("thumb_")]
     w, i, lt = MSRA21.palm_joints

@@ -3,8 +3,8 @@ hand's own palm frame, at each stage, split into visible and hidden.
 
 For every session folder (``handanno bench --work-dir W`` leaves ``W/<sequence>/<strategy>-<f>``)
 and every joint: the mean error (mm) and the mean signed error vector expressed in the true
-pose's palm frame (:func:`handanno_core.handmodel.palm_frame`: ``e1`` wrist to the knuckles'
-midpoint, ``e2`` index to little MCP, ``e3`` their normal) of the lifted references, of the
+pose's palm frame (:meth:`handanno_core.skeleton.Skeleton.palm_rotation`: ``x`` towards the
+index side, ``y`` wrist to the knuckles' midpoint, ``z`` out of the palm) of the lifted references, of the
 propagated initialization and of the final result on the non-reference frames; visible / hidden
 as the simulated annotator marks them (exact clicks). A signed error that is a large part of
 the mean error is a bias of the engine (a model's geometry, an offset), not noise: stop 42's
@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from handanno_core.handmodel import palm_frame
 from handanno_core.session import Session
 from handanno_core.synth import simulate_annotations
 
@@ -41,7 +40,7 @@ def joint_bias(folder: str | Path) -> dict:
     refs = np.all(np.isfinite(results["lifted_mm"]), axis=(1, 2))
     anns = simulate_annotations(seq, np.arange(len(gt)), noise_px=0.0, seed=0)
     visible = np.stack([anns[f].visible for f in range(len(gt))])
-    rot = palm_frame(sk, gt)  # (N, 3, 3)
+    rot = sk.palm_rotation(gt)  # (N, 3, 3)
     out = {}
     for stage, key, on_refs in STAGES:
         x = np.asarray(results[key], dtype=np.float64)
@@ -84,7 +83,7 @@ def main() -> None:
                 f"({', '.join(f'{v:+.1f}' for v in joints[n]['signed_palm_mm'])})"
                 for n in top
             ]
-            print(f"  {stage:5s} bias/mean mm (e1, e2, e3): " + "  ".join(cells))
+            print(f"  {stage:5s} bias/mean mm (x, y, z): " + "  ".join(cells))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=1))

@@ -11,7 +11,8 @@ reaches the tip, which lies on the surface; the knuckle line adds capsules betwe
 MCPs. Bone lengths come from the lift; radii from the references' point clouds
 (:func:`estimate_radii`: iteratively reweighted fit of each observed point's distance to its
 capsule's axis segment); the palm's shape (distances between the root's children) from the
-references' lifted poses, and the thumb base's place in the palm's frame (:func:`palm_frame`;
+references' lifted poses, and the thumb base's place in the palm's frame
+(:meth:`Skeleton.palm_rotation`;
 the palm distances hold it only weakly, it lies near the wrist with every MCP on one side) from
 their median. Ground truth is never used.
 
@@ -434,11 +435,8 @@ class HandModel:
     #: ``FitWeights.prior`` (smaller for a hand that moves more widely than the recordings)
     pose_prior: PosePrior | None = None
     pose_prior_weight: float = 1.0
-    #: (A,) root children off the knuckle line (the thumb's CMC) held in the palm's frame
-    #: (:func:`palm_frame`) at ``palm_anchor_mm`` (A, 3) mm, the references' median (NaN: no
-    #: term). The palm distances hold them only weakly: such a joint lies near the wrist with
-    #: every MCP on one side, so it swings about the knuckle line at nearly constant distances
-    palm_anchor_joints: np.ndarray | None = None
+    #: (A, 3) mm: where :attr:`palm_anchor_joints` are held in the palm's frame, the references'
+    #: median (set by :func:`personalize`; None: no term)
     palm_anchor_mm: np.ndarray | None = None
 
     @cached_property
@@ -466,6 +464,17 @@ class HandModel:
     @cached_property
     def palm_chain(self) -> np.ndarray:
         return _palm_chain(self.skeleton)
+
+    @cached_property
+    def palm_anchor_joints(self) -> np.ndarray:
+        """(A,) root children off the knuckle line (the thumb's CMC), held in the palm's frame
+        (``palm_anchor_mm``). The palm distances hold them only weakly: such a joint lies near
+        the wrist with every MCP on one side, so it swings about the knuckle line at nearly
+        constant distances."""
+        sk = self.skeleton
+        if sk.palm_joints is None:
+            return np.zeros(0, dtype=np.int64)
+        return np.setdiff1d(sk.children(sk.root), self.palm_chain).astype(np.int64)
 
     @cached_property
     def wrist(self) -> np.ndarray:
@@ -499,23 +508,10 @@ class HandModel:
         return xa + s0[:, None] * d, xa + s1[:, None] * d
 
 
-def palm_frame(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
-    """Rotations ``(..., 3, 3)`` of the palm for joints ``x`` (..., J, 3) mm, columns: wrist to
-    the knuckles' midpoint, index to little MCP (made orthogonal to the first), their cross
-    product (:attr:`Skeleton.palm_joints`)."""
-    w, i, lt = skeleton.palm_joints
-    e1 = 0.5 * (x[..., i, :] + x[..., lt, :]) - x[..., w, :]
-    e1 = e1 / np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-9)
-    e2 = x[..., lt, :] - x[..., i, :]
-    e2 = e2 - np.sum(e2 * e1, axis=-1, keepdims=True) * e1
-    e2 = e2 / np.maximum(np.linalg.norm(e2, axis=-1, keepdims=True), 1e-9)
-    return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
-
-
 def palm_anchor_offsets(model: HandModel, x: np.ndarray) -> np.ndarray:
     """``(..., A, 3)`` mm: the anchored joints (``HandModel.palm_anchor_joints``) of poses ``x``
-    (..., J, 3) relative to the wrist, in the palm's frame (:func:`palm_frame`)."""
-    rot = palm_frame(model.skeleton, x)
+    (..., J, 3) relative to the wrist, in the palm's frame (:meth:`Skeleton.palm_rotation`)."""
+    rot = model.skeleton.palm_rotation(x)
     rel = x[..., model.palm_anchor_joints, :] - x[..., model.skeleton.root, None, :]
     return np.einsum("...ak,...kc->...ac", rel, rot)
 
@@ -564,12 +560,7 @@ def build_model(
     dist = np.full(len(pp), np.nan) if palm_dist_mm is None else np.asarray(palm_dist_mm, float)
     if radii.shape != (len(pairs),):
         raise ValueError(f"radii_mm must be ({len(pairs)},), got {radii.shape}")
-    anchors = np.setdiff1d(kids, mcps) if sk.palm_joints is not None else np.zeros(0, np.int64)
-    return HandModel(
-        sk, lengths, pairs, radii, tip, pp, dist,
-        palm_anchor_joints=anchors.astype(np.int64),
-        palm_anchor_mm=np.full((len(anchors), 3), np.nan),
-    )  # fmt: skip
+    return HandModel(sk, lengths, pairs, radii, tip, pp, dist)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1125,16 +1116,11 @@ def _energy(
         if want_jac:
             unit = dv / np.maximum(ln, 1e-9)[..., None]
             acc.add_points(qa, qb, 1.0, -1.0, unit, np.full((n, len(qa)), w.palm), r)
-    anchored = (
-        np.all(np.isfinite(model.palm_anchor_mm), axis=-1)
-        if model.palm_anchor_mm is not None
-        else np.zeros(0, dtype=bool)
-    )
-    if w.palm > 0 and np.any(anchored):
+    if w.palm > 0 and model.palm_anchor_mm is not None and len(model.palm_anchor_joints):
         # X_a - X_root - R c_a, R the palm's frame of this pose (held fixed in the Jacobian)
-        ja = model.palm_anchor_joints[anchored]
-        rot = palm_frame(model.skeleton, x)  # (n, 3, 3)
-        want = np.einsum("nkc,ac->nak", rot, model.palm_anchor_mm[anchored])
+        ja = model.palm_anchor_joints
+        rot = model.skeleton.palm_rotation(x)  # (n, 3, 3)
+        want = np.einsum("nkc,ac->nak", rot, model.palm_anchor_mm)
         v = (x[:, ja] - x[:, model.skeleton.root, None] - want).reshape(n, -1)  # (n, 3A)
         terms["palm"] = terms["palm"] + w.palm * 0.5 * np.sum(v**2, axis=1)
         if want_jac:

@@ -26,7 +26,7 @@ from scipy.sparse import lil_matrix
 from . import lm
 from .camera import CameraIntrinsics
 from .skeleton import FPHA_TO_MSRA21 as _FPHA_TO_MSRA21
-from .skeleton import MSRA21
+from .skeleton import MSRA21, hand_rotation
 from .synth import (
     GESTURES,
     PARAM_HI,
@@ -157,21 +157,6 @@ ICVL16_MARKERS = (Marker("local", offset=(0.0, 25.0, 0.0)),) + tuple(
 
 
 # ---------------------------------------------------------------------------- hand frame
-def hand_rotation(
-    wrist: np.ndarray, index: np.ndarray, little: np.ndarray, towards_fingers: np.ndarray
-) -> np.ndarray:
-    """Local-to-camera rotations ``(N, 3, 3)`` of the synthetic hand frame from landmarks ``(N, 3)``:
-    ``y`` from ``wrist`` towards ``towards_fingers``, ``x`` towards the index side (``index`` minus
-    ``little`` made perpendicular to ``y``), ``z = x cross y`` out of the palm (right hand)."""
-    y = towards_fingers - wrist
-    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
-    x = index - little
-    x = x - np.sum(x * y, axis=-1, keepdims=True) * y
-    x = x / np.linalg.norm(x, axis=-1, keepdims=True)
-    z = np.cross(x, y)
-    return np.stack([x, y, z], axis=-1)
-
-
 def rotation_of_joints(joints_mm: np.ndarray) -> np.ndarray:
     """Hand-frame rotations ``(N, 3, 3)`` of MSRA21 poses ``(N, 21, 3)``."""
     j = np.asarray(joints_mm, dtype=np.float64)

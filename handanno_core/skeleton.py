@@ -28,6 +28,21 @@ from pathlib import Path
 import numpy as np
 
 
+def hand_rotation(
+    wrist: np.ndarray, index: np.ndarray, little: np.ndarray, towards_fingers: np.ndarray
+) -> np.ndarray:
+    """Local-to-camera rotations ``(..., 3, 3)`` of the hand frame from landmarks ``(..., 3)``:
+    ``y`` from ``wrist`` towards ``towards_fingers``, ``x`` towards the index side (``index`` minus
+    ``little`` made perpendicular to ``y``), ``z = x cross y`` out of the palm (right hand)."""
+    y = towards_fingers - wrist
+    y = y / np.maximum(np.linalg.norm(y, axis=-1, keepdims=True), 1e-9)
+    x = index - little
+    x = x - np.sum(x * y, axis=-1, keepdims=True) * y
+    x = x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-9)
+    z = np.cross(x, y)
+    return np.stack([x, y, z], axis=-1)
+
+
 @dataclass(frozen=True)
 class Skeleton:
     """A hand skeleton layout. Arrays are indexed by joint (length J) or bone (length J - 1)."""
@@ -147,6 +162,16 @@ class Skeleton:
         )
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
         return n if right_hand else -n
+
+    def palm_rotation(self, poses_mm: np.ndarray) -> np.ndarray:
+        """Rotations ``(..., 3, 3)`` of the palm (:func:`hand_rotation` of the wrist, index and
+        little MCP of :attr:`palm_joints`, ``y`` towards the midpoint of the two MCPs)."""
+        if self.palm_joints is None:
+            raise ValueError(f"skeleton {self.name} defines no palm joints")
+        w, i, lt = self.palm_joints
+        x = poses_mm
+        return hand_rotation(x[..., w, :], x[..., i, :], x[..., lt, :],
+                             0.5 * (x[..., i, :] + x[..., lt, :]))  # fmt: skip
 
     def bone_directions(self, poses_mm: np.ndarray, right_hand: bool = True) -> np.ndarray:
         """``(..., A, 3)`` unit vectors: the bone leaving each joint of ``angle_joints`` in that

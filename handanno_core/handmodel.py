@@ -63,6 +63,11 @@ separable per finger, so each finger of a fitted pose is set in turn to a grid o
 (:data:`FINGER_FLEXIONS`, fractions of the joints' limits) and to the angles of caller-given
 poses (:func:`finger_targets`), scored by the same energy; the best of each finger are
 recombined and refitted once, and the result is kept only where its energy is lower.
+
+**Reference starts** (:func:`pose_library`, :func:`library_starts`): where several fingers are
+wrong at once (a fist closing faster than the flow follows), one finger at a time does not lower
+the energy; the session's verified poses, the most different ones, turned into the frame's palm,
+are whole-hand starts (semi-automatic annotation has them, a tracker does not).
 """
 
 from __future__ import annotations
@@ -102,6 +107,8 @@ __all__ = [
     "grid_flexions",
     "observe",
     "personalize",
+    "pose_library",
+    "library_starts",
     "refit_fingers",
 ]
 
@@ -584,6 +591,16 @@ class FrameObservations:
     def take(self, idx) -> FrameObservations:
         return FrameObservations(
             self.points[idx], self.valid[idx], self.depth[idx], self.nearest[idx], self.boxes[idx]
+        )
+
+    def thinned(self, points: int | None) -> FrameObservations:
+        """These frames seeing about ``points`` of their observed points (every k-th; None: all),
+        for ranking many candidate poses, which needs fewer points than a fit."""
+        if not points:
+            return self
+        k = max(1, self.points.shape[1] // int(points))
+        return FrameObservations(
+            self.points[:, ::k], self.valid[:, ::k], self.depth, self.nearest, self.boxes
         )
 
     @staticmethod
@@ -1259,9 +1276,9 @@ def fit_frames(
 #: fractions of the joints' flexion ranges (``Skeleton.angle_limits()``), from extended to curled
 FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.3, 0.55, 0.8) for b in (0.05, 0.3, 0.55, 0.8))
 
-#: observed points per frame the hypotheses are ranked on (:func:`refit_fingers`; the nearest
-#: capsule of every point is most of the cost)
-FINGER_SCORE_POINTS = 256
+#: observed points per frame candidate poses are ranked on (:func:`refit_fingers`,
+#: :func:`library_starts`' callers; the nearest capsule of every point is most of the cost)
+RANKING_POINTS = 256
 
 #: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
 _HYPOTHESIS_CHUNK = 256
@@ -1410,7 +1427,7 @@ def refit_fingers(
     flexion_deg: np.ndarray | None = None,
     abduction_deg: np.ndarray | None = None,
     rows: np.ndarray | None = None,
-    score_points: int | None = FINGER_SCORE_POINTS,
+    score_points: int | None = RANKING_POINTS,
 ) -> FitResult:
     """Per-finger hypotheses for fits ``fit`` of ``n`` frames stuck in a finger's local minimum
     (a finger curled where the depth shows it extended, or the reverse).
@@ -1443,12 +1460,9 @@ def refit_fingers(
         model.skeleton, kin, fit.root[sel], fit.u[sel], pick(flexion_deg), pick(abduction_deg)
     )
     nf, nk = hyp.shape[1:3]
-    # scored on every ``stride``-th observed point (the ranking needs fewer than the fit), the
-    # fit's own pose first so that the comparison uses the same points
-    stride = max(1, obs.points.shape[1] // max(int(score_points or 0), 1)) if score_points else 1
-    sub = FrameObservations(
-        obs.points[:, ::stride], obs.valid[:, ::stride], obs.depth, obs.nearest, obs.boxes
-    )
+    # scored on fewer observed points than the fit uses, the fit's own pose first so that the
+    # comparison uses the same points
+    sub = obs.thinned(score_points)
     owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
     flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
     energy = np.empty(len(owner))
@@ -1489,6 +1503,36 @@ def refit_fingers(
     out.root[rows_k] = again.root[keep]
     out.u[rows_k] = again.u[keep]
     return out
+
+
+def pose_library(skeleton: Skeleton, poses_mm: np.ndarray, size: int) -> np.ndarray:
+    """Up to ``size`` of the verified poses ``poses_mm`` (K,J,3) mm, the most different ones
+    (farthest-point sampling on the mean joint distance, starting from the pose nearest all
+    others), each in its palm's frame (:meth:`Skeleton.palm_rotation`, root at 0): (L,J,3) mm.
+    Poses with NaN are left out; a skeleton without palm joints has no library (L = 0)."""
+    x = np.asarray(poses_mm, dtype=np.float64)
+    x = x[np.all(np.isfinite(x), axis=(1, 2))]
+    if not len(x) or skeleton.palm_joints is None or size <= 0:
+        return np.zeros((0,) + x.shape[1:])
+    local = np.einsum("kjd,kdc->kjc", x - x[:, skeleton.root][:, None], skeleton.palm_rotation(x))
+    dist = np.linalg.norm(local[:, None] - local[None], axis=-1).mean(axis=-1)  # (K,K)
+    chosen = [int(np.argmin(dist.mean(axis=1)))]
+    near = dist[chosen[0]].copy()
+    while len(chosen) < min(size, len(x)) and near.max() > 0:
+        k = int(np.argmax(near))
+        chosen.append(k)
+        near = np.minimum(near, dist[k])
+    return local[np.asarray(chosen)]
+
+
+def library_starts(skeleton: Skeleton, library: np.ndarray, poses_mm: np.ndarray) -> np.ndarray:
+    """Every pose of a :func:`pose_library` ``library`` (L,J,3) turned into the palm of each of
+    ``poses_mm`` (n,J,3) mm (its root and :meth:`Skeleton.palm_rotation`): (n,L,J,3) mm, candidate
+    starts that keep a frame's hand where it is and try the articulation of every verified pose
+    (several fingers at once, which :func:`refit_fingers` cannot)."""
+    x = np.asarray(poses_mm, dtype=np.float64)
+    rot = skeleton.palm_rotation(x)  # (n,3,3): palm axes as columns
+    return x[:, skeleton.root][:, None, None] + np.einsum("ljc,ndc->nljd", library, rot)
 
 
 @dataclass

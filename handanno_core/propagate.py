@@ -34,8 +34,13 @@ reference), parents always before children:
    is also tried with each finger set to a grid of flexions and to the angles it has in the
    frame's other starts (:func:`handanno_core.handmodel.refit_fingers`: a finger stuck curled
    where the depth shows it extended, or the reverse); the recombined, refitted pose is kept
-   only if its energy is lower. Measured by ``handanno bench --model off,on`` (README, hand model
-   section).
+   only if its energy is lower. Where the flow moved the joints ``reference_min_motion_mm`` or
+   more, the references' most different poses (``reference_starts``,
+   :func:`handanno_core.handmodel.pose_library`), each turned into the flowed pose's palm, are
+   ranked on the frame's depth and the best is fitted without the flow's priors: it replaces
+   the fit where its energy is lower than the fit's without those priors (a flow that carried
+   several fingers the wrong way holds them there; a verified pose of the same hand does not).
+   Measured by ``handanno bench --model off,on`` (README, hand model section).
 
 6. several candidate forests (``parent`` of shape ``(P, N)``; a session with the hand model on
    passes its selection's forest and the two temporal chains between its references,
@@ -173,6 +178,17 @@ class PropagationSettings:
     #: a fit above ``model_fail_ratio`` that the hypotheses bring below it is kept only below
     #: this many times the references' level (:func:`_guard`)
     finger_rescue_level: float = 3.0
+    #: reference starts (:func:`handanno_core.handmodel.pose_library`): up to this many of the
+    #: references' poses (the most different ones), each turned into the flowed pose's palm,
+    #: are ranked on the frame's depth and the best is fitted without the flow's priors; it
+    #: replaces the frame's fit where its energy is below the fit's without those priors (the
+    #: flow that carried every finger the wrong way would otherwise hold them there). 0: off
+    reference_starts: int = 8
+    #: ... only where the flow moved the joints at least this far from the parent's pose (mean,
+    #: mm): closer, the parent's basin holds and a lower energy elsewhere is more often a
+    #: misfit of the model than a better pose (half the data term's 8 mm scale; 0-6 mm tried
+    #: on the tune part, README stop 43); it also spares the fits on slow motion
+    reference_min_motion_mm: float = 4.0
 
     @classmethod
     def from_session(cls, settings, **overrides) -> PropagationSettings:
@@ -241,6 +257,9 @@ class _Context:
     model_refs: np.ndarray | None = None  #: (K,) reference frames, sorted
     model_ref_joints: np.ndarray | None = None  #: (K, J, 3) their lifted joints
     model_levels: np.ndarray | None = None  #: per model, the references' data + free energy
+    #: (L, J, 3) mm: the most different references' poses in their palm's frame
+    #: (:func:`handmodel.pose_library`)
+    model_library: np.ndarray | None = None
 
     def crops(self) -> np.ndarray:
         if self.crops_array is not None:
@@ -272,9 +291,12 @@ class _Context:
             return self
         refs = np.asarray(sorted(f for f in known if f in reference_joints), dtype=np.int64)
         joints = np.stack([known[int(f)][0] for f in refs]) if len(refs) else None
+        library = None
+        if joints is not None and self.settings.reference_starts > 0:
+            library = hm.pose_library(self.skeleton, joints, self.settings.reference_starts)
         return dataclasses.replace(
             self, hand_models=models[0], model_levels=models[1], model_refs=refs,
-            model_ref_joints=joints,
+            model_ref_joints=joints, model_library=library,
         )  # fmt: skip
 
 
@@ -667,6 +689,25 @@ def _guard(st: PropagationSettings, plain: float, fitted: float, ref: float) -> 
     return failed, max(fitted, plain * ref) if failed and st.finger_hypotheses else fitted
 
 
+def _starts(ctx: _Context, items: list[_ModelInput]) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate starts of :func:`_model_fits` (S,J,3) mm and the item each belongs to (S,)."""
+    refs = ctx.model_refs
+    starts, owner = [], []
+    for i, it in enumerate(items):
+        c_f = ctx.centres_mm[it.frame]
+        own = [it.x_flow, it.joints_s + (c_f - ctx.centres_mm[it.src])]
+        if it.joints_gs is not None and ctx.settings.velocity_start:
+            own.append(2.0 * it.joints_s - it.joints_gs)
+        if refs is not None and len(refs):
+            pos = int(np.searchsorted(refs, it.frame))
+            for k in {max(pos - 1, 0), min(pos, len(refs) - 1)}:
+                if int(refs[k]) != it.src:
+                    own.append(ctx.model_ref_joints[k] + (c_f - ctx.centres_mm[refs[k]]))
+        starts += own
+        owner += [i] * len(own)
+    return np.stack(starts), np.asarray(owner, dtype=np.int64)
+
+
 def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     """:func:`_model_fits` for frames of one hand model ``ctx.hand_models[h]``."""
     st = ctx.settings
@@ -674,21 +715,7 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     cam = ctx.camera
     frames = np.array([it.frame for it in items], dtype=np.int64)
     c_f = ctx.centres_mm[frames]
-    starts, owner = [], []
-    refs = ctx.model_refs
-    for i, it in enumerate(items):
-        own = [it.x_flow, it.joints_s + (c_f[i] - ctx.centres_mm[it.src])]
-        if it.joints_gs is not None and st.velocity_start:
-            own.append(2.0 * it.joints_s - it.joints_gs)
-        if refs is not None and len(refs):
-            pos = int(np.searchsorted(refs, it.frame))
-            for k in {max(pos - 1, 0), min(pos, len(refs) - 1)}:
-                if int(refs[k]) != it.src:
-                    own.append(ctx.model_ref_joints[k] + (c_f[i] - ctx.centres_mm[refs[k]]))
-        starts += own
-        owner += [i] * len(own)
-    starts = np.stack(starts)
-    owner = np.asarray(owner, dtype=np.int64)
+    starts, owner = _starts(ctx, items)
     j = starts.shape[1]
     w = ctx.fit_weights or hm.FitWeights()
     obs_f = hm.observe(
@@ -735,6 +762,7 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
             model, fit, obs_f.take(owner[best]), cam, weights=w, priors=pri_f.take(owner[best]),
             kin=kin, flexion_deg=flex[owner[best]], abduction_deg=abd[owner[best]], rows=tried,
         )  # fmt: skip
+    lib, lib_row = _library_fit(ctx, model, kin, items, obs_f, w)
     x = np.empty((len(items), j, 3))
     root = np.empty((len(items), 3))
     u = np.empty((len(items),) + fit.u.shape[1:])
@@ -745,7 +773,13 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         k = rows[int(np.argmin(fit.energy[rows]))]
         x[i], root[i], u[i] = fit.joints_mm[k], fit.root[k], fit.u[k]
         level[i] = fit.terms["data"][k] + fit.terms["free_space"][k]
-        rejected[i], level[i] = _guard(st, lvl[k], level[i], ctx.model_levels[h])
+        plain = lvl[k]
+        r = lib_row[i]
+        if r >= 0 and lib.energy[r] < fit.energy[k] - fit.terms["pose"][k] - fit.terms["uv"][k]:
+            x[i], root[i], u[i] = lib.joints_mm[r], lib.root[r], lib.u[r]
+            level[i] = lib.terms["data"][r] + lib.terms["free_space"][r]
+            plain = level[i] / ctx.model_levels[h]  # a plain fit, not a rescue
+        rejected[i], level[i] = _guard(st, plain, level[i], ctx.model_levels[h])
         if rejected[i]:
             # the fit does not explain the frame's depth: keep the flowed pose
             x[i] = x_flow[i]
@@ -777,6 +811,49 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
             axis=1,
         )
     return list(zip(x, conf, evidence, strict=True))
+
+
+def _library_fit(
+    ctx: _Context, model, kin, items: list[_ModelInput], obs, weights
+) -> tuple[hm.FitResult | None, np.ndarray]:
+    """The reference starts' fit of the items the flow moved at least
+    ``reference_min_motion_mm`` from their parent's pose: per such frame, the pose of
+    ``ctx.model_library`` turned into the flowed pose's palm (:func:`handmodel.library_starts`)
+    that explains its depth best (ranked on :data:`handmodel.RANKING_POINTS` points), fitted
+    without the flow's priors. Returns the fit (None: no frame) and per item its row in it (-1:
+    not tried)."""
+    row = np.full(len(items), -1)
+    if ctx.model_library is None or not len(ctx.model_library):
+        return None, row
+    moved = np.array([np.linalg.norm(it.x_flow - it.joints_s, axis=1).mean() for it in items])
+    tried = np.flatnonzero(moved >= ctx.settings.reference_min_motion_mm)
+    if not len(tried):
+        return None, row
+    row[tried] = np.arange(len(tried))
+    x_flow = np.stack([items[i].x_flow for i in tried])
+    obs = obs.take(tried)
+    starts = hm.library_starts(ctx.skeleton, ctx.model_library, x_flow)  # (n,L,J,3)
+    n, nl = starts.shape[:2]
+    flat = starts.reshape((n * nl,) + starts.shape[2:])
+    owner = np.repeat(np.arange(n), nl)
+    ranked = obs.thinned(hm.RANKING_POINTS)
+    energy = np.empty(len(flat))
+    for a in range(0, len(flat), _RANKING_CHUNK):
+        r = np.arange(a, min(a + _RANKING_CHUNK, len(flat)))
+        energy[r] = hm.frame_energy(
+            model, kin, *kin.fit(flat[r]), ranked.take(owner[r]), ctx.camera, weights,
+            diagnostics=False,
+        )[0]  # fmt: skip
+    pick = np.argmin(energy.reshape(n, nl), axis=1)
+    fit = hm.fit_frames(
+        model, starts[np.arange(n), pick], obs, ctx.camera, weights=weights, kin=kin
+    )
+    return fit, row
+
+
+#: candidate poses ranked per call in :func:`_library_fit` (memory: each row holds the frame's
+#: points x capsules)
+_RANKING_CHUNK = 256
 
 
 class _Skip(Exception):

@@ -111,3 +111,57 @@ def test_finger_targets_append_each_frames_own_poses():
     assert np.allclose(flex[0, len(g)], f_ref[1]) and np.allclose(abd[0, len(g)], a_ref[1])
     assert np.allclose(flex[1, len(g) :], f_ref[[0, 2]])
     assert np.all(np.isnan(flex[0, len(g) + 1])) and np.all(np.isnan(flex[2, len(g) :]))
+
+
+def test_pose_library_keeps_the_most_different_poses_in_their_palms_frame():
+    """The library's first pose is the one nearest all others, the next the farthest from it;
+    a library pose turned into the palm of that same reference moved rigidly is that moved
+    reference (the library keeps articulation, the start keeps the frame's hand where it is)."""
+    open_, fist = _pose("open"), _pose("fist", ypr=(0.4, -0.3, 0.2), centre=(20.0, 10.0, 450.0))
+    near_open = _pose("open", ypr=(0.1, 0.0, 0.0))
+    lib = hm.pose_library(MSRA21, np.stack([open_, fist, near_open, _pose("relaxed")]), 2)
+    assert lib.shape == (2, 21, 3)
+    assert np.allclose(lib[:, MSRA21.root], 0.0)
+    moved = fist @ _rot(np.array([0.2, 1.0, 0.3]), 35.0).T + [5.0, -40.0, 30.0]
+    starts = hm.library_starts(MSRA21, lib, moved[None])  # (1, 2, 21, 3)
+    err = np.linalg.norm(starts[0] - moved, axis=-1).max(axis=1)
+    assert err.min() < 1e-6 and err.max() > 30.0  # the fist is in the library, so is an open hand
+    # fewer poses than asked: all of them; no finite pose: an empty library
+    assert hm.pose_library(MSRA21, np.stack([open_, fist]), 8).shape == (2, 21, 3)
+    assert hm.pose_library(MSRA21, np.full((2, 21, 3), np.nan), 8).shape == (0, 21, 3)
+
+
+@pytest.mark.parametrize("gesture,tol", [("claw", 0.5), ("rock", 6.0)])
+def test_a_reference_pose_recovers_fingers_the_start_carried_the_wrong_way(gesture, tol):
+    """The depth shows several fingers curled, the start (an open hand in the same palm, with
+    the flow's priors on it) has them extended: the plain fit and the one-finger-at-a-time
+    hypotheses stay > 10 mm off; the reference pose of the same gesture, seen elsewhere and at
+    another orientation, turned into the fit's palm and fitted without the flow's priors,
+    comes back to ``tol`` with a lower energy than the fit's without those priors."""
+    x = _pose(gesture, ypr=(0.3, 0.2, 0.1))
+    model = _model(x)
+    obs = _observe(model, [x])
+    start = _pose("open", ypr=(0.3, 0.2, 0.1))
+    start = start - start[MSRA21.root] + x[MSRA21.root]
+    pri = hm.Priors(
+        pose=start[None], pose_w=np.ones((1, 21)), uv=CAM.project(start)[None],
+        uv_w=np.ones((1, 21)),
+    )  # fmt: skip
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    fit = hm.refit_fingers(
+        model, hm.fit_frames(model, start[None], obs, CAM, priors=pri, kin=kin), obs, CAM,
+        priors=pri, kin=kin,
+    )  # fmt: skip
+    assert np.linalg.norm(fit.joints_mm[0] - x, axis=1).max() > 10.0
+    refs = np.stack(
+        [_pose("open"), _pose(gesture, ypr=(-0.4, 0.5, 0.0), centre=(30.0, -20.0, 450.0)),
+         _pose("spread")]
+    )  # fmt: skip
+    starts = hm.library_starts(MSRA21, hm.pose_library(MSRA21, refs, 8), fit.joints_mm)[0]
+    energy = hm.frame_energy(
+        model, kin, *kin.fit(starts), obs.take([0] * len(starts)), CAM, hm.FitWeights(),
+        diagnostics=False,
+    )[0]  # fmt: skip
+    lib = hm.fit_frames(model, starts[np.argmin(energy)][None], obs, CAM, kin=kin)
+    assert np.linalg.norm(lib.joints_mm[0] - x, axis=1).max() <= tol
+    assert lib.energy[0] < fit.energy[0] - fit.terms["pose"][0] - fit.terms["uv"][0]

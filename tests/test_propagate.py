@@ -269,25 +269,25 @@ def fast_data(folder, n: int, seed: int = 3) -> dict:
     )  # fmt: skip
 
 
-def test_model_start_at_the_parents_velocity_follows_fast_motion(tmp_path):
+def test_model_starts_at_the_parents_velocity_or_the_reference_follow_fast_motion(tmp_path):
     """At the suite's fast-motion speed (>= 10 mm joint steps), a chain whose hand-model fit may
-    start from the parent moved on at its own velocity stays on the hand; from the flowed pose
-    and the parent's pose alone it loses it within a few frames."""
+    start from the parent moved on at its own velocity stays on the hand; so does one that may
+    start from the reference's pose turned into the flowed pose's palm (``reference_starts``);
+    from the flowed pose and the parent's pose alone it loses it within a few frames."""
     from handanno_core.propagate import PropagationSettings
 
     n = 16
     data = fast_data(tmp_path / "fast", n)
     gt = data["gt"]
     chain = np.arange(-1, n - 1)
-    mean_error = {
-        v: errors(
-            run(data, chain, [0], hand_model=True, settings=PropagationSettings(velocity_start=v)),
-            gt,
-            np.arange(1, n),
-        ).mean()
-        for v in (False, True)
-    }
-    assert mean_error[True] < 10.0 < mean_error[False]
+
+    def mean_error(velocity: bool, reference: int) -> float:
+        st = PropagationSettings(velocity_start=velocity, reference_starts=reference)
+        result = run(data, chain, [0], hand_model=True, settings=st)
+        return float(errors(result, gt, np.arange(1, n)).mean())
+
+    assert mean_error(True, 0) < 10.0 < mean_error(False, 0)
+    assert mean_error(False, 8) < 10.0
 
 
 def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
@@ -296,8 +296,9 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     best; that beats either direction alone. A partial run from one changed frame recomputes
     its descendants in both chains. (Without the per-finger hypotheses, which rescue most of the
     frames either chain alone loses here: with them, both directions are 5.04 mm, the backward
-    chain alone 5.01; and without the pose prior, which keeps the forward chain's fits good
-    enough here that no backward candidate is needed.)"""
+    chain alone 5.01; without the pose prior, which keeps the forward chain's fits good
+    enough here that no backward candidate is needed; and without the reference starts, which
+    hold the forward chain on the hand here as well.)"""
     from handanno_core.handmodel import FitWeights
     from handanno_core.propagate import PropagationSettings
     from handanno_core.select import temporal_chains
@@ -308,7 +309,7 @@ def test_both_directions_keep_the_chain_the_frames_depth_supports(tmp_path):
     refs = [0, n - 1]
     chains = temporal_chains(n, refs)
     assert chains[0][5] == 4 and chains[1][5] == 6
-    plain = PropagationSettings(finger_hypotheses=False)
+    plain = PropagationSettings(finger_hypotheses=False, reference_starts=0)
     no_prior = FitWeights(prior=0.0)
     forward = run(data, chains[0], refs, hand_model=True, fit_weights=no_prior, settings=plain)
     backward = run(data, chains[1], refs, hand_model=True, fit_weights=no_prior, settings=plain)

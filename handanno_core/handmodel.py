@@ -1281,7 +1281,7 @@ FINGER_FLEXIONS = tuple((a, b) for a in (0.05, 0.3, 0.55, 0.8) for b in (0.05, 0
 RANKING_POINTS = 256
 
 #: rows of candidate poses whose energy is evaluated at once (each holds an (M, 2C) float32 block)
-_HYPOTHESIS_CHUNK = 256
+RANKING_CHUNK = 256
 
 
 def finger_chains(skeleton: Skeleton) -> list[np.ndarray]:
@@ -1466,8 +1466,8 @@ def refit_fingers(
     owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
     flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
     energy = np.empty(len(owner))
-    for a in range(0, len(owner), _HYPOTHESIS_CHUNK):
-        r = owner[a : a + _HYPOTHESIS_CHUNK]
+    for a in range(0, len(owner), RANKING_CHUNK):
+        r = owner[a : a + RANKING_CHUNK]
         energy[a : a + len(r)] = _energy(
             model, kin, fit.root[r], flat[a : a + len(r)], sub.take(r), camera, w,
             None if priors is None else priors.take(r), False, False,

@@ -838,8 +838,8 @@ def _library_fit(
     owner = np.repeat(np.arange(n), nl)
     ranked = obs.thinned(hm.RANKING_POINTS)
     energy = np.empty(len(flat))
-    for a in range(0, len(flat), _RANKING_CHUNK):
-        r = np.arange(a, min(a + _RANKING_CHUNK, len(flat)))
+    for a in range(0, len(flat), hm.RANKING_CHUNK):
+        r = np.arange(a, min(a + hm.RANKING_CHUNK, len(flat)))
         energy[r] = hm.frame_energy(
             model, kin, *kin.fit(flat[r]), ranked.take(owner[r]), ctx.camera, weights,
             diagnostics=False,
@@ -849,11 +849,6 @@ def _library_fit(
         model, starts[np.arange(n), pick], obs, ctx.camera, weights=weights, kin=kin
     )
     return fit, row
-
-
-#: candidate poses ranked per call in :func:`_library_fit` (memory: each row holds the frame's
-#: points x capsules)
-_RANKING_CHUNK = 256
 
 
 class _Skip(Exception):

@@ -310,19 +310,25 @@ def crop_coverage(session: Session, gt: np.ndarray) -> dict:
     """Evaluation: ``crops_held_pct``, the share of frames whose every ground-truth joint
     ``gt`` ``(N, J, 3)`` mm lies inside the session's crop (x, y, 8 mm from its edge: the crops
     propagation and refinement used, after :func:`handanno_core.pipeline.recrop_from_references`),
-    and ``crops_missed_frames`` (the first 50 that do not)."""
+    and ``crops_missed_frames`` (the first 50 that do not); ``crops_depth_held_pct`` and
+    ``crops_depth_missed_frames`` the same with the joints also within the cube's depth range
+    (a frame whose hand lies in front of its cube is lost to the hand model)."""
     from .crops import joints_inside_crops
     from .session import CROPS_META_FILE
 
     with np.load(session.folder / CROPS_META_FILE, allow_pickle=False) as meta:
         centres = np.asarray(meta["centres_mm"])
         box = np.asarray(meta["box_cubes_mm"])
-    held = joints_inside_crops(
-        gt, centres, session.open_sequence().camera, box, session.model.settings.crop_size
+    camera, size = session.open_sequence().camera, session.model.settings.crop_size
+    held = joints_inside_crops(gt, centres, camera, box, size)
+    deep = joints_inside_crops(
+        gt, centres, camera, box, size, cube_mm=session.model.settings.cube_mm
     )
     return {
         "crops_held_pct": round(100.0 * float(held.mean()), 2),
         "crops_missed_frames": np.flatnonzero(~held)[:50].tolist(),
+        "crops_depth_held_pct": round(100.0 * float(deep.mean()), 2),
+        "crops_depth_missed_frames": np.flatnonzero(~deep)[:50].tolist(),
     }
 
 

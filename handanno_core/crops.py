@@ -374,11 +374,14 @@ def joints_inside_crops(
     box_cubes_mm: np.ndarray | float,
     size: int = DEFAULT_CROP.size,
     margin_mm: float = 8.0,
+    cube_mm: float | None = None,
 ) -> np.ndarray:
     """``(N,)`` bool: every joint of ``joints_mm`` ``(N, J, 3)`` projects inside its frame's crop
     (crop centre ``centres_mm`` ``(N, 3)``, image box of ``box_cubes_mm`` ``(N,)`` or scalar, in
-    x and y), ``margin_mm`` (at the box's scale) from its edge. Joints with a NaN coordinate
-    are not counted; a frame without a finite crop centre holds none."""
+    x and y), ``margin_mm`` (at the box's scale) from its edge; with ``cube_mm`` (the session's
+    cube, the crops' depth range) also within ``cube_mm / 2`` of the centre in depth (a hand in
+    front of the cube is clamped to -1, which the hand model reads as background). Joints with
+    a NaN coordinate are not counted; a frame without a finite crop centre holds none."""
     j = np.asarray(joints_mm, dtype=np.float64)
     n = len(j)
     box = np.broadcast_to(np.asarray(box_cubes_mm, dtype=np.float64), (n,))
@@ -387,7 +390,11 @@ def joints_inside_crops(
     uv = camera.project(np.where(known[..., None], j, 1.0))
     xy = image_to_crop(uv, boxes[:, None, :])
     mm = (xy - (size - 1) / 2) * box[:, None, None] / size
-    inside = np.all(np.abs(mm) <= box[:, None, None] / 2 - margin_mm, axis=2) | ~known
+    inside = np.all(np.abs(mm) <= box[:, None, None] / 2 - margin_mm, axis=2)
+    if cube_mm is not None:
+        dz = j[..., 2] - np.asarray(centres_mm, dtype=np.float64)[:, None, 2]
+        inside &= np.abs(np.nan_to_num(dz, nan=np.inf)) <= 0.5 * float(cube_mm)
+    inside |= ~known
     return np.all(inside, axis=1) & np.all(np.isfinite(boxes), axis=1)
 
 

@@ -609,3 +609,23 @@ def test_locate_crops_reads_every_frame_once_even_when_the_cube_grows():
     assert seq.reads == len(seq)
     again, _ = locate_hands_with_extent(seq, cube_mm=spec.cube_mm)
     np.testing.assert_allclose(again, centres)
+
+
+def test_joints_in_front_of_the_cube_are_not_held_in_depth():
+    """A hand whose crop centre lies too deep (the localizer took the arm's far end) projects
+    inside the crop's box but in front of its cube: held in x and y, not in depth."""
+    from handanno_core.crops import joints_inside_crops
+
+    rng = np.random.default_rng(0)
+    hand = rng.normal(0.0, 25.0, (2, 21, 3)) + [0.0, 0.0, 350.0]
+    centres = np.array([[0.0, 0.0, 360.0], [0.0, 0.0, 476.0]])  # the second 117 mm too deep
+    in_xy = joints_inside_crops(hand, centres, MSRA_CAMERA, 280.0)
+    in_depth = joints_inside_crops(hand, centres, MSRA_CAMERA, 280.0, cube_mm=280.0)
+    assert in_xy.tolist() == [True, True]
+    assert in_depth.tolist() == [True, False]
+    # a joint without a position is not counted, in depth either
+    hand[1, :, 2] = np.nan
+    assert joints_inside_crops(hand, centres, MSRA_CAMERA, 280.0, cube_mm=280.0).tolist() == [
+        True,
+        True,
+    ]

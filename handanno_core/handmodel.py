@@ -107,6 +107,7 @@ __all__ = [
     "grid_flexions",
     "observe",
     "personalize",
+    "pose_energies",
     "pose_library",
     "library_starts",
     "refit_fingers",
@@ -517,10 +518,8 @@ class HandModel:
 
 def palm_anchor_offsets(model: HandModel, x: np.ndarray) -> np.ndarray:
     """``(..., A, 3)`` mm: the anchored joints (``HandModel.palm_anchor_joints``) of poses ``x``
-    (..., J, 3) relative to the wrist, in the palm's frame (:meth:`Skeleton.palm_rotation`)."""
-    rot = model.skeleton.palm_rotation(x)
-    rel = x[..., model.palm_anchor_joints, :] - x[..., model.skeleton.root, None, :]
-    return np.einsum("...ak,...kc->...ac", rel, rot)
+    (..., J, 3) relative to the wrist, in the palm's frame (:meth:`Skeleton.palm_coordinates`)."""
+    return model.skeleton.palm_coordinates(x)[..., model.palm_anchor_joints, :]
 
 
 def _palm_chain(skeleton: Skeleton) -> np.ndarray:
@@ -1508,13 +1507,13 @@ def refit_fingers(
 def pose_library(skeleton: Skeleton, poses_mm: np.ndarray, size: int) -> np.ndarray:
     """Up to ``size`` of the verified poses ``poses_mm`` (K,J,3) mm, the most different ones
     (farthest-point sampling on the mean joint distance, starting from the pose nearest all
-    others), each in its palm's frame (:meth:`Skeleton.palm_rotation`, root at 0): (L,J,3) mm.
+    others), each in its palm's frame (:meth:`Skeleton.palm_coordinates`): (L,J,3) mm.
     Poses with NaN are left out; a skeleton without palm joints has no library (L = 0)."""
     x = np.asarray(poses_mm, dtype=np.float64)
     x = x[np.all(np.isfinite(x), axis=(1, 2))]
     if not len(x) or skeleton.palm_joints is None or size <= 0:
         return np.zeros((0,) + x.shape[1:])
-    local = np.einsum("kjd,kdc->kjc", x - x[:, skeleton.root][:, None], skeleton.palm_rotation(x))
+    local = skeleton.palm_coordinates(x)
     dist = np.linalg.norm(local[:, None] - local[None], axis=-1).mean(axis=-1)  # (K,K)
     chosen = [int(np.argmin(dist.mean(axis=1)))]
     near = dist[chosen[0]].copy()
@@ -1523,6 +1522,28 @@ def pose_library(skeleton: Skeleton, poses_mm: np.ndarray, size: int) -> np.ndar
         chosen.append(k)
         near = np.minimum(near, dist[k])
     return local[np.asarray(chosen)]
+
+
+def pose_energies(
+    model: HandModel,
+    kin: Kinematics,
+    poses_mm: np.ndarray,
+    obs: FrameObservations,
+    owner: np.ndarray,
+    camera: CameraIntrinsics,
+    weights: FitWeights,
+) -> np.ndarray:
+    """Energy (:func:`frame_energy`, no priors) ``(S,)`` of candidate poses ``poses_mm``
+    (S,J,3) mm, pose ``s`` in frame ``owner[s]`` of ``obs``; :data:`RANKING_CHUNK` poses at a
+    time (memory), for ranking starts before fitting the best."""
+    out = np.empty(len(poses_mm))
+    for a in range(0, len(poses_mm), RANKING_CHUNK):
+        r = np.arange(a, min(a + RANKING_CHUNK, len(poses_mm)))
+        out[r] = frame_energy(
+            model, kin, *kin.fit(poses_mm[r]), obs.take(owner[r]), camera, weights,
+            diagnostics=False,
+        )[0]  # fmt: skip
+    return out
 
 
 def library_starts(skeleton: Skeleton, library: np.ndarray, poses_mm: np.ndarray) -> np.ndarray:

@@ -837,13 +837,7 @@ def _library_fit(
     flat = starts.reshape((n * nl,) + starts.shape[2:])
     owner = np.repeat(np.arange(n), nl)
     ranked = obs.thinned(hm.RANKING_POINTS)
-    energy = np.empty(len(flat))
-    for a in range(0, len(flat), hm.RANKING_CHUNK):
-        r = np.arange(a, min(a + hm.RANKING_CHUNK, len(flat)))
-        energy[r] = hm.frame_energy(
-            model, kin, *kin.fit(flat[r]), ranked.take(owner[r]), ctx.camera, weights,
-            diagnostics=False,
-        )[0]  # fmt: skip
+    energy = hm.pose_energies(model, kin, flat, ranked, owner, ctx.camera, weights)
     pick = np.argmin(energy.reshape(n, nl), axis=1)
     fit = hm.fit_frames(
         model, starts[np.arange(n), pick], obs, ctx.camera, weights=weights, kin=kin

@@ -173,6 +173,13 @@ class Skeleton:
         return hand_rotation(x[..., w, :], x[..., i, :], x[..., lt, :],
                              0.5 * (x[..., i, :] + x[..., lt, :]))  # fmt: skip
 
+    def palm_coordinates(self, poses_mm: np.ndarray) -> np.ndarray:
+        """``(..., J, 3)`` mm: the joints of ``poses_mm`` relative to the root, in the palm's frame
+        (:meth:`palm_rotation`): the pose without its place and orientation."""
+        x = np.asarray(poses_mm, dtype=np.float64)
+        rel = x - x[..., self.root, None, :]
+        return np.einsum("...jk,...kc->...jc", rel, self.palm_rotation(x))
+
     def bone_directions(self, poses_mm: np.ndarray, right_hand: bool = True) -> np.ndarray:
         """``(..., A, 3)`` unit vectors: the bone leaving each joint of ``angle_joints`` in that
         joint's frame (along the incoming bone, towards the palm, lateral), the frame

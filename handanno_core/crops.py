@@ -380,7 +380,7 @@ def joints_inside_crops(
     (crop centre ``centres_mm`` ``(N, 3)``, image box of ``box_cubes_mm`` ``(N,)`` or scalar, in
     x and y), ``margin_mm`` (at the box's scale) from its edge; with ``cube_mm`` (the session's
     cube, the crops' depth range) also within ``cube_mm / 2`` of the centre in depth (a hand in
-    front of the cube is clamped to -1, which the hand model reads as background). Joints with
+    front of the cube is clamped to -1: silhouette without depth for the hand model). Joints with
     a NaN coordinate are not counted; a frame without a finite crop centre holds none."""
     j = np.asarray(joints_mm, dtype=np.float64)
     n = len(j)

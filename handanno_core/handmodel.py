@@ -644,7 +644,9 @@ def observe(
 
     Hand pixels are the crop values strictly inside (-1, 1); up to ``max_points`` of them, evenly
     spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``
-    (None: :data:`OBSERVED_POINTS`).
+    (None: :data:`OBSERVED_POINTS`). Pixels clamped to -1 (surface in front of the cube, depth
+    unknown) are silhouette (``nearest``) with the cube's frontmost depth ``z_c - cube``
+    (``depth``), but give no points.
     """
     max_points = OBSERVED_POINTS if max_points is None else int(max_points)
     n, s = crops.shape[0], crops.shape[-1]
@@ -666,13 +668,19 @@ def observe(
     for i in range(n):
         crop = np.asarray(crops[i], dtype=np.float32)
         fg = np.abs(crop) < 0.999
+        # surface just in front of the cube (clamped to -1, at an unknown depth between
+        # z_c - cube and z_c - cube/2: a finger pointing at the camera) is silhouette, free
+        # space only in front of z_c - cube, but no data point
+        front = crop <= -0.999
+        silhouette = fg | front
         flat = np.flatnonzero(fg)
         if len(flat) == 0 or not np.isfinite(zc[i]):
             nearest[i] = grid
             continue
         # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front
         # of every surface it could project onto after resampling (no false violations at edges)
-        d = minimum_filter(np.where(fg, zc[i] + half * crop, np.inf), size=3, mode="nearest")
+        surface = np.where(fg, zc[i] + half * crop, np.where(front, zc[i] - 2.0 * half, np.inf))
+        d = minimum_filter(surface, size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
         take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
         pick = flat[np.unique(take)]
@@ -681,7 +689,7 @@ def observe(
         z = zc[i] + half * crop.reshape(-1)[pick].astype(np.float64)
         points[i, : len(pick)] = camera.backproject(uv, z)
         valid[i, : len(pick)] = True
-        _, ind = distance_transform_edt(~fg, return_indices=True)
+        _, ind = distance_transform_edt(~silhouette, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out
 

@@ -256,6 +256,9 @@ WRIST_ZONE_MM = 30.0
 #: the session's cube holds every frame's hand but a spike this many frames long, less than half
 #: (the running median over SPIKE_FRAMES frames of the hand's size: a localization slip).
 SPIKE_FRAMES = 3
+#: a hand deeper than the cube for at most two frames running (the running median over this many
+#: frames fits it) merged with the surface behind it: a localization slip (:func:`centres_at`).
+DEPTH_SPIKE_FRAMES = 5
 #: a crop keeps every hand point at least this far inside its edge (mm).
 CROP_MARGIN_MM = 8.0
 #: without an arm end, the hand is the mean shift mode of the seed's points within this radius
@@ -1219,6 +1222,21 @@ def _segments(n: int, breaks: _Seq[int] | None) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
 
 
+def _depth_spikes(
+    half_depth_mm: np.ndarray, cube_mm: float, breaks: _Seq[int] | None
+) -> np.ndarray:
+    """``(N,)`` bool: frames whose hand is deeper than the cube (half extent in z
+    ``half_depth_mm (N,)`` over ``cube_mm / 2``) while the running median over ``DEPTH_SPIKE_FRAMES``
+    frames fits it: a depth spike of at most two frames (the hand merged with what lies
+    behind it), the test :func:`session_cube_mm` applies to the hand's size in x and y."""
+    hz = np.where(np.isfinite(half_depth_mm), half_depth_mm, 0.0)
+    out = np.zeros(len(hz), dtype=bool)
+    for a, b in _segments(len(hz), breaks):
+        run = ndimage.median_filter(hz[a:b], size=min(DEPTH_SPIKE_FRAMES, b - a), mode="mirror")
+        out[a:b] = (hz[a:b] > 0.5 * cube_mm) & (run <= 0.5 * cube_mm)
+    return out
+
+
 def smooth_centres(
     centres_mm: np.ndarray,
     sequence_breaks: _Seq[int] | None = None,
@@ -1339,6 +1357,7 @@ def centres_at(
     # slip, whatever its own box) does not bound its centre: smoothing takes its neighbours'
     # instead; a hand held together from two candidates (own box) keeps its own evidence
     slip = np.any(0.5 * cube_mm - CROP_MARGIN_MM - half[:, :2] < 0.0, axis=1)
+    slip |= _depth_spikes(half[:, 2], cube_mm, sequence_breaks)
     slack[(slip & (geometry[:, 14] != 1.0)) | np.any(slack[:, :2] < 0.0, axis=1)] = np.nan
     breaks = sorted(set(int(b) for b in (sequence_breaks or [])))
     return smooth_centres(raw, breaks, smooth=smooth, max_shift_mm=slack), half

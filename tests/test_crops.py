@@ -629,3 +629,27 @@ def test_joints_in_front_of_the_cube_are_not_held_in_depth():
         True,
         True,
     ]
+
+
+def test_a_hand_merged_with_the_surface_behind_it_for_two_frames_keeps_its_neighbours_depth():
+    """A hand whose depth range reaches 200 mm back for two frames (merged with a table behind
+    it) would put its crop's cube behind the hand, the hand in front of the cube; a run of such
+    frames as short as that is a localization slip, and the crop keeps its neighbours' depth. A
+    hand that stays deep (a forearm reaching back) keeps its own centre."""
+    from handanno_core.localize import DEPTH_SPIKE_FRAMES, centres_at
+
+    # one frame's geometry row (ray-angle box, depth range, hidden depth, wrist; arm-end method)
+    row = np.array([-0.066, -0.108, 0.340, 0.315, 259.5, 314.6, 130.0, 19.8, 85.4, 295.3]
+                   + [np.nan] * 3 + [1.0, 0.0] + [np.nan] * 4)  # fmt: skip
+    geometry = np.tile(row, (30, 1))
+    cube = 280.0
+    calm, _ = centres_at(geometry, cube)
+    merged = geometry.copy()
+    merged[[10, 11], 5] += 200.0  # the farthest surface 200 mm further back
+    slipped, half = centres_at(merged, cube)
+    assert np.all(half[[10, 11], 2] > cube / 2)  # the hand does not fit the cube in depth
+    np.testing.assert_allclose(slipped[[10, 11]], calm[[10, 11]], atol=1.0)
+    stays = geometry.copy()
+    stays[10 : 10 + DEPTH_SPIKE_FRAMES, 5] += 200.0  # deep for longer than a slip
+    own, _ = centres_at(stays, cube)
+    assert own[12, 2] > calm[12, 2] + 100.0

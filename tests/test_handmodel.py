@@ -10,7 +10,7 @@ import pytest
 
 from handanno_core import handmodel as hm
 from handanno_core.camera import MSRA_CAMERA
-from handanno_core.crops import crop_boxes, crop_depth
+from handanno_core.crops import DEFAULT_CROP, crop_boxes, crop_depth
 from handanno_core.pose_prior import pose_prior, session_prior
 from handanno_core.results import MODEL_FIT_TERMS
 from handanno_core.skeleton import MSRA21
@@ -459,3 +459,24 @@ def test_palm_anchor_holds_the_thumb_base_where_the_palm_distances_cannot():
         )
     assert miss[1] > 1.5, miss  # the distances give way ...
     assert miss[0] < 0.2 * miss[1], miss  # ... the anchor holds
+
+
+def test_fingers_pointing_out_of_the_front_of_the_cube_stay_on_the_silhouette():
+    """Fingers pointing at the camera that stick out of the front of the crop's cube are clamped
+    to -1 in the crop (depth unknown): they are still hand, so the model there is not pushed off
+    the silhouette, and they give no data points at a made-up depth."""
+    x = _pose("open", ypr=(0.0, 60.0, 0.0))  # fingertips ~130 mm in front of the wrist
+    model = _model(x)
+    centre = x.mean(axis=0)
+    centre[2] = x[0, 2] + 40.0  # the cube's front 70 mm in front of the wrist
+    crop = crop_depth(_render(model, x), CAM, centre)
+    clamped = crop <= -0.999
+    assert clamped.sum() > 500 and (np.abs(crop) < 0.999).sum() > 500
+    obs = hm.observe(crop[None], crop_boxes(centre, CAM)[None], centre[None], CAM)
+    np.testing.assert_array_equal(obs.nearest[0][clamped], np.flatnonzero(clamped.ravel()))
+    half = 0.5 * DEFAULT_CROP.cube_mm
+    assert obs.points[0][obs.valid[0], 2].min() > centre[2] - half - 1.0
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    root, u = kin.fit(x[None])
+    e, terms = hm.frame_energy(model, kin, root, u, obs, CAM, hm.FitWeights())[:2]
+    assert terms["free_space"][0] < 1.0, terms  # 1500 when the clamped fingers were background

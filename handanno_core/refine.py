@@ -105,8 +105,12 @@ class RefineWeights:
       is a constant. Only joints visible in the closest reference use it (an occluded joint's
       patch shows its occluder).
     * ``acceleration`` (per mm² per joint and triple of consecutive frames): 1.0, Huber scale
-      15 mm. A constant-velocity prior: it removes the frame-to-frame jitter of the propagation
-      without pulling a moving hand towards a standing one. It replaced the velocity term
+      ``acceleration_huber_mm`` = 2 mm (15 before stop 44): quadratic over the propagation's
+      jitter, linear beyond, so a hand that turns sharply within a few frames (recorded motion
+      does, between long steady stretches) pays per mm, not per mm², and is not rounded off;
+      chosen on the suite's tune part (README). A constant-velocity prior: it removes the
+      frame-to-frame jitter of the propagation without pulling a moving hand towards a standing
+      one. It replaced the velocity term
       ``temporal`` (1.0 before), which on real fast motion dragged every frame between two
       references towards their average pose and made refinement worse than its initialization;
       chosen on the benchmark suite's tune part (``benchmarks/bench_refine_temporal.py``, figures
@@ -142,7 +146,7 @@ class RefineWeights:
     appearance_clip_mm: float = 40.0
     appearance_visible_only: bool = True
     acceleration: float = 1.0
-    acceleration_huber_mm: float = 15.0
+    acceleration_huber_mm: float = 2.0
     acceleration_scale_mm: float | None = 2.0
     acceleration_factor_range: tuple[float, float] = (0.25, 64.0)
     temporal: float = 0.0

@@ -202,14 +202,11 @@ def test_temporal_terms_do_not_cross_sequence_breaks(term, w):
     assert cut.terms[term] < joined.terms[term]
 
 
-def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
-    """A hand moving 12 mm/frame with references only in the middle: the constant-velocity prior
-    leaves the motion before and after them alone, a velocity prior drags those frames towards
-    the references' poses (what made refinement worse than its start on real fast motion)."""
-    gt, _, kwargs = _two_segment_problem(jump_mm=0.0, n_half=12)
+def _moving_problem(gt: np.ndarray, refs: np.ndarray, closest: np.ndarray) -> dict:
+    """Refinement inputs without image terms (background-only crops following the hand) for a
+    hand moving along ``gt`` (N, J, 3) mm, references ``refs`` clicked exactly."""
     n = len(gt)
-    gt = gt + (np.arange(n) - n / 2)[:, None, None] * np.array([12.0, 0.0, 0.0])
-    refs = np.array([10, 14])
+    _, _, kwargs = _two_segment_problem(jump_mm=0.0, n_half=n // 2)
     depth = np.zeros((MSRA_CAMERA.height, MSRA_CAMERA.width), np.float32)
     kwargs["crops"] = np.ones((n, 32, 32), np.float16)
     kwargs["centres_mm"] = gt[:, 0] + np.array([0.0, -50.0, 0.0])
@@ -218,8 +215,19 @@ def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
     kwargs["reference_annotations"] = {
         int(r): simulate_annotation(gt[r], depth, MSRA_CAMERA, MSRA21) for r in refs
     }
-    kwargs["closest_reference"] = np.where(np.arange(n) < 12, 10, 14)
+    kwargs["closest_reference"] = closest
     kwargs["hand_model"] = False
+    return kwargs
+
+
+def test_acceleration_prior_keeps_a_fast_constant_velocity_motion():
+    """A hand moving 12 mm/frame with references only in the middle: the constant-velocity prior
+    leaves the motion before and after them alone, a velocity prior drags those frames towards
+    the references' poses (what made refinement worse than its start on real fast motion)."""
+    gt, _, _ = _two_segment_problem(jump_mm=0.0, n_half=12)
+    n = len(gt)
+    gt = gt + (np.arange(n) - n / 2)[:, None, None] * np.array([12.0, 0.0, 0.0])
+    kwargs = _moving_problem(gt, np.array([10, 14]), np.where(np.arange(n) < 12, 10, 14))
     err = lambda x: np.linalg.norm(x - gt, axis=-1).mean()  # noqa: E731
     acc = refine(gt, weights=RefineWeights(), iterations=30, **kwargs)
     vel = refine(gt, weights=RefineWeights(temporal=1.0, acceleration=0.0), iterations=30, **kwargs)
@@ -233,22 +241,12 @@ def test_acceleration_prior_keeps_a_sharp_turn_and_still_removes_jitter():
     of jitter (a stand-in data term pulls to it): the robust prior (Huber 2 mm, the default) pays
     the turn per mm, so it keeps the corner and smooths the jitter; a near-quadratic one (Huber
     15 mm, before stop 44) rounds the corner off over several frames."""
-    gt, _, kwargs = _two_segment_problem(jump_mm=0.0, n_half=12)
+    gt, _, _ = _two_segment_problem(jump_mm=0.0, n_half=12)
     n = len(gt)
     t = np.arange(n)
     gt = gt + (np.maximum(t - 12, 0) * 15.0)[:, None, None] * np.array([1.0, 0.0, 0.0])
     init = gt + np.random.default_rng(1).normal(0.0, 1.0, gt.shape)
-    refs = np.array([0, n - 1])
-    depth = np.zeros((MSRA_CAMERA.height, MSRA_CAMERA.width), np.float32)
-    kwargs["crops"] = np.ones((n, 32, 32), np.float16)
-    kwargs["centres_mm"] = gt[:, 0] + np.array([0.0, -50.0, 0.0])
-    kwargs["boxes"] = crop_boxes(kwargs["centres_mm"], MSRA_CAMERA, size=32)
-    kwargs["reference_frames"] = refs
-    kwargs["reference_annotations"] = {
-        int(r): simulate_annotation(gt[r], depth, MSRA_CAMERA, MSRA21) for r in refs
-    }
-    kwargs["closest_reference"] = np.where(t < 12, 0, n - 1)
-    kwargs["hand_model"] = False
+    kwargs = _moving_problem(gt, np.array([0, n - 1]), np.where(t < 12, 0, n - 1))
     w = RefineWeights(init=1.0, init_huber_mm=100.0, acceleration_scale_mm=None)
     err = lambda x: np.linalg.norm(x - gt, axis=-1).mean(axis=1)  # noqa: E731
     robust = err(refine(init, weights=w, iterations=30, **kwargs).joints_mm)

@@ -12,7 +12,9 @@ propagation. The constants are chosen on the suite's tune part and reported on i
 Refinement runs as the pipeline runs it: with the hand model where the session has it on
 (``settings.hand_model``, the default). The variants ``scale-*`` weigh the constant-velocity prior
 by the hand's own acceleration (``RefineWeights.acceleration_scale_mm``, the default since stop
-38), ``speed-7`` by the law before it, ``(7 mm / v)²`` on the initialization's median joint step.
+38), ``speed-7`` by the law before it, ``(7 mm / v)²`` on the initialization's median joint step;
+``huber-15`` and ``huber-1`` change the prior's Huber scale (2 mm, the default, since stop 44;
+every other variant uses the default's).
 Prints one line per dataset (mean / max mm of the initialization and of every variant) and the
 mean of means; writes the JSON.
 """
@@ -59,6 +61,9 @@ VARIANTS = {
     "scale-2-top-64": RefineWeights(
         acceleration_scale_mm=2.0, acceleration_factor_range=(0.25, 64.0)
     ),
+    # the prior's Huber scale: 2 mm (the default since stop 44), 15 mm before, and 1 mm
+    "huber-15": RefineWeights(acceleration_huber_mm=15.0),
+    "huber-1": RefineWeights(acceleration_huber_mm=1.0),
 }
 
 

@@ -668,9 +668,8 @@ def observe(
     for i in range(n):
         crop = np.asarray(crops[i], dtype=np.float32)
         fg = np.abs(crop) < 0.999
-        # surface just in front of the cube (clamped to -1, at an unknown depth between
-        # z_c - cube and z_c - cube/2: a finger pointing at the camera) is silhouette, free
-        # space only in front of z_c - cube, but no data point
+        # -1 is surface somewhere between z_c - cube and z_c - cube/2 (a finger pointing at the
+        # camera): the model may lie there, but a made-up depth would drag it
         front = crop <= -0.999
         silhouette = fg | front
         flat = np.flatnonzero(fg)

@@ -1226,9 +1226,10 @@ def _depth_spikes(
     half_depth_mm: np.ndarray, cube_mm: float, breaks: _Seq[int] | None
 ) -> np.ndarray:
     """``(N,)`` bool: frames whose hand is deeper than the cube (half extent in z
-    ``half_depth_mm (N,)`` over ``cube_mm / 2``) while the running median over ``DEPTH_SPIKE_FRAMES``
-    frames fits it: a depth spike of at most two frames (the hand merged with what lies
-    behind it), the test :func:`session_cube_mm` applies to the hand's size in x and y."""
+    ``half_depth_mm (N,)`` over ``cube_mm / 2``) while the running median over
+    ``DEPTH_SPIKE_FRAMES`` frames, within each segment between ``breaks``, fits it: a depth
+    spike of at most two frames (the hand merged with what lies behind it), the test
+    :func:`session_cube_mm` applies to the hand's size in x and y."""
     hz = np.where(np.isfinite(half_depth_mm), half_depth_mm, 0.0)
     out = np.zeros(len(hz), dtype=bool)
     for a, b in _segments(len(hz), breaks):

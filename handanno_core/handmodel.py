@@ -1471,13 +1471,7 @@ def refit_fingers(
     sub = obs.thinned(score_points)
     owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
     flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
-    energy = np.empty(len(owner))
-    for a in range(0, len(owner), RANKING_CHUNK):
-        r = owner[a : a + RANKING_CHUNK]
-        energy[a : a + len(r)] = _energy(
-            model, kin, fit.root[r], flat[a : a + len(r)], sub.take(r), camera, w,
-            None if priors is None else priors.take(r), False, False,
-        )[0]  # fmt: skip
+    energy = _energies_in_chunks(model, kin, fit.root[owner], flat, sub, owner, camera, w, priors)
     current, energy = energy[: len(sel)], energy[len(sel) :].reshape(len(sel), nf, nk)
     best = np.argmin(energy, axis=2)  # (m,F)
     better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < current[:, None]
@@ -1541,14 +1535,23 @@ def pose_energies(
     weights: FitWeights,
 ) -> np.ndarray:
     """Energy (:func:`frame_energy`, no priors) ``(S,)`` of candidate poses ``poses_mm``
-    (S,J,3) mm, pose ``s`` in frame ``owner[s]`` of ``obs``; :data:`RANKING_CHUNK` poses at a
-    time (memory), for ranking starts before fitting the best."""
-    out = np.empty(len(poses_mm))
-    for a in range(0, len(poses_mm), RANKING_CHUNK):
-        r = np.arange(a, min(a + RANKING_CHUNK, len(poses_mm)))
-        out[r] = frame_energy(
-            model, kin, *kin.fit(poses_mm[r]), obs.take(owner[r]), camera, weights,
-            diagnostics=False,
+    (S,J,3) mm, pose ``s`` in frame ``owner[s]`` of ``obs``, for ranking starts before fitting
+    the best."""
+    root, u = kin.fit(np.asarray(poses_mm, dtype=np.float64))
+    return _energies_in_chunks(model, kin, root, u, obs, owner, camera, weights)
+
+
+def _energies_in_chunks(model, kin, root, u, obs, owner, camera, weights, priors=None):
+    """Energy ``(S,)`` of ``S`` candidates at (root (S,3), u (S,B,3)), candidate ``s`` in frame
+    ``owner[s]`` of ``obs`` (and of ``priors``), :data:`RANKING_CHUNK` at a time (memory): the
+    ranking of :func:`refit_fingers` and :func:`pose_energies`."""
+    out = np.empty(len(owner))
+    for a in range(0, len(owner), RANKING_CHUNK):
+        r = slice(a, a + RANKING_CHUNK)
+        of = owner[r]
+        out[r] = _energy(
+            model, kin, root[r], u[r], obs.take(of), camera, weights,
+            None if priors is None else priors.take(of), False, False,
         )[0]  # fmt: skip
     return out
 

@@ -1231,10 +1231,16 @@ def _depth_spikes(
     spike of at most two frames (the hand merged with what lies behind it), the test
     :func:`session_cube_mm` applies to the hand's size in x and y."""
     hz = np.where(np.isfinite(half_depth_mm), half_depth_mm, 0.0)
-    out = np.zeros(len(hz), dtype=bool)
-    for a, b in _segments(len(hz), breaks):
-        run = ndimage.median_filter(hz[a:b], size=min(DEPTH_SPIKE_FRAMES, b - a), mode="mirror")
-        out[a:b] = (hz[a:b] > 0.5 * cube_mm) & (run <= 0.5 * cube_mm)
+    run = _running_median(hz, DEPTH_SPIKE_FRAMES, breaks)
+    return (hz > 0.5 * cube_mm) & (run <= 0.5 * cube_mm)
+
+
+def _running_median(values: np.ndarray, frames: int, breaks: _Seq[int] | None) -> np.ndarray:
+    """``(N,)`` running median of ``values (N,)`` over ``frames`` frames, within each segment
+    between ``breaks`` (mirrored at its ends)."""
+    out = np.empty(len(values))
+    for a, b in _segments(len(values), breaks):
+        out[a:b] = ndimage.median_filter(values[a:b], size=min(frames, b - a), mode="mirror")
     return out
 
 
@@ -1610,10 +1616,7 @@ def session_cube_mm(
     if not np.isfinite(h).any():
         return float(cube_mm)
     size = np.where(np.all(np.isfinite(h), axis=1), h.max(axis=1), 0.0)
-    biggest = 0.0
-    for a, b in _segments(len(size), sequence_breaks):
-        run = ndimage.median_filter(size[a:b], size=min(SPIKE_FRAMES, b - a), mode="mirror")
-        biggest = max(biggest, float(run.max()))
+    biggest = float(_running_median(size, SPIKE_FRAMES, sequence_breaks).max())
     need = 2.0 * (biggest + CROP_MARGIN_MM)
     if need <= cube_mm:
         return float(cube_mm)

@@ -628,6 +628,36 @@ _OBS_FIELDS = ("points", "valid", "depth", "nearest", "boxes")
 #: (``FitWeights.points``), for the per-frame fit
 OBSERVED_POINTS = 512
 
+#: :func:`wrist_planes`: pixels more than this far behind a pose's wrist (along its wrist ->
+#: knuckles axis) are not sampled as points. The fit ignores every point behind the wrist
+#: (:func:`_forearm`), and on the suite's tune part about half of the sampled points lay there;
+#: the margin leaves room for the pose the plane comes from (a lifted reference, the propagated
+#: initialization) being off at the wrist (20 mm chosen on the tune part; 40 mm, with
+#: propagation's points cut as well, was tried: HISTORY.md, stop 45).
+FOREARM_SAMPLING_MARGIN_MM = 20.0
+
+
+def wrist_planes(
+    skeleton: Skeleton, joints_mm: np.ndarray, margin_mm: float = FOREARM_SAMPLING_MARGIN_MM
+) -> np.ndarray:
+    """``(..., 4)`` per pose of ``joints_mm`` (..., J, 3) mm the plane :func:`observe` samples in
+    front of: the unit wrist -> knuckles axis ``a`` (3) and the offset ``a . wrist - margin_mm``
+    (mm); a point ``p`` lies behind it when ``a . p`` is below the offset. NaN rows (a pose with
+    missing joints, a layout without a palm): no plane."""
+    x = np.asarray(joints_mm, dtype=np.float64)
+    out = np.full(x.shape[:-2] + (4,), np.nan)
+    chain = _palm_chain(skeleton)
+    if not len(chain):
+        return out
+    wrist = x[..., skeleton.root, :]
+    axis = x[..., chain, :].mean(axis=-2) - wrist
+    norm = np.linalg.norm(axis, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out[..., :3] = axis / norm
+    out[..., 3] = np.sum(out[..., :3] * wrist, axis=-1) - float(margin_mm)
+    out[~np.all(np.isfinite(out), axis=-1)] = np.nan
+    return out
+
 
 def observe(
     crops: np.ndarray,
@@ -638,6 +668,7 @@ def observe(
     cube_mm: float = DEFAULT_CROP.cube_mm,
     max_points: int | None = None,
     out: FrameObservations | None = None,
+    planes: np.ndarray | None = None,
 ) -> FrameObservations:
     """Observations of frames from their crops ``(n, S, S)`` (normalized, background ±1); written
     into ``out`` (``n`` frames, e.g. a slice of a longer sequence's) and returned when given.
@@ -646,13 +677,18 @@ def observe(
     spaced in raster order, become 3D points ``(crop px -> image px, depth z_c + v·cube/2)``
     (None: :data:`OBSERVED_POINTS`). Pixels clamped to -1 (surface in front of the cube, depth
     unknown) are silhouette (``nearest``) with the cube's frontmost depth ``z_c - cube``
-    (``depth``), but give no points.
+    (``depth``), but give no points. ``planes`` ``(n, 4)`` (:func:`wrist_planes` of a pose per
+    frame; NaN rows and None: none): hand pixels behind their frame's plane (its forearm) stay
+    silhouette and depth but give no points, so the points the fit uses fall on the hand; a
+    plane with every pixel behind it (a pose off the hand) is ignored.
     """
     max_points = OBSERVED_POINTS if max_points is None else int(max_points)
     n, s = crops.shape[0], crops.shape[-1]
     boxes = np.asarray(boxes, dtype=np.float64).reshape(n, 4)
     zc = np.asarray(centres_mm, dtype=np.float64).reshape(n, 3)[:, 2]
     half = 0.5 * cube_mm
+    if planes is not None:
+        planes = np.asarray(planes, dtype=np.float64).reshape(n, 4)
     if out is None:
         out = FrameObservations.allocate(n, s, max_points)
     elif out.points.shape != (n, max_points, 3) or out.depth.shape != (n, s, s):
@@ -681,12 +717,17 @@ def observe(
         surface = np.where(fg, zc[i] + half * crop, np.where(front, zc[i] - 2.0 * half, np.inf))
         d = minimum_filter(surface, size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
-        take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
-        pick = flat[np.unique(take)]
-        xy = np.stack([pick % s, pick // s], axis=-1).astype(np.float64)
+        xy = np.stack([flat % s, flat // s], axis=-1).astype(np.float64)
         uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled (nearest)
-        z = zc[i] + half * crop.reshape(-1)[pick].astype(np.float64)
-        points[i, : len(pick)] = camera.backproject(uv, z)
+        z = zc[i] + half * crop.reshape(-1)[flat].astype(np.float64)
+        xyz = camera.backproject(uv, z)
+        if planes is not None and np.all(np.isfinite(planes[i])):
+            front_of = xyz @ planes[i, :3] >= planes[i, 3]
+            if np.any(front_of):
+                xyz = xyz[front_of]
+        take = np.unique(np.linspace(0, len(xyz) - 1, min(max_points, len(xyz))).round())
+        pick = take.astype(int)
+        points[i, : len(pick)] = xyz[pick]
         valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~silhouette, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
@@ -1678,6 +1719,7 @@ def personalize_from_crops(
         np.asarray(centres_mm, dtype=np.float64),
         camera,
         cube_mm=cube_mm,
+        planes=wrist_planes(skeleton, reference_joints_mm),
     )
     model = personalize(
         skeleton,

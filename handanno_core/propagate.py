@@ -718,6 +718,9 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     starts, owner = _starts(ctx, items)
     j = starts.shape[1]
     w = ctx.fit_weights or hm.FitWeights()
+    # every crop point observed, not only those in front of a start's wrist (observe's planes):
+    # where every start lost the hand (fast motion, the first frame after a reference) that cut
+    # took the hand's own points away (tests/test_propagate.py, the reference starts' test)
     obs_f = hm.observe(
         np.stack([it.crop_f for it in items]), ctx.boxes[frames], c_f, cam, cube_mm=st.cube_mm,
         max_points=w.points,
@@ -1364,14 +1367,15 @@ def _hand_models(
             else None
         )
     ref_frames = np.asarray(refs, dtype=np.int64)
+    ref_joints = np.stack([known[f][0] for f in refs])
     obs = hm.observe(
         np.asarray(crops[ref_frames], dtype=np.float32),
         np.asarray(boxes, dtype=np.float64)[ref_frames],
         np.asarray(centres_mm, dtype=np.float64)[ref_frames],
         camera,
         cube_mm=settings.cube_mm,
+        planes=hm.wrist_planes(skeleton, ref_joints),
     )
-    ref_joints = np.stack([known[f][0] for f in refs])
     models, levels = [], []
     for h, lengths in enumerate(bones.lengths):
         own = np.arange(len(refs))

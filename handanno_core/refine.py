@@ -763,6 +763,7 @@ def _use_model(problem: _Problem, hand_model, fit_weights, init, crops, boxes, c
         return hmod.observe(
             crops[frames], np.asarray(boxes)[frames], np.asarray(centres)[frames], problem.cam,
             cube_mm=cube_mm, max_points=points, out=out,
+            planes=hmod.wrist_planes(problem.skel, init[frames]),
         )  # fmt: skip
 
     # every chunk written into the sequence's arrays (no second copy of all frames)

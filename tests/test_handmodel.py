@@ -112,6 +112,50 @@ def test_observations_written_into_a_longer_sequences_arrays_are_the_same():
         hm.observe(crops, boxes, centres, CAM, max_points=64, out=seq.take(slice(1, 3)))
 
 
+def test_points_are_sampled_on_the_hand_not_on_the_forearm_behind_its_wrist():
+    """With the wrist plane of the hand's pose, a crop partly filled by a forearm gives its
+    points on the hand (more of them there than without), none behind the plane, the same
+    silhouette and depth; a plane with the whole hand behind it (a pose off the hand) and a
+    frame without a plane give the points as before."""
+    x = _pose("open")
+    model = _model(x)
+    a, b = model.capsules(x[None])
+    axis = x[model.palm_chain].mean(axis=0) - x[0]
+    axis /= np.linalg.norm(axis)
+    arm_a, arm_b = x[0] - 10.0 * axis, x[0] - 170.0 * axis  # a forearm leaving the crop
+    empty = np.zeros((0, 3))
+    prim = Primitives(
+        np.vstack([a[0], arm_a]), np.vstack([b[0], arm_b]), np.append(model.radii, 24.0),
+        empty, np.zeros((0, 3, 3)), empty,
+    )  # fmt: skip
+    depth = render_depth(prim, CAM)
+    c = x[0] + 40.0 * axis  # the crop holds the hand and the forearm's first 70 mm
+    crops, boxes = crop_depth(depth, CAM, c)[None], crop_boxes(c, CAM)[None]
+    centres = c[None]
+    plane = hm.wrist_planes(MSRA21, x[None])
+    assert plane.shape == (1, 4)
+    assert abs(plane[0, :3] @ x[0] - plane[0, 3] - hm.FOREARM_SAMPLING_MARGIN_MM) < 1e-9
+    plain = hm.observe(crops, boxes, centres, CAM, max_points=256)
+    cut = hm.observe(crops, boxes, centres, CAM, max_points=256, planes=plane)
+    np.testing.assert_array_equal(cut.depth, plain.depth)
+    np.testing.assert_array_equal(cut.nearest, plain.nearest)
+
+    def along(obs):
+        return obs.points[0][obs.valid[0]] @ plane[0, :3] - plane[0, 3]
+
+    assert np.mean(along(plain) < 0) > 0.1  # the forearm takes some of the points ...
+    assert np.all(along(cut) >= 0)  # ... and none with the plane
+    behind = np.mean(along(plain) < 0)
+    on_hand = np.sum(along(plain) > hm.FOREARM_SAMPLING_MARGIN_MM)
+    assert np.sum(along(cut) > hm.FOREARM_SAMPLING_MARGIN_MM) > (1 + 0.8 * behind) * on_hand
+    wrong = plane.copy()
+    wrong[0, 3] += 300.0  # a pose whose wrist lies beyond the fingertips
+    alone = hm.observe(crops, boxes, centres, CAM, max_points=256, planes=wrong)
+    np.testing.assert_array_equal(alone.points, plain.points)  # nothing in front: no cut
+    none = hm.observe(crops, boxes, centres, CAM, max_points=256, planes=np.full((1, 4), np.nan))
+    np.testing.assert_array_equal(none.points, plain.points)
+
+
 def test_energy_is_zero_at_the_rendered_pose(scene):
     x, model, obs = scene
     kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)

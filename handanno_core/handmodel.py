@@ -709,7 +709,7 @@ def observe(
         front = crop <= -0.999
         silhouette = fg | front
         flat = np.flatnonzero(fg)
-        if len(flat) == 0 or not np.isfinite(zc[i]):
+        if not silhouette.any() or not np.isfinite(zc[i]):
             nearest[i] = grid
             continue
         # nearest surface within 3x3 crop px: a model sample is "in front" only if it is in front
@@ -717,18 +717,19 @@ def observe(
         surface = np.where(fg, zc[i] + half * crop, np.where(front, zc[i] - 2.0 * half, np.inf))
         d = minimum_filter(surface, size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
-        xy = np.stack([flat % s, flat // s], axis=-1).astype(np.float64)
-        uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled (nearest)
-        z = zc[i] + half * crop.reshape(-1)[flat].astype(np.float64)
-        xyz = camera.backproject(uv, z)
-        if planes is not None and np.all(np.isfinite(planes[i])):
-            front_of = xyz @ planes[i, :3] >= planes[i, 3]
-            if np.any(front_of):
-                xyz = xyz[front_of]
-        take = np.unique(np.linspace(0, len(xyz) - 1, min(max_points, len(xyz))).round())
-        pick = take.astype(int)
-        points[i, : len(pick)] = xyz[pick]
-        valid[i, : len(pick)] = True
+        if len(flat):  # a hand wholly in front of the cube is silhouette without points
+            xy = np.stack([flat % s, flat // s], axis=-1).astype(np.float64)
+            uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled
+            z = zc[i] + half * crop.reshape(-1)[flat].astype(np.float64)
+            xyz = camera.backproject(uv, z)
+            if planes is not None and np.all(np.isfinite(planes[i])):
+                front_of = xyz @ planes[i, :3] >= planes[i, 3]
+                if np.any(front_of):
+                    xyz = xyz[front_of]
+            take = np.unique(np.linspace(0, len(xyz) - 1, min(max_points, len(xyz))).round())
+            pick = take.astype(int)
+            points[i, : len(pick)] = xyz[pick]
+            valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~silhouette, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out

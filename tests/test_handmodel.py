@@ -505,6 +505,26 @@ def test_palm_anchor_holds_the_thumb_base_where_the_palm_distances_cannot():
     assert miss[0] < 0.2 * miss[1], miss  # ... the anchor holds
 
 
+def test_a_hand_wholly_in_front_of_the_cube_is_silhouette_without_points():
+    """A crop whose every hand pixel is clamped to -1 (the whole hand in front of the cube: a
+    crop placed on the surface behind it) gives no points, but its silhouette holds the model:
+    a hand moved off it costs free-space energy, the hand on it none."""
+    x = _pose("fist")  # small enough for the crop of a farther centre to hold it
+    model = _model(x)
+    centre = x.mean(axis=0)
+    centre[2] = x[:, 2].max() + 0.5 * DEFAULT_CROP.cube_mm + 5.0  # the cube's front behind it
+    crop = crop_depth(_render(model, x), CAM, centre)
+    assert (np.abs(crop) < 0.999).sum() == 0 and (crop <= -0.999).sum() > 500
+    obs = hm.observe(crop[None], crop_boxes(centre, CAM)[None], centre[None], CAM)
+    assert not obs.valid.any()
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    root, u = kin.fit(x[None])
+    w = hm.FitWeights()
+    on = hm.frame_energy(model, kin, root, u, obs, CAM, w)[1]["free_space"][0]
+    off = hm.frame_energy(model, kin, root + [25.0, 0.0, 0.0], u, obs, CAM, w)[1]["free_space"][0]
+    assert on < 1.0 < off, (on, off)
+
+
 def test_fingers_pointing_out_of_the_front_of_the_cube_stay_on_the_silhouette():
     """Fingers pointing at the camera that stick out of the front of the crop's cube are clamped
     to -1 in the crop (depth unknown): they are still hand, so the model there is not pushed off

@@ -274,6 +274,13 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
+def _wrist_axis(x: np.ndarray, root: int, chain: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` unit wrist -> knuckles axis of poses ``x`` (..., J, 3): from the ``root`` to
+    the mean of the palm ``chain`` (:func:`_palm_chain`); what is behind the wrist along it is
+    forearm (:func:`_forearm`, :func:`wrist_planes`)."""
+    return _unit(x[..., chain, :].mean(axis=-2) - x[..., root, :])
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product over the last axis (np.cross's axis handling costs more than the math)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
@@ -650,10 +657,7 @@ def wrist_planes(
     if not len(chain):
         return out
     wrist = x[..., skeleton.root, :]
-    axis = x[..., chain, :].mean(axis=-2) - wrist
-    norm = np.linalg.norm(axis, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out[..., :3] = axis / norm
+    out[..., :3] = _wrist_axis(x, skeleton.root, chain)
     out[..., 3] = np.sum(out[..., :3] * wrist, axis=-1) - float(margin_mm)
     out[~np.all(np.isfinite(out), axis=-1)] = np.nan
     return out
@@ -718,21 +722,31 @@ def observe(
         d = minimum_filter(surface, size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
         if len(flat):  # a hand wholly in front of the cube is silhouette without points
-            xy = np.stack([flat % s, flat // s], axis=-1).astype(np.float64)
-            uv = np.rint(crop_to_image(xy, boxes[i]))  # the image pixel the crop sampled
-            z = zc[i] + half * crop.reshape(-1)[flat].astype(np.float64)
-            xyz = camera.backproject(uv, z)
             if planes is not None and np.all(np.isfinite(planes[i])):
-                front_of = xyz @ planes[i, :3] >= planes[i, 3]
+                front_of = (
+                    _pixel_points(flat, crop, boxes[i], zc[i], half, camera) @ planes[i, :3]
+                    >= planes[i, 3]
+                )
                 if np.any(front_of):
-                    xyz = xyz[front_of]
-            take = np.unique(np.linspace(0, len(xyz) - 1, min(max_points, len(xyz))).round())
-            pick = take.astype(int)
-            points[i, : len(pick)] = xyz[pick]
+                    flat = flat[front_of]
+            take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
+            pick = flat[np.unique(take)]
+            points[i, : len(pick)] = _pixel_points(pick, crop, boxes[i], zc[i], half, camera)
             valid[i, : len(pick)] = True
         _, ind = distance_transform_edt(~silhouette, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out
+
+
+def _pixel_points(flat, crop, box, z_c: float, half: float, camera) -> np.ndarray:
+    """``(K, 3)`` mm camera points of the crop pixels ``flat`` (K,) (flat indices into the S x S
+    ``crop``, normalized depth): the image pixel the crop sampled (nearest) at depth
+    ``z_c + half * value``."""
+    s = crop.shape[-1]
+    xy = np.stack([flat % s, flat // s], axis=-1).astype(np.float64)
+    uv = np.rint(crop_to_image(xy, box))
+    z = z_c + half * crop.reshape(-1)[flat].astype(np.float64)
+    return camera.backproject(uv, z)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -827,7 +841,7 @@ def _forearm(model: HandModel, x, points, cidx, t, w: FitWeights) -> np.ndarray:
     root end (foot ``t`` <= ``forearm_t``) of a capsule at the root and less than
     ``forearm_margin_mm`` past the wrist."""
     root = model.skeleton.root
-    axis = _unit(x[:, model.palm_chain].mean(axis=1) - x[:, root])
+    axis = _wrist_axis(x, root, model.palm_chain)
     along = np.einsum("nmx,nx->nm", points - x[:, None, root], axis)
     near = model.wrist[cidx] & (t <= w.forearm_t) & (along < w.forearm_margin_mm)
     return near | (along < -w.forearm_behind_mm)

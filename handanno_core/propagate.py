@@ -153,8 +153,8 @@ class PropagationSettings:
     model_free_scale: float = 0.5  #: confidence drop per fraction of free-space violations
     #: the fit failed when its data + free-space energy exceeds this many times the references'
     #: (median over the lifted references, :func:`handmodel.reference_level`): the frame keeps
-    #: its flowed pose
-    model_fail_ratio: float = 5.0
+    #: its flowed pose (:data:`handmodel.UNEXPLAINED_LEVEL`, the level recovery accepts too)
+    model_fail_ratio: float = hm.UNEXPLAINED_LEVEL
     #: with the hand model, a session's propagation (:func:`handanno_core.pipeline.propagate`)
     #: also carries every frame between two references from both of them in time
     #: (:func:`handanno_core.select.temporal_chains`) and keeps, per frame, the candidate whose fit

@@ -62,7 +62,7 @@ class RecoverySettings:
     :class:`handmodel.FitWeights` ``pose``, Huber at its ``pose_huber_mm``)."""
 
     fail_level: float = 2.0
-    accept_level: float = 8.0
+    accept_level: float = hm.UNEXPLAINED_LEVEL
     min_gain: float = 2.5
     neighbours: int = 2
     passes: int = 3

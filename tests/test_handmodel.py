@@ -408,15 +408,16 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
         err = np.linalg.norm(out - x, axis=-1).mean(), np.linalg.norm(out - moved, axis=-1).mean()
         return err, dict(zip(MODEL_FIT_TERMS, ev, strict=True))
 
-    (to_flow, to_truth), on_hand = fit(hand_crop, 5.0)
+    ratio = prop.PropagationSettings().model_fail_ratio  # the shipped guard
+    (to_flow, to_truth), on_hand = fit(hand_crop, ratio)
     assert to_truth < 3.0 < 6.0 < to_flow  # the fit succeeded and is kept
-    (to_flow, _), on_ball = fit(ball_crop, 5.0)
+    (to_flow, _), on_ball = fit(ball_crop, ratio)
     assert to_flow == 0.0  # failed: the flowed pose, unchanged
     assert fit(ball_crop, 0.0)[0][0] > 20.0  # without the guard the fit leaves it
     # the fit's own evidence, as the review ranking reads it: the guard's verdict, the energy
     # ratio it used, and the point residual at the kept pose
     assert on_hand["rejected"] == 0.0 and on_ball["rejected"] == 1.0
-    assert on_hand["level"] < 5.0 < on_ball["level"]
+    assert on_hand["level"] < ratio < on_ball["level"]
     assert on_hand["data_mm"] < 3.0 < on_ball["data_mm"]
 
     # frames fitted in one batch (as propagation does) get exactly their results when alone

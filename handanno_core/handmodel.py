@@ -722,17 +722,21 @@ def observe(
         d = minimum_filter(surface, size=3, mode="nearest")
         depth[i] = np.where(np.isfinite(d), d, np.nan)
         if len(flat):  # a hand wholly in front of the cube is silhouette without points
+            pts = None  # every hand pixel's point, where a plane needs them all
             if planes is not None and np.all(np.isfinite(planes[i])):
-                front_of = (
-                    _pixel_points(flat, crop, boxes[i], zc[i], half, camera) @ planes[i, :3]
-                    >= planes[i, 3]
-                )
+                pts = _pixel_points(flat, crop, boxes[i], zc[i], half, camera)
+                front_of = pts @ planes[i, :3] >= planes[i, 3]
                 if np.any(front_of):
-                    flat = flat[front_of]
+                    flat, pts = flat[front_of], pts[front_of]
             take = np.linspace(0, len(flat) - 1, min(max_points, len(flat))).round().astype(int)
-            pick = flat[np.unique(take)]
-            points[i, : len(pick)] = _pixel_points(pick, crop, boxes[i], zc[i], half, camera)
-            valid[i, : len(pick)] = True
+            take = np.unique(take)
+            k = len(take)
+            points[i, :k] = (
+                pts[take]
+                if pts is not None
+                else _pixel_points(flat[take], crop, boxes[i], zc[i], half, camera)
+            )
+            valid[i, :k] = True
         _, ind = distance_transform_edt(~silhouette, return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out
@@ -1715,6 +1719,29 @@ def personalize(
     return replace(model, radii=estimate_radii(model, x, obs))
 
 
+def observe_references(
+    skeleton: Skeleton,
+    reference_joints_mm: np.ndarray,
+    crops: np.ndarray,
+    boxes: np.ndarray,
+    centres_mm: np.ndarray,
+    camera: CameraIntrinsics,
+    *,
+    cube_mm: float = DEFAULT_CROP.cube_mm,
+) -> FrameObservations:
+    """:func:`observe` of the references' crops ``(K, S, S)``, boxes ``(K, 4)`` and centres
+    ``(K, 3)`` mm, with the points drawn in front of their poses' wrists ``reference_joints_mm``
+    (K, J, 3) mm (:func:`wrist_planes`): what every personalization and reference level reads."""
+    return observe(
+        np.asarray(crops, dtype=np.float32),
+        np.asarray(boxes, dtype=np.float64),
+        np.asarray(centres_mm, dtype=np.float64),
+        camera,
+        cube_mm=cube_mm,
+        planes=wrist_planes(skeleton, reference_joints_mm),
+    )
+
+
 def personalize_from_crops(
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray,
@@ -1727,14 +1754,9 @@ def personalize_from_crops(
     cube_mm: float = DEFAULT_CROP.cube_mm,
 ) -> tuple[HandModel, FrameObservations]:
     """:func:`personalize` from the references' crops ``(K, S, S)``, boxes ``(K, 4)`` and centres
-    ``(K, 3)`` mm (observed with :func:`observe`); returns the model and the observations."""
-    obs = observe(
-        np.asarray(crops, dtype=np.float32),
-        np.asarray(boxes, dtype=np.float64),
-        np.asarray(centres_mm, dtype=np.float64),
-        camera,
-        cube_mm=cube_mm,
-        planes=wrist_planes(skeleton, reference_joints_mm),
+    ``(K, 3)`` mm (:func:`observe_references`); returns the model and the observations."""
+    obs = observe_references(
+        skeleton, reference_joints_mm, crops, boxes, centres_mm, camera, cube_mm=cube_mm
     )
     model = personalize(
         skeleton,

@@ -1368,14 +1368,10 @@ def _hand_models(
         )
     ref_frames = np.asarray(refs, dtype=np.int64)
     ref_joints = np.stack([known[f][0] for f in refs])
-    obs = hm.observe(
-        np.asarray(crops[ref_frames], dtype=np.float32),
-        np.asarray(boxes, dtype=np.float64)[ref_frames],
-        np.asarray(centres_mm, dtype=np.float64)[ref_frames],
-        camera,
-        cube_mm=settings.cube_mm,
-        planes=hm.wrist_planes(skeleton, ref_joints),
-    )
+    obs = hm.observe_references(
+        skeleton, ref_joints, crops[ref_frames], np.asarray(boxes)[ref_frames],
+        np.asarray(centres_mm)[ref_frames], camera, cube_mm=settings.cube_mm,
+    )  # fmt: skip
     models, levels = [], []
     for h, lengths in enumerate(bones.lengths):
         own = np.arange(len(refs))

@@ -1531,7 +1531,7 @@ def refit_fingers(
     sub = obs.thinned(score_points)
     owner = np.concatenate([sel, np.repeat(sel, nf * nk)])
     flat = np.concatenate([fit.u[sel], hyp.reshape((-1,) + hyp.shape[3:])])
-    energy = _energies_in_chunks(model, kin, fit.root[owner], flat, sub, owner, camera, w, priors)
+    energy = candidate_energies(model, kin, fit.root[owner], flat, sub, owner, camera, w, priors)
     current, energy = energy[: len(sel)], energy[len(sel) :].reshape(len(sel), nf, nk)
     best = np.argmin(energy, axis=2)  # (m,F)
     better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < current[:, None]
@@ -1598,13 +1598,14 @@ def pose_energies(
     (S,J,3) mm, pose ``s`` in frame ``owner[s]`` of ``obs``, for ranking starts before fitting
     the best."""
     root, u = kin.fit(np.asarray(poses_mm, dtype=np.float64))
-    return _energies_in_chunks(model, kin, root, u, obs, owner, camera, weights)
+    return candidate_energies(model, kin, root, u, obs, owner, camera, weights)
 
 
-def _energies_in_chunks(model, kin, root, u, obs, owner, camera, weights, priors=None):
+def candidate_energies(model, kin, root, u, obs, owner, camera, weights, priors=None):
     """Energy ``(S,)`` of ``S`` candidates at (root (S,3), u (S,B,3)), candidate ``s`` in frame
     ``owner[s]`` of ``obs`` (and of ``priors``), :data:`RANKING_CHUNK` at a time (memory): the
-    ranking of :func:`refit_fingers` and :func:`pose_energies`."""
+    ranking of :func:`refit_fingers` and :func:`pose_energies`, and
+    :func:`handanno_core.ambiguity.finger_ambiguity`."""
     out = np.empty(len(owner))
     for a in range(0, len(owner), RANKING_CHUNK):
         r = slice(a, a + RANKING_CHUNK)

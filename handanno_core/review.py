@@ -262,6 +262,57 @@ def session_depth_residuals(
     )
 
 
+def session_finger_ambiguity(
+    session, joints_mm: np.ndarray, crop_data, frames: np.ndarray | None = None, chunk: int = 64
+) -> np.ndarray:
+    """:func:`handanno_core.ambiguity.finger_ambiguity` (N,) mm of the session's shown skeletons
+    ``joints_mm`` (N, J, 3) mm on its crops ``crop_data`` = ``(crops, centres_mm, boxes)``, for
+    ``frames`` (default: every frame with joints; NaN elsewhere): the hand model personalized
+    from the references' joints and crops (one per bone-length set, as propagation does),
+    observations in front of each pose's wrist (the forearm's points left out), ``chunk``
+    frames at a time (memory). All NaN without bone lengths, references or a layout with
+    three-bone fingers."""
+    from . import handmodel as hm
+    from .ambiguity import finger_ambiguity
+    from .hands import bone_table
+
+    j = np.asarray(joints_mm, dtype=np.float64)
+    n = len(j)
+    out = np.full(n, np.nan)
+    skeleton = session.skeleton
+    bones = session.model.bone_lengths_mm
+    has = np.all(np.isfinite(j), axis=(1, 2))
+    refs = np.array([f for f in session.reference_frames if has[f]], dtype=np.int64)
+    if bones is None or len(refs) == 0 or not skeleton.has_finger_segments:
+        return out
+    crops, centres, boxes = crop_data
+    centres, boxes = np.asarray(centres, dtype=np.float64), np.asarray(boxes, dtype=np.float64)
+    cube = session.model.settings.cube_mm
+    cam = session.camera
+    todo = np.flatnonzero(has) if frames is None else np.asarray(frames, dtype=np.int64)
+    todo = todo[has[todo]]
+    table = bone_table(session.frame_bone_lengths(), n, len(skeleton.bones))
+    for h, lengths in enumerate(table.lengths):
+        own = refs if table.single else refs[table.hand[refs] == h]
+        own = own if len(own) else refs
+        rows = todo if table.single else todo[table.hand[todo] == h]
+        if not len(rows):
+            continue
+        obs_r = hm.observe_references(
+            skeleton, j[own], crops[own], boxes[own], centres[own], cam, cube_mm=cube
+        )
+        model = hm.personalize(skeleton, lengths, j[own], obs_r)
+        level = hm.reference_level(model, j[own], obs_r, cam)
+        for a in range(0, len(rows), chunk):
+            c = rows[a : a + chunk]
+            obs = hm.observe(
+                crops[c], boxes[c], centres[c], cam, cube_mm=cube,
+                planes=hm.wrist_planes(skeleton, j[c]),
+            )  # fmt: skip
+            out[c] = finger_ambiguity(model, j[c], obs, cam, level)
+    return out
+
+
 def session_scores(
     session: Session,
     joints_mm: np.ndarray,
@@ -548,6 +599,7 @@ def review_evidence(
     *,
     extra: dict[str, np.ndarray] | None = None,
     unexplained: np.ndarray | None = None,
+    ambiguity: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-frame evidence ``{name: (N,)}`` that a frame's shown skeleton (refined, else
     propagated, else lifted) is wrong, larger = worse, NaN = unavailable. No ground truth.
@@ -567,10 +619,13 @@ def review_evidence(
     ``model_data_mm`` (mean point-to-surface mm at the kept pose), ``model_free`` (share of
     free-space samples violated), ``model_rejected`` (1: the guard kept the flowed pose), see
     :data:`handanno_core.results.MODEL_FIT_TERMS`.
+    ``ambiguity_mm`` how far one finger could move at little cost on the frame's depth
+    (:func:`session_finger_ambiguity`; needs ``crop_data``).
     ``extra``: further terms ``{name: (N,)}`` (e.g. a model-fit residual) passed through.
     ``crop_data`` = ``(crops, centres_mm, boxes)`` (:func:`handanno_core.prefill.cached_crops`).
-    ``unexplained``: :func:`unexplained_foreground` of these joints (N,) when the caller keeps it
-    up to date itself (the app recomputes only frames whose joints changed); else computed here.
+    ``unexplained`` / ``ambiguity``: :func:`unexplained_foreground` / :func:`session_finger_ambiguity`
+    of these joints (N,) when the caller keeps them up to date itself (the app recomputes only
+    frames whose joints changed); else computed here.
     """
     from .export import best_joints
     from .pipeline import root_reference
@@ -603,6 +658,11 @@ def review_evidence(
                 session_depth_residuals(session, joints, crop_data, behind=True), axis=1
             )
         ev["drift_mm"] = centre_drift(joints, crop_data[1], root_reference(session.parent))
+        ev["ambiguity_mm"] = (
+            session_finger_ambiguity(session, joints, crop_data)
+            if ambiguity is None
+            else np.asarray(ambiguity, dtype=np.float64)
+        )
     ev["jump_mm"] = temporal_jump(joints, session.model.sequence_breaks)
     accel = np.full(n, np.nan)
     if n > 2:
@@ -649,7 +709,10 @@ def review_evidence(
 #: coordinate ascent did not (0.46). Terms at weight 0: depth_mm, depth_max_mm, bone, gap and the
 #: model-fit terms other than model_free (the fit's residual is already a factor of the
 #: propagation confidence, ``conf``; a fit without the model-fit terms did as well in the same
-#: check).
+#: check). ``ambiguity_mm`` (:func:`session_finger_ambiguity`) joined at stop 48 with the others
+#: unchanged, its weight chosen on the tune part (seeds 0-2, 5 % uniform, 24 sessions): at 4 the
+#: tune objective is better at 10-15, 20, 20-40 and 10-40 mm; the bench's leave-one-sequence-out
+#: check is better at 20-40 mm and worse at 10-40 mm (``benchmarks/HISTORY.md``, stop 48).
 EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
     "conf": (0.8645, 3.1257),
     "conf_min": (1.0, 0.4363),
@@ -663,6 +726,7 @@ EVIDENCE_WEIGHTS: dict[str, tuple[float, float]] = {
     "swap_mm": (6.9528, 3.0542),
     "hops": (4.0, 1.425),
     "model_free": (0.0072, 0.382),
+    "ambiguity_mm": (10.0, 4.0),
 }
 #: frames within this distance (in time) of a frame already picked in the same round are shown
 #: only when nothing else is left: one bad stretch should not fill the list. 0 (off): on the tune
@@ -783,17 +847,20 @@ def rank_priority(
     *,
     extra: dict[str, np.ndarray] | None = None,
     unexplained: np.ndarray | None = None,
+    ambiguity: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(N,)`` priority of ``ranking`` (larger = show first; NaN = nothing to show): ``"evidence"``
     (:func:`evidence_priority`), ``"score"`` (the app's ranking until now: ``1 -``
     :func:`session_scores`), ``"uniform"`` (all equal; use :func:`uniform_pick`). ``unexplained``
-    goes to :func:`review_evidence`."""
+    and ``ambiguity`` go to :func:`review_evidence`."""
     from .export import best_joints
 
     joints, _ = best_joints(results)
     has = np.all(np.isfinite(joints), axis=(1, 2))
     if ranking == "evidence":
-        ev = review_evidence(session, results, crop_data, extra=extra, unexplained=unexplained)
+        ev = review_evidence(
+            session, results, crop_data, extra=extra, unexplained=unexplained, ambiguity=ambiguity
+        )
         p = evidence_priority(ev)
         p = smooth_in_time(p, SMOOTH[0], SMOOTH[1], session.model.sequence_breaks)
     elif ranking == "score":

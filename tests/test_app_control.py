@@ -3,6 +3,8 @@ walk and review edits as journal entries, the context's options, the drawn joint
 
 from __future__ import annotations
 
+import contextlib
+import time
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +176,68 @@ def test_background_ranking_follows_the_results_and_updates_only_changed_frames(
     finally:
         live.stop_ranking()
         session.close()
+
+
+@contextlib.contextmanager
+def _ranked_session(data_dir, tmp_path, monkeypatch, copies: int, per_ranking: int):
+    """A large session's LiveResults with its ranking thread, at most ``per_ranking`` finger
+    ambiguities per ranking; yields (session, live, the versions each ranking published)."""
+    from large_session import build_large_session
+
+    from app.control import live as live_module
+    from handanno_core.session import Session
+
+    monkeypatch.setattr(live_module, "AMBIGUITY_FRAMES_PER_RANKING", per_ranking)
+    session = Session.open(build_large_session(tmp_path / "big", data_dir, copies, crop_size=32))
+    ranked: list[int] = []
+    live = LiveResults(session, on_ranked=ranked.append)
+    try:
+        yield session, live, ranked
+    finally:
+        live.stop_ranking()
+        session.close()
+
+
+def test_a_large_sessions_first_ranking_comes_without_the_ambiguity_which_then_fills_in(
+    data_dir, tmp_path, monkeypatch
+):
+    """The finger ambiguity costs tens of ms per frame: a session with more frames than one ranking
+    computes is ranked first without it, then ranked again, a part at a time, without any change
+    of the results, until the ranking is the engine's full one."""
+    from handanno_core.prefill import cached_crops
+
+    with _ranked_session(data_dir, tmp_path, monkeypatch, 2, 40) as (session, live, ranked):
+        first = live.ranking(wait_s=None)
+        crop_data = cached_crops(session)
+        results = session.load_results()
+        without = rank_priority(
+            "evidence", session, results, crop_data, ambiguity=np.full(len(first), np.nan)
+        )
+        np.testing.assert_array_equal(first, without)
+        expected = rank_priority("evidence", session, results, crop_data)
+        assert not np.array_equal(expected, without, equal_nan=True)
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            if np.array_equal(live._ranked[1], expected, equal_nan=True):
+                break
+            time.sleep(0.2)
+        np.testing.assert_array_equal(live._ranked[1], expected)
+        # about one ranking per 40 frames, all of the same results version
+        assert len(ranked) >= session.num_frames // 40 and set(ranked) == {live.version}
+
+
+def test_no_ambiguity_frames_per_ranking_turns_the_term_off(data_dir, tmp_path, monkeypatch):
+    from handanno_core.prefill import cached_crops
+
+    with _ranked_session(data_dir, tmp_path, monkeypatch, 1, 0) as (session, live, ranked):
+        first = live.ranking(wait_s=None)
+        off = np.full(session.num_frames, np.nan)
+        expected = rank_priority(
+            "evidence", session, session.load_results(), cached_crops(session), ambiguity=off
+        )
+        np.testing.assert_array_equal(first, expected)
+        time.sleep(1.0)  # nothing left to fill in: no further ranking of the same results
+        assert ranked == [live.version]
 
 
 def test_unexplained_foreground_of_some_frames_equals_all_frames(data_dir, tmp_path):

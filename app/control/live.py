@@ -13,8 +13,9 @@ The ranking scales with the session (seconds for 76,000 frames), so the app neve
 a UI thread: :meth:`LiveResults.start_ranking` starts one background thread that re-ranks after
 every change (coalesced: at most one ranking in flight, and while results keep changing, it rests
 between rankings), and :meth:`LiveResults.ranking` answers with the
-newest ranking at once. The costliest per-frame term (:func:`handanno_core.review.unexplained_foreground`)
-is recomputed only for frames whose joints changed.
+newest ranking at once. The costliest per-frame terms (:func:`handanno_core.review.unexplained_foreground`,
+:func:`handanno_core.review.session_finger_ambiguity`) are recomputed only for frames whose joints
+changed.
 """
 
 from __future__ import annotations
@@ -27,7 +28,13 @@ import numpy as np
 
 from handanno_core.export import best_joints
 from handanno_core.results import NO_SOURCE, Stage
-from handanno_core.review import FrameScores, rank_priority, session_scores, unexplained_foreground
+from handanno_core.review import (
+    FrameScores,
+    rank_priority,
+    session_finger_ambiguity,
+    session_scores,
+    unexplained_foreground,
+)
 from handanno_core.session import Session
 
 #: the results key each stage's joints are written to
@@ -37,8 +44,12 @@ _STAGE_KEY = {Stage.LIFTED: "lifted_mm", Stage.PROPAGATED: "init_mm", Stage.REFI
 #: always current)
 RANK_WAIT_S = 0.15
 #: the ranking thread rests as long as its last ranking took, at most this long, before it ranks
-#: changed results again (while a job changes results, ranking takes at most about half a core)
+#: changed results again (while a job changes results, ranking takes at most about half a core;
+#: while the finger ambiguity of a large session fills in, up to 0.8 of one)
 RANK_REST_S = 2.0
+#: frames whose finger ambiguity one ranking computes at most (about 27 ms each on this 2-core
+#: machine: a change made meanwhile waits at most about 8 s for its ranking); 0: the term is off
+AMBIGUITY_FRAMES_PER_RANKING = 300
 
 
 class LiveResults:
@@ -60,8 +71,11 @@ class LiveResults:
         self._rank_stop = False
         #: seconds the last ranking took (also how long the thread rests while results change)
         self.rank_seconds = 0.0
-        # unexplained_foreground per frame, and the joints it was computed for
+        # unexplained_foreground and session_finger_ambiguity per frame, and the joints they
+        # were computed for
         self._ux: np.ndarray | None = None
+        self._amb: np.ndarray | None = None
+        self._amb_stale = np.zeros(0, dtype=bool)  # frames whose ambiguity is still to compute
         self._ux_joints: np.ndarray | None = None
         self._ux_lock = threading.Lock()
         self.reload()
@@ -168,17 +182,21 @@ class LiveResults:
         return self._cached("priority", self._rank)  # type: ignore[return-value]
 
     def _rank(self, results: dict[str, np.ndarray], _bones: np.ndarray | None) -> np.ndarray:
-        """The evidence ranking of ``results``, its unexplained-foreground term recomputed only
-        for frames whose shown joints changed since the last ranking."""
+        """The evidence ranking of ``results``, its two costly per-frame terms (unexplained
+        foreground, finger ambiguity) recomputed only for frames whose shown joints changed since
+        the last ranking (a new reference changes the personalized model a little; the frames it
+        did not move keep their ambiguity until they change)."""
         crop_data = self._crop_data()
-        unexplained = None
+        unexplained = ambiguity = None
         if crop_data is not None:
             crops, _, boxes = crop_data
             joints, _ = best_joints(results)
-            with self._ux_lock:  # one ranking at a time updates the per-frame term
-                if self._ux is None or self._ux_joints is None:
+            with self._ux_lock:  # one ranking at a time updates the per-frame terms
+                if self._ux is None or self._amb is None or self._ux_joints is None:
                     todo = np.arange(len(joints))
                     self._ux = np.full(len(joints), np.nan)
+                    self._amb = np.full(len(joints), np.nan)
+                    self._amb_stale = np.full(len(joints), AMBIGUITY_FRAMES_PER_RANKING > 0)
                 else:
                     old = self._ux_joints
                     same = (joints == old) | (np.isnan(joints) & np.isnan(old))
@@ -189,9 +207,25 @@ class LiveResults:
                         frames=todo,
                     )  # fmt: skip
                     self._ux[todo] = fresh[todo]
+                    self._amb_stale[todo] = AMBIGUITY_FRAMES_PER_RANKING > 0
+                # the ambiguity costs tens of ms per frame: at most AMBIGUITY_FRAMES_PER_RANKING
+                # per ranking, changed frames first, and none in a large session's first ranking,
+                # so that it comes as soon as before; the term fills in over the next rankings
+                # (NaN: no evidence yet)
+                stale = np.flatnonzero(self._amb_stale)
+                stale = np.concatenate([np.intersect1d(stale, todo), np.setdiff1d(stale, todo)])
+                first = self._ranked is None and stale.size > AMBIGUITY_FRAMES_PER_RANKING
+                part = stale[: 0 if first else AMBIGUITY_FRAMES_PER_RANKING]
+                if part.size:
+                    amb = session_finger_ambiguity(self.session, joints, crop_data, frames=part)
+                    self._amb[part] = amb[part]
+                    self._amb_stale[part] = False
                 self._ux_joints = joints
-                unexplained = self._ux.copy()
-        return rank_priority("evidence", self.session, results, crop_data, unexplained=unexplained)
+                unexplained, ambiguity = self._ux.copy(), self._amb.copy()
+        return rank_priority(
+            "evidence", self.session, results, crop_data, unexplained=unexplained,
+            ambiguity=ambiguity,
+        )  # fmt: skip
 
     def start_ranking(self) -> None:
         """Start the background ranking thread (it ranks the current results at once, then again
@@ -222,7 +256,9 @@ class LiveResults:
         while True:
             with self._rank_cv:
                 while not self._rank_stop and (
-                    self._ranked is not None and self._ranked[0] == self.version
+                    self._ranked is not None
+                    and self._ranked[0] == self.version
+                    and not self._amb_stale.any()
                 ):
                     self._rank_cv.wait()
                 if self._rank_stop:

@@ -8,7 +8,8 @@ joint is more than ``--bad-mm`` off (evaluation and weight fitting only).
 The weights: a logistic regression (non-negative weights, L2, on ``log1p(x / scale)`` with each
 term's scale = its median over the tune frames) fitted on the ``--tune`` sessions only, with frames
 bad at ``--fit-mm`` as the positive class (``--search``: coordinate ascent of the tune objective
-instead, :func:`tune_objective` at ``--objective-mm``). ``--loso``: the same choice made without
+instead, :func:`tune_objective` at ``--objective-mm``; ``--add-term NAME:SCALE``: the weights before
+kept and one new term's weight chosen on a grid). ``--loso``: the same choice made without
 each tune sequence (all its suite replicas) and scored on it. ``--smoothing``: also search temporal
 smoothing and neighbour suppression (off otherwise: the committed ``review.SMOOTH`` /
 ``SUPPRESS_RADIUS``). ``--fixed``: report the committed ``review.EVIDENCE_WEIGHTS``. recall@10 %
@@ -222,6 +223,22 @@ def leave_one_out(tune: list[dict], choose, start: dict, bad_mm: float) -> list[
     return out
 
 
+#: weights :func:`add_term` tries for the new term
+ADD_TERM_GRID = (0.0, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 8.0)
+
+
+def add_term(sessions: list[dict], term: str, scale: float, bad_mm: float) -> dict:
+    """:data:`BEFORE_WEIGHTS` with ``term`` at ``scale`` and the weight of
+    :data:`ADD_TERM_GRID` with the best :func:`tune_objective` on ``sessions`` (the others
+    unchanged: one number chosen, not a refit of every weight)."""
+
+    def with_weight(w: float) -> dict:
+        return {**BEFORE_WEIGHTS, term: (scale, w)}
+
+    best = max(ADD_TERM_GRID, key=lambda w: tune_objective(sessions, with_weight(w), bad_mm))
+    return with_weight(best)
+
+
 def logistic_weights(sessions: list[dict], names: list[str], fit_mm: float) -> dict:
     """``{term: (scale, weight)}`` of a non-negative logistic regression (:func:`fit_logistic`)
     of "a joint more than ``fit_mm`` off" on ``log1p(x / scale)`` over the non-reference frames
@@ -336,6 +353,11 @@ def main() -> None:
         default=[],
         help="comma-separated thresholds of the tune objective (default: bad, +10, +20 mm)",
     )
+    ap.add_argument(
+        "--add-term",
+        metavar="NAME:SCALE",
+        help="keep BEFORE_WEIGHTS and choose only this term's weight (a grid) on the tune objective",
+    )
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args()
     OBJECTIVE_MM[:] = args.objective_mm
@@ -352,6 +374,10 @@ def main() -> None:
         start.update({k: v for k, v in BEFORE_WEIGHTS.items() if k in names})
         weights = coordinate_search(tune, names, start, args.bad_mm)
         choose = lambda sessions: coordinate_search(sessions, names, start, args.bad_mm, True)  # noqa: E731
+    if args.add_term:
+        term, scale = args.add_term.split(":")
+        choose = lambda sessions: add_term(sessions, term, float(scale), args.bad_mm)  # noqa: E731
+        weights = choose(tune)
     loso = leave_one_out(tune, choose, BEFORE_WEIGHTS, args.bad_mm) if args.loso else []
     weights = {k: v for k, v in weights.items() if v[1] > 0}
     smooth, radius = review.SMOOTH, review.SUPPRESS_RADIUS
@@ -386,22 +412,9 @@ def main() -> None:
     )
 
 
-#: the weights before this round: the second round's (chosen on the tune part with the hand model
-#: off), ``handanno_core.review.EVIDENCE_WEIGHTS`` at main 0f9e053
-BEFORE_WEIGHTS = {
-    "conf": (0.7359, 4.0),
-    "depth_mm": (4.07, 2.0),
-    "depth_max_mm": (40.0, 4.0),
-    "unexplained": (0.414, 4.0),
-    "behind_mm": (2.2849, 0.5),
-    "drift_mm": (5.495, 1.0),
-    "refine_mm": (6.57, 0.5),
-    "angle_deg": (8.35, 2.2),
-    "swap_mm": (8.53, 3.84),
-    "bone": (0.001, 0.063),
-    "hops": (5.0, 2.0),
-    "gap": (8.0, 0.5),
-}
+#: the weights before this round: ``handanno_core.review.EVIDENCE_WEIGHTS`` before stop 48 added
+#: the finger ambiguity (main 05a7d95), the others unchanged since
+BEFORE_WEIGHTS = {k: v for k, v in review.EVIDENCE_WEIGHTS.items() if k != "ambiguity_mm"}
 
 if __name__ == "__main__":
     main()

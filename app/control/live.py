@@ -48,7 +48,7 @@ RANK_WAIT_S = 0.15
 #: while the finger ambiguity of a large session fills in, up to 0.8 of one)
 RANK_REST_S = 2.0
 #: frames whose finger ambiguity one ranking computes at most (about 27 ms each on this 2-core
-#: machine: a change made meanwhile waits at most about 8 s for its ranking); 0: the term is off
+#: machine, so about 8 s of a ranking a change made meanwhile waits for); 0: the term is off
 AMBIGUITY_FRAMES_PER_RANKING = 300
 
 

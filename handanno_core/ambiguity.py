@@ -7,7 +7,7 @@ the propagated pose keeps whatever its reference had, and the model fit, the dep
 the flow consistency all look fine. What the frame does show is that it cannot tell: setting
 that finger to other flexions (:func:`handanno_core.handmodel.finger_hypotheses`, the grid of
 :data:`handanno_core.handmodel.FINGER_FLEXIONS`) barely changes the personalized hand model's
-energy on the frame's own depth (:func:`handanno_core.handmodel.pose_energies`, no priors).
+energy on the frame's own depth (:func:`handanno_core.handmodel.candidate_energies`, no priors).
 
 Per frame the term is the largest joint displacement (mm) of any one-finger hypothesis, each
 weighted by ``exp(-max(dE, 0) / (tolerance * level))`` where ``dE`` is the hypothesis' energy
@@ -66,14 +66,17 @@ def finger_ambiguity(
     seen = obs.take(ok)
     seen = seen if points is None else seen.thinned(points)
     m = len(ok)
-    e0 = hm.candidate_energies(model, kin, root, u, seen, np.arange(m), camera, w)
     hyp = hm.finger_hypotheses(skeleton, kin, root, u, hm.grid_flexions(skeleton, flexions))
     f, k = hyp.shape[1:3]
-    owner = np.repeat(np.arange(m), f * k)
     flat = hyp.reshape((-1,) + hyp.shape[3:])
-    energy = hm.candidate_energies(model, kin, root[owner], flat, seen, owner, camera, w)
+    owner = np.repeat(np.arange(m), f * k)
+    # the shown poses first, then every hypothesis, scored in one pass
+    energy = hm.candidate_energies(
+        model, kin, np.concatenate([root, root[owner]]), np.concatenate([u, flat]), seen,
+        np.concatenate([np.arange(m), owner]), camera, w,
+    )  # fmt: skip
     moved = kin.joints(root[owner], flat).reshape((m, f * k) + shown.shape[1:])
     disp = np.linalg.norm(moved - shown[:, None], axis=-1).max(axis=-1)  # (m, F*K)
-    rise = np.maximum(energy.reshape(m, f * k) - e0[:, None], 0.0)
+    rise = np.maximum(energy[m:].reshape(m, f * k) - energy[:m, None], 0.0)
     out[ok] = np.max(disp * np.exp(-rise / (tolerance * reference_level)), axis=1)
     return out

@@ -1807,6 +1807,35 @@ def reference_level(
     return float(np.median(depth_energies(model, joints_mm, obs, camera, weights)))
 
 
+def personalize_hands(
+    skeleton: Skeleton,
+    lengths_mm: np.ndarray,
+    hand: np.ndarray | None,
+    joints_mm: np.ndarray,
+    obs: FrameObservations,
+    camera: CameraIntrinsics,
+    given: HandModel | None = None,
+) -> tuple[list[HandModel], np.ndarray]:
+    """One hand model per bone-length set ``lengths_mm`` (H, B) mm and its :func:`reference_level`
+    (H,): row ``h`` personalized (:func:`personalize`) from the K references (``joints_mm``
+    (K, J, 3) mm, ``obs`` their :func:`observe_references`) whose ``hand`` (K,) is ``h``, from all
+    of them where none is or ``hand`` is None; ``given``: that model for every row instead."""
+    models, levels = [], []
+    for h, lengths in enumerate(np.asarray(lengths_mm, dtype=np.float64)):
+        own = np.arange(len(joints_mm))
+        if hand is not None:
+            own = np.flatnonzero(np.asarray(hand) == h)
+            own = own if len(own) else np.arange(len(joints_mm))
+        model = (
+            given
+            if given is not None
+            else personalize(skeleton, lengths, joints_mm[own], obs.take(own))
+        )
+        models.append(model)
+        levels.append(reference_level(model, joints_mm[own], obs.take(own), camera))
+    return models, np.asarray(levels)
+
+
 #: A fit whose level (data + free-space energy over :func:`reference_level`) is above this does
 #: not explain its frame's depth and is no evidence: propagation's guard keeps the flowed pose
 #: (``propagate.PropagationSettings.model_fail_ratio``) and recovery keeps the earlier estimate

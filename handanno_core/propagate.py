@@ -1372,20 +1372,10 @@ def _hand_models(
         skeleton, ref_joints, crops[ref_frames], np.asarray(boxes)[ref_frames],
         np.asarray(centres_mm)[ref_frames], camera, cube_mm=settings.cube_mm,
     )  # fmt: skip
-    models, levels = [], []
-    for h, lengths in enumerate(bones.lengths):
-        own = np.arange(len(refs))
-        if not bones.single:
-            own = np.flatnonzero(bones.hand[ref_frames] == h)
-            own = own if len(own) else np.arange(len(refs))
-        model = (
-            hand_model
-            if given
-            else hm.personalize(skeleton, lengths, ref_joints[own], obs.take(own))
-        )
-        models.append(model)
-        levels.append(hm.reference_level(model, ref_joints[own], obs.take(own), camera))
-    return models, np.asarray(levels)
+    return hm.personalize_hands(
+        skeleton, bones.lengths, None if bones.single else bones.hand[ref_frames], ref_joints, obs,
+        camera, given=hand_model if given else None,
+    )  # fmt: skip
 
 
 @contextmanager

@@ -262,54 +262,77 @@ def session_depth_residuals(
     )
 
 
-def session_finger_ambiguity(
-    session, joints_mm: np.ndarray, crop_data, frames: np.ndarray | None = None, chunk: int = 64
-) -> np.ndarray:
-    """:func:`handanno_core.ambiguity.finger_ambiguity` (N,) mm of the session's shown skeletons
-    ``joints_mm`` (N, J, 3) mm on its crops ``crop_data`` = ``(crops, centres_mm, boxes)``, for
-    ``frames`` (default: every frame with joints; NaN elsewhere): the hand model personalized
-    from the references' joints and crops (one per bone-length set, as propagation does),
-    observations in front of each pose's wrist (the forearm's points left out), ``chunk``
-    frames at a time (memory). All NaN without bone lengths, references or a layout with
-    three-bone fingers."""
+def session_hand_models(session, joints_mm: np.ndarray, crop_data):
+    """The hand models :func:`session_finger_ambiguity` scores with: one per bone-length set,
+    personalized from the references' joints (``joints_mm`` (N, J, 3) mm at the session's
+    reference frames) and crops ``crop_data`` = ``(crops, centres_mm, boxes)``, as propagation
+    does (:func:`handanno_core.handmodel.personalize_hands`). Returns ``(models, levels (H,),
+    table)`` (``table``: the session's :class:`handanno_core.hands.BoneTable`), or None without
+    bone lengths, references with joints or a layout with three-bone fingers. Costly with many
+    references (about 25 s for 3,825): a caller ranking repeatedly keeps it while the references
+    and their joints stay the same."""
     from . import handmodel as hm
-    from .ambiguity import finger_ambiguity
     from .hands import bone_table
 
     j = np.asarray(joints_mm, dtype=np.float64)
-    n = len(j)
-    out = np.full(n, np.nan)
     skeleton = session.skeleton
-    bones = session.model.bone_lengths_mm
     has = np.all(np.isfinite(j), axis=(1, 2))
     refs = np.array([f for f in session.reference_frames if has[f]], dtype=np.int64)
-    if bones is None or len(refs) == 0 or not skeleton.has_finger_segments:
+    if session.model.bone_lengths_mm is None or len(refs) == 0:
+        return None
+    if not skeleton.has_finger_segments:
+        return None
+    crops, centres, boxes = crop_data
+    obs = hm.observe_references(
+        skeleton, j[refs], crops[refs], np.asarray(boxes, dtype=np.float64)[refs],
+        np.asarray(centres, dtype=np.float64)[refs], session.camera,
+        cube_mm=session.model.settings.cube_mm,
+    )  # fmt: skip
+    table = bone_table(session.frame_bone_lengths(), len(j), len(skeleton.bones))
+    hand = None if table.single else table.hand[refs]
+    models, levels = hm.personalize_hands(
+        skeleton, table.lengths, hand, j[refs], obs, session.camera
+    )
+    return models, levels, table
+
+
+def session_finger_ambiguity(
+    session,
+    joints_mm: np.ndarray,
+    crop_data,
+    frames: np.ndarray | None = None,
+    chunk: int = 64,
+    models=None,
+) -> np.ndarray:
+    """:func:`handanno_core.ambiguity.finger_ambiguity` (N,) mm of the session's shown skeletons
+    ``joints_mm`` (N, J, 3) mm on its crops ``crop_data`` = ``(crops, centres_mm, boxes)``, for
+    ``frames`` (default: every frame with joints; NaN elsewhere), scored with ``models``
+    (:func:`session_hand_models` of these joints; None: made here), observations in front of
+    each pose's wrist (the forearm's points left out), ``chunk`` frames at a time (memory). All
+    NaN where :func:`session_hand_models` has no models."""
+    from . import handmodel as hm
+    from .ambiguity import finger_ambiguity
+
+    j = np.asarray(joints_mm, dtype=np.float64)
+    out = np.full(len(j), np.nan)
+    models = session_hand_models(session, j, crop_data) if models is None else models
+    if models is None:
         return out
+    hand_models, levels, table = models
     crops, centres, boxes = crop_data
     centres, boxes = np.asarray(centres, dtype=np.float64), np.asarray(boxes, dtype=np.float64)
-    cube = session.model.settings.cube_mm
-    cam = session.camera
+    has = np.all(np.isfinite(j), axis=(1, 2))
     todo = np.flatnonzero(has) if frames is None else np.asarray(frames, dtype=np.int64)
     todo = todo[has[todo]]
-    table = bone_table(session.frame_bone_lengths(), n, len(skeleton.bones))
-    for h, lengths in enumerate(table.lengths):
-        own = refs if table.single else refs[table.hand[refs] == h]
-        own = own if len(own) else refs
+    for h, (model, level) in enumerate(zip(hand_models, levels, strict=True)):
         rows = todo if table.single else todo[table.hand[todo] == h]
-        if not len(rows):
-            continue
-        obs_r = hm.observe_references(
-            skeleton, j[own], crops[own], boxes[own], centres[own], cam, cube_mm=cube
-        )
-        model = hm.personalize(skeleton, lengths, j[own], obs_r)
-        level = hm.reference_level(model, j[own], obs_r, cam)
         for a in range(0, len(rows), chunk):
             c = rows[a : a + chunk]
             obs = hm.observe(
-                crops[c], boxes[c], centres[c], cam, cube_mm=cube,
-                planes=hm.wrist_planes(skeleton, j[c]),
+                crops[c], boxes[c], centres[c], session.camera,
+                cube_mm=session.model.settings.cube_mm, planes=hm.wrist_planes(session.skeleton, j[c]),
             )  # fmt: skip
-            out[c] = finger_ambiguity(model, j[c], obs, cam, level)
+            out[c] = finger_ambiguity(model, j[c], obs, session.camera, level)
     return out
 
 

@@ -32,6 +32,7 @@ from handanno_core.review import (
     FrameScores,
     rank_priority,
     session_finger_ambiguity,
+    session_hand_models,
     session_scores,
     unexplained_foreground,
 )
@@ -76,6 +77,7 @@ class LiveResults:
         self._ux: np.ndarray | None = None
         self._amb: np.ndarray | None = None
         self._amb_stale = np.zeros(0, dtype=bool)  # frames whose ambiguity is still to compute
+        self._models = None  # (key, session_hand_models) of the references last ranked with
         self._ux_joints: np.ndarray | None = None
         self._ux_lock = threading.Lock()
         self.reload()
@@ -216,16 +218,34 @@ class LiveResults:
                 stale = np.concatenate([np.intersect1d(stale, todo), np.setdiff1d(stale, todo)])
                 first = self._ranked is None and stale.size > AMBIGUITY_FRAMES_PER_RANKING
                 part = stale[: 0 if first else AMBIGUITY_FRAMES_PER_RANKING]
-                if part.size:
-                    amb = session_finger_ambiguity(self.session, joints, crop_data, frames=part)
+                models = self._hand_models(joints, crop_data) if part.size else None
+                if models is not None:  # else no references, bones or finger layout: NaN
+                    amb = session_finger_ambiguity(
+                        self.session, joints, crop_data, frames=part, models=models
+                    )
                     self._amb[part] = amb[part]
-                    self._amb_stale[part] = False
+                self._amb_stale[part] = False
                 self._ux_joints = joints
                 unexplained, ambiguity = self._ux.copy(), self._amb.copy()
         return rank_priority(
             "evidence", self.session, results, crop_data, unexplained=unexplained,
             ambiguity=ambiguity,
         )  # fmt: skip
+
+    def _hand_models(self, joints: np.ndarray, crop_data):
+        """:func:`~handanno_core.review.session_hand_models` of ``joints``, kept while the
+        references, their joints and the bone lengths stay the same (personalizing from thousands of references
+        takes tens of seconds; a ranking that fills in the ambiguity would redo it every time)."""
+        refs = np.asarray(self.session.reference_frames, dtype=np.int64)
+        bones = self.session.model.bone_lengths_mm
+        key = (
+            refs.tobytes(),
+            joints[refs].tobytes(),
+            np.asarray([] if bones is None else bones, dtype=np.float64).tobytes(),
+        )
+        if self._models is None or self._models[0] != key:
+            self._models = (key, session_hand_models(self.session, joints, crop_data))
+        return self._models[1]
 
     def start_ranking(self) -> None:
         """Start the background ranking thread (it ranks the current results at once, then again

@@ -40,8 +40,8 @@ decides what the depth leaves open, a finger the camera does not see, from how t
 sit; its rows are forward differences over the tangent parameters (:func:`_prior_jacobian`).
 
 Observed points (:func:`observe`) come from the normalized crops (no extra depth reads), a few
-hundred per frame; forearm points are ignored (:func:`_forearm`: behind the wrist along the
-wrist -> knuckles axis, or nearest to the wrist end of a capsule at the root). Model samples are 4 positions × 3 angles per capsule on the surface
+hundred per frame; forearm points are ignored (:func:`_forearm`: behind a plane 25 mm past the
+wrist along the wrist -> knuckles axis, or nearest to the wrist end of a capsule at the root). Model samples are 4 positions × 3 angles per capsule on the surface
 facing the camera; each is projected into the crop: on a hand pixel it must not lie more than
 ``free_margin_mm`` in front of the observed depth; off the silhouette it is pulled to the nearest
 hand pixel (distance transform, as in Tagliasacchi et al.).
@@ -637,7 +637,8 @@ OBSERVED_POINTS = 512
 
 #: :func:`wrist_planes`: pixels more than this far behind a pose's wrist (along its wrist ->
 #: knuckles axis) are not sampled as points. The fit ignores every point behind the wrist
-#: (:func:`_forearm`), and on the suite's tune part about half of the sampled points lay there;
+#: (:func:`_forearm`; since stop 49 up to ``-FitWeights.forearm_behind_mm`` past it), and on the
+#: suite's tune part about half of the sampled points lay behind it;
 #: the margin leaves room for the pose the plane comes from (a lifted reference, the propagated
 #: initialization) being off at the wrist (20 mm chosen on the tune part; 40 mm, with
 #: propagation's points cut as well, was tried: HISTORY.md, stop 45).
@@ -777,11 +778,15 @@ class FitWeights:
     palm: float = 1.0
     #: points near the root end of a palm capsule (foot at t <= forearm_t) and less than
     #: forearm_margin_mm past the wrist towards the fingers are taken as forearm and ignored
-    forearm_t: float = 0.35
-    forearm_margin_mm: float = 25.0
+    forearm_t: float = 0.6
+    forearm_margin_mm: float = 40.0
     #: points more than this far behind the wrist (along the wrist -> knuckles axis) are forearm
-    #: whatever their nearest capsule (an egocentric forearm fills half the crop)
-    forearm_behind_mm: float = 0.0
+    #: whatever their nearest capsule (an egocentric forearm fills half the crop). Negative: the
+    #: wrist's own bulk past the joint centre belongs to the arm too; an arm nearer the camera
+    #: than the hand hides the wrist behind it, and those points, taken as palm, pulled the
+    #: palm's wrist end towards the camera (the three forearm values chosen on the suite's tune
+    #: part, HISTORY.md stop 49; 0.35 / 25 / 0 before)
+    forearm_behind_mm: float = -25.0
     collision: float = 1.0  #: per mm² of interpenetration of capsules of different fingers
     collision_slack_mm: float = 1.0
     pose: float = 0.02  #: per mm² per joint to the prior pose Y (temporal closeness / start)

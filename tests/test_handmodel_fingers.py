@@ -67,10 +67,13 @@ def test_finger_hypotheses_set_the_requested_flexion(scene):
         assert np.allclose(MSRA21.bone_lengths(xs), model.bone_lengths_mm, atol=1e-6)
 
 
-@pytest.mark.parametrize("finger,deg", [(2, 60.0), (0, 60.0), (1, -60.0)])
+@pytest.mark.parametrize("finger,deg", [(2, 90.0), (0, 75.0), (1, -60.0)])
 def test_hypotheses_recover_a_finger_the_plain_fit_leaves_stuck(scene, finger, deg):
-    """One finger flexed 60 degrees away from the rendered pose: the plain fit stays stuck (its
-    tip > 15 mm off); with the per-finger hypotheses every joint comes back to <= 2 mm."""
+    """One finger flexed 60-90 degrees away from the rendered pose: the plain fit stays stuck
+    (its tip > 15 mm off); with the per-finger hypotheses every joint comes back to <= 2 mm.
+    (Since stop 49 the fit leaves the points less than 25 mm past the wrist to the arm, and with
+    a full-weight prior to the start the ring and index fingers flexed 60 degrees end 6-13 mm off
+    in the plain fit, where no hypothesis is lower: this scene has no arm. HISTORY.md, stop 49.)"""
     x, model, obs = scene
     start = _flex_finger(x, finger, deg)
     pri = hm.Priors(pose=start[None], pose_w=np.ones((1, len(x))))
@@ -87,7 +90,7 @@ def test_hypotheses_recover_a_finger_the_plain_fit_leaves_stuck(scene, finger, d
 def test_frames_not_tried_or_not_improved_keep_their_fit_exactly(scene):
     x, model, obs = scene
     kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
-    starts = np.stack([_flex_finger(x, 2, 60.0), x])
+    starts = np.stack([_flex_finger(x, 2, 90.0), x])
     obs2 = obs.take([0, 0])
     pri = hm.Priors(pose=starts, pose_w=np.ones(starts.shape[:2]))
     fit = hm.fit_frames(model, starts, obs2, CAM, priors=pri, kin=kin)
@@ -135,7 +138,7 @@ def test_pose_library_keeps_the_most_different_poses_in_their_palms_frame():
 def test_a_reference_pose_recovers_fingers_the_start_carried_the_wrong_way(gesture, tol):
     """The depth shows several fingers curled, the start (an open hand in the same palm, with
     the flow's priors on it) has them extended: the plain fit and the one-finger-at-a-time
-    hypotheses stay > 10 mm off; the reference pose of the same gesture, seen elsewhere and at
+    hypotheses stay > 5 mm off (the claw 6.4 mm since stop 49, > 10 before); the reference pose of the same gesture, seen elsewhere and at
     another orientation, turned into the fit's palm and fitted without the flow's priors,
     comes back to ``tol`` with a lower energy than the fit's without those priors."""
     x = _pose(gesture, ypr=(0.3, 0.2, 0.1))
@@ -152,7 +155,7 @@ def test_a_reference_pose_recovers_fingers_the_start_carried_the_wrong_way(gestu
         model, hm.fit_frames(model, start[None], obs, CAM, priors=pri, kin=kin), obs, CAM,
         priors=pri, kin=kin,
     )  # fmt: skip
-    assert np.linalg.norm(fit.joints_mm[0] - x, axis=1).max() > 10.0
+    assert np.linalg.norm(fit.joints_mm[0] - x, axis=1).max() > 5.0
     refs = np.stack(
         [_pose("open"), _pose(gesture, ypr=(-0.4, 0.5, 0.0), centre=(30.0, -20.0, 450.0)),
          _pose("spread")]

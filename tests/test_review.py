@@ -303,9 +303,9 @@ def test_runner_cancel_during_refinement_restores_results(session):
 
 def test_correction_repropagates_only_descendants_with_the_real_pipeline(session):
     """Real propagation (DIS aligner) and refinement: after a correction on frame 15 only the
-    frames between its neighbouring references get a new init_mm on disk: 16..19 (its descendants
-    in the chain 10 -> 11 -> ... -> 19) and 11..14 (propagated backwards from it, the hand
-    model's second candidate)."""
+    frames between its neighbouring references are propagated again, 16..19 (its descendants in
+    the chain 10 -> 11 -> ... -> 19) and 11..14 (propagated backwards from it, the hand model's
+    second candidate), and only those can get a new init_mm on disk."""
     gt = session.open_sequence().ground_truth.joints_mm
     runner = ReviewRunner(session, lift_for=lambda f, seq: gt[f], debounce_s=0.05)
     try:
@@ -330,7 +330,9 @@ def test_correction_repropagates_only_descendants_with_the_real_pipeline(session
         changed = np.flatnonzero(
             np.any(~np.isclose(second["init_mm"], first["init_mm"], equal_nan=True), axis=(1, 2))
         )
-        assert set(changed) <= set(range(11, 20)) and {16, 17, 18, 19} <= set(changed)
+        # a re-propagated frame keeps its earlier pose where that one explains its depth better
+        # (pipeline._previous_fits_better), so not every descendant need change
+        assert set(changed) <= set(range(11, 20)) and len({16, 17, 18, 19} & set(changed)) >= 2
         assert np.allclose(second["lifted_mm"][frame], gt[frame])
         assert np.all(np.isfinite(second["final_mm"]))
         reopened = Session.open(session.folder)

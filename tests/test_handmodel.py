@@ -321,6 +321,32 @@ def test_angle_meter_matches_skeleton_joint_angles():
     assert np.allclose(hm.angle_violation(MSRA21, poses), expected)
 
 
+def _observe_with_arm(
+    model: hm.HandModel,
+    x: np.ndarray,
+    direction: np.ndarray,
+    start_mm: float,
+    length_mm: float,
+    radius_mm: float,
+):
+    """The model at ``x`` rendered with an arm (one capsule of ``radius_mm`` from ``start_mm`` to
+    ``start_mm + length_mm`` along the unit ``direction`` from the wrist), observed in a 360 mm
+    cube that holds the hand and part of the arm."""
+    a, b = model.capsules(x[None])
+    arm_a = x[MSRA21.root] + start_mm * direction
+    prims = Primitives(
+        np.concatenate([a[0], arm_a[None]]),
+        np.concatenate([b[0], (arm_a + length_mm * direction)[None]]),
+        np.concatenate([model.radii, [radius_mm]]),
+        np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+    )  # fmt: skip
+    c, cube = x.mean(axis=0), 360.0
+    return hm.observe(
+        crop_depth(render_depth(prims, CAM), CAM, c, cube_mm=cube)[None],
+        crop_boxes(c, CAM, cube_mm=cube)[None], c[None], CAM, cube_mm=cube,
+    )  # fmt: skip
+
+
 def test_forearm_behind_the_wrist_is_ignored(scene):
     """A forearm (not part of the model) behind the wrist, bent 40 degrees to the thumb side, as an
     egocentric arm fills the crop: its points are ignored (they lie behind the wrist; nearest to
@@ -334,19 +360,7 @@ def test_forearm_behind_the_wrist_is_ignored(scene):
     side = thumb - (thumb @ axis) * axis
     side /= np.linalg.norm(side)
     back = -np.cos(np.radians(40.0)) * axis + np.sin(np.radians(40.0)) * side  # bent to the thumb
-    a, b = model.capsules(x[None])
-    arm_a = x[sk.root] + 12.0 * back
-    prims = Primitives(
-        np.concatenate([a[0], arm_a[None]]),
-        np.concatenate([b[0], (arm_a + 150.0 * back)[None]]),
-        np.concatenate([model.radii, [14.0]]),
-        np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)),
-    )  # fmt: skip
-    c, cube = x.mean(axis=0), 360.0  # a cube that holds the hand and 80 mm of forearm
-    obs = hm.observe(
-        crop_depth(render_depth(prims, CAM), CAM, c, cube_mm=cube)[None],
-        crop_boxes(c, CAM, cube_mm=cube)[None], c[None], CAM, cube_mm=cube,
-    )  # fmt: skip
+    obs = _observe_with_arm(model, x, back, 12.0, 150.0, 14.0)
     kin = hm.Kinematics(sk, model.bone_lengths_mm)
     root, u = kin.fit(x[None])
     # many observed points lie on the forearm, yet the data term at the true pose is ~0
@@ -377,19 +391,7 @@ def test_an_arm_nearer_the_camera_than_the_wrist_does_not_tilt_the_palm(scene, t
     t = np.radians(towards_camera_deg)
     arm = -np.cos(t) * axis + np.sin(t) * to_camera
     arm /= np.linalg.norm(arm)
-    a, b = model.capsules(x[None])
-    arm_a = x[sk.root] + 18.0 * arm
-    prims = Primitives(
-        np.concatenate([a[0], arm_a[None]]),
-        np.concatenate([b[0], (arm_a + 120.0 * arm)[None]]),
-        np.concatenate([model.radii, [22.0]]),
-        np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)),
-    )  # fmt: skip
-    c, cube = x.mean(axis=0), 360.0
-    obs = hm.observe(
-        crop_depth(render_depth(prims, CAM), CAM, c, cube_mm=cube)[None],
-        crop_boxes(c, CAM, cube_mm=cube)[None], c[None], CAM, cube_mm=cube,
-    )  # fmt: skip
+    obs = _observe_with_arm(model, x, arm, 18.0, 120.0, 22.0)
     kin = hm.Kinematics(sk, model.bone_lengths_mm)
     root, u = kin.fit(x[None])
     _, terms, _, _ = hm.frame_energy(model, kin, root, u, obs, CAM, hm.FitWeights())

@@ -269,8 +269,8 @@ def session_hand_models(session, joints_mm: np.ndarray, crop_data):
     does (:func:`handanno_core.handmodel.personalize_hands`). Returns ``(models, levels (H,),
     table)`` (``table``: the session's :class:`handanno_core.hands.BoneTable`), or None without
     bone lengths, references with joints or a layout with three-bone fingers. Costly with many
-    references (about 25 s for 3,825): a caller ranking repeatedly keeps it while the references
-    and their joints stay the same."""
+    references (README, stop 48): a caller ranking repeatedly keeps it while the references and
+    their joints stay the same."""
     from . import handmodel as hm
     from .hands import bone_table
 

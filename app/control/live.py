@@ -48,8 +48,8 @@ RANK_WAIT_S = 0.15
 #: changed results again (while a job changes results, ranking takes at most about half a core;
 #: while the finger ambiguity of a large session fills in, up to 0.8 of one)
 RANK_REST_S = 2.0
-#: frames whose finger ambiguity one ranking computes at most (about 27 ms each on this 2-core
-#: machine, so about 8 s of a ranking a change made meanwhile waits for); 0: the term is off
+#: frames whose finger ambiguity one ranking computes at most (its cost per frame bounds how long
+#: a change made meanwhile waits for the next ranking: README, stop 48); 0: the term is off
 AMBIGUITY_FRAMES_PER_RANKING = 300
 
 

@@ -237,15 +237,17 @@ class _AngleMeter:
         abd = np.degrees(np.arctan2(side, np.hypot(along, towards)))
         return (flex, abd, lat_all) if axes else (flex, abd)
 
-    def directions(self, poses: np.ndarray) -> np.ndarray:
+    def directions(self, poses: np.ndarray, only: np.ndarray | None = None) -> np.ndarray:
         """(..., A, 3) unit bone directions in the joints' frames, as
-        :meth:`Skeleton.bone_directions` (right hand)."""
-        along, towards, side, _ = self._components(poses)
+        :meth:`Skeleton.bone_directions` (right hand). ``only`` (A,) bool: compute just those
+        angle joints (each one's angle-joint ancestors included), the others are 0."""
+        along, towards, side, _ = self._components(poses, only)
         return _unit(np.stack([along, towards, side], axis=-1))
 
-    def _components(self, poses: np.ndarray):
+    def _components(self, poses: np.ndarray, only: np.ndarray | None = None):
         """The child bone of every angle joint along the incoming bone, towards the palm and
-        lateral (..., A) mm each, and the lateral axes (..., A, 3)."""
+        lateral (..., A) mm each, and the lateral axes (..., A, 3) (``only``: those of
+        :meth:`directions`; 0 elsewhere)."""
         x = np.asarray(poses, dtype=np.float64)
         normal = self.skeleton.palm_normal(x)[..., None, :]
         lat_all = np.zeros(x.shape[:-2] + (len(self.joints), 3))
@@ -253,6 +255,10 @@ class _AngleMeter:
         towards_all = np.zeros_like(along_all)
         side_all = np.zeros_like(along_all)
         for lv, idx in enumerate(self.levels):
+            if only is not None:
+                idx = idx[only[idx]]
+                if not len(idx):
+                    continue
             k, p, c = self.joints[idx], self.parents[idx], self.children[idx]
             a = _unit(x[..., k, :] - x[..., p, :])
             if lv == 0:
@@ -376,13 +382,68 @@ def pose_prior_residuals(model: HandModel, x: np.ndarray) -> np.ndarray:
 def _prior_jacobian(model: HandModel, kin: Kinematics, root, u, r0, h: float = 1e-5):
     """d(prior residuals)/dθ (m,3A,P) at the frames' parameters (root, u), where the residuals
     are ``r0`` (m,3A): forward differences over every bone's tangent parameters (the directions
-    do not depend on the root)."""
+    do not depend on the root). A step of a bone that moves no palm-normal joint changes only
+    its own finger's directions (:func:`_prior_groups`), so only those are measured again:
+    the same differences as measuring all, at about a third of the cost."""
     x0 = kin.joints(root, u)
-    cols, xs = _tangent_steps(kin, x0, u, np.arange(u.shape[1]), h)
-    r1 = pose_prior_residuals(model, xs)
+    meter = _meter(model.skeleton)
+    w = model.pose_prior.sqrt_precision
     jac = np.zeros((len(u), r0.shape[-1], kin.num_params))
-    jac[:, :, 3 + cols] = ((r1 - r0[:, None]) / h).transpose(0, 2, 1)
+    phi0 = None
+    for bones, only in _prior_groups(model.skeleton):
+        cols, xs = _tangent_steps(kin, x0, u, bones, h)
+        if only is None:
+            r1 = pose_prior_residuals(model, xs)
+            jac[:, :, 3 + cols] = ((r1 - r0[:, None]) / h).transpose(0, 2, 1)
+            continue
+        if phi0 is None:
+            phi0 = np.nan_to_num(meter.directions(x0))
+        pos = np.flatnonzero(only)
+        phi1 = np.nan_to_num(meter.directions(xs, only)[..., pos, :])  # (m, 2nb, F, 3)
+        d = (phi1 - phi0[:, None, pos]).reshape(len(u), len(cols), -1) / h
+        dims = (3 * pos[:, None] + np.arange(3)).ravel()
+        jac[:, :, 3 + cols] = (d @ w[:, dims].T).transpose(0, 2, 1)
     return jac
+
+
+_PRIOR_GROUPS: dict[int, tuple[Skeleton, list]] = {}
+
+
+def _prior_groups(skeleton: Skeleton) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """The skeleton's bones in groups ``(bones, only)`` for :func:`_prior_jacobian`: a step of
+    any of ``bones`` changes the bone directions of the angle joints ``only`` (A,) bool alone
+    (one finger: the joints below the bone move, the palm normal does not), or, ``only`` None,
+    of every angle joint (the bone's child is one of the palm normal's joints). Bones that move
+    no angle joint's directions are left out."""
+    hit = _PRIOR_GROUPS.get(id(skeleton))
+    if hit is not None and hit[0] is skeleton:
+        return hit[1]
+    par = skeleton.parent_array
+    aj = np.asarray(skeleton.angle_joints)
+    palm = set(int(k) for k in (skeleton.palm_joints or ()))
+    finger = np.array([_finger_root(par, skeleton.root, int(k)) for k in range(len(par))])
+    everything, by_finger = [], {}
+    for b, (_, child) in enumerate(skeleton.bones):
+        child = int(child)
+        if child in palm:
+            everything.append(b)
+            continue
+        only = finger[aj] == finger[child]
+        if np.any(only):
+            by_finger.setdefault(int(finger[child]), (only, []))[1].append(b)
+    groups = [(np.array(everything, dtype=np.int64), None)] if everything else []
+    groups += [(np.array(bs, dtype=np.int64), only) for only, bs in by_finger.values()]
+    _PRIOR_GROUPS[id(skeleton)] = (skeleton, groups)
+    return groups
+
+
+def _finger_root(par: np.ndarray, root: int, k: int) -> int:
+    """The child of the root whose subtree holds joint ``k`` (``root`` for the root itself)."""
+    if k == root:
+        return root
+    while par[k] != root and par[k] >= 0:
+        k = int(par[k])
+    return k
 
 
 def violated_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:

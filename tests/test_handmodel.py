@@ -205,6 +205,39 @@ def test_analytic_gradient_matches_finite_differences(scene, term):
     assert rel < (0.15 if term == "free_space" else 1e-4), rel
 
 
+def test_prior_jacobian_measures_again_only_what_a_step_moves(scene):
+    """A step of a finger's bone changes only that finger's directions, so the prior's
+    Jacobian measures only those again: the same columns as measuring every direction again,
+    and a step of a bone carrying a palm-normal joint still changes every finger's."""
+    x, model, _ = scene
+    model = replace(model, pose_prior=pose_prior(MSRA21), pose_prior_weight=1.0)
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    rng = np.random.default_rng(3)
+    poses = np.stack([_perturb_joints(x, 25.0, rng.choice([-1.0, 1.0], 15)) for _ in range(6)])
+    root, u = kin.fit(poses)
+    r0 = hm.pose_prior_residuals(model, kin.joints(root, u))
+    cols, xs = hm._tangent_steps(kin, kin.joints(root, u), u, np.arange(u.shape[1]), 1e-5)
+    full = np.zeros((len(u), r0.shape[-1], kin.num_params))
+    full[:, :, 3 + cols] = ((hm.pose_prior_residuals(model, xs) - r0[:, None]) / 1e-5).transpose(
+        0, 2, 1
+    )
+    jac = hm._prior_jacobian(model, kin, root, u, r0)
+    np.testing.assert_allclose(jac, full, rtol=0, atol=1e-7 * np.abs(full).max())
+    groups = hm._prior_groups(MSRA21)
+    palm_bones = {b for b, (_, c) in enumerate(MSRA21.bones) if c in MSRA21.palm_joints}
+    assert {int(b) for bs, only in groups if only is None for b in bs} == palm_bones
+    meter = hm._meter(MSRA21)
+    phi0 = meter.directions(kin.joints(root, u))
+    for bones, only in groups:
+        # a finger group's steps leave every other finger's directions exactly as they were
+        _, xb = hm._tangent_steps(kin, kin.joints(root, u), u, bones, 1e-3)
+        moved = np.abs(meter.directions(xb) - phi0[:, None]).max(axis=(0, 1, 3))  # (A,)
+        if only is None:
+            assert np.all(moved[[0, 3, 6, 9, 12]] > 1e-7)  # the palm normal turned: every finger
+        else:
+            assert moved[~only].max() == 0.0 and moved[only].max() > 1e-5
+
+
 def test_fit_with_only_the_pose_prior_reaches_its_mean(scene):
     """The prior's Gauss-Newton rows (forward differences through the joint frames) drive the
     fit: with no other term a perturbed pose goes to the prior's mean directions."""

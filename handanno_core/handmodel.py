@@ -240,7 +240,7 @@ class _AngleMeter:
     def directions(self, poses: np.ndarray, only: np.ndarray | None = None) -> np.ndarray:
         """(..., A, 3) unit bone directions in the joints' frames, as
         :meth:`Skeleton.bone_directions` (right hand). ``only`` (A,) bool: compute just those
-        angle joints (each one's angle-joint ancestors included), the others are 0."""
+        angle joints (they must include each one's angle-joint ancestors); the others are 0."""
         along, towards, side, _ = self._components(poses, only)
         return _unit(np.stack([along, towards, side], axis=-1))
 
@@ -384,7 +384,7 @@ def _prior_jacobian(model: HandModel, kin: Kinematics, root, u, r0, h: float = 1
     are ``r0`` (m,3A): forward differences over every bone's tangent parameters (the directions
     do not depend on the root). A step of a bone that moves no palm-normal joint changes only
     its own finger's directions (:func:`_prior_groups`), so only those are measured again:
-    the same differences as measuring all, at about a third of the cost."""
+    the same differences as measuring all, for less."""
     x0 = kin.joints(root, u)
     meter = _meter(model.skeleton)
     w = model.pose_prior.sqrt_precision

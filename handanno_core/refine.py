@@ -852,8 +852,7 @@ def refine(
     weights : :class:`RefineWeights`.
     iterations : maximum LM iterations. ``progress(iteration, energy)`` is called after each.
     tol : the LM stops after an iteration that lowers the energy by less than this fraction of
-        it (3e-4 chosen on the suite's tune part over 1e-5, 3e-4 and 1e-3: the last iterations
-        of a long sequence each moved the energy by a few parts in 10,000; README, stop 50).
+        it (chosen on the suite's tune part over 1e-5 and 1e-3; README, stop 50).
     fixed_frames : frames kept at their initialization (returned unchanged).
     hold_references : the reference frames with a finite initialization (their lift) keep it, on
         the bone lengths (the pose's bone directions are kept). A reference is what a person

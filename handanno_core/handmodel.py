@@ -418,32 +418,21 @@ def _prior_groups(skeleton: Skeleton) -> list[tuple[np.ndarray, np.ndarray | Non
     hit = _PRIOR_GROUPS.get(id(skeleton))
     if hit is not None and hit[0] is skeleton:
         return hit[1]
-    par = skeleton.parent_array
-    aj = np.asarray(skeleton.angle_joints)
     palm = set(int(k) for k in (skeleton.palm_joints or ()))
-    finger = np.array([_finger_root(par, skeleton.root, int(k)) for k in range(len(par))])
-    everything, by_finger = [], {}
-    for b, (_, child) in enumerate(skeleton.bones):
-        child = int(child)
-        if child in palm:
-            everything.append(b)
-            continue
-        only = finger[aj] == finger[child]
-        if np.any(only):
-            by_finger.setdefault(int(finger[child]), (only, []))[1].append(b)
+    aj, children = skeleton.angle_joints, skeleton.angle_children
+    everything = [b for b, (_, c) in enumerate(skeleton.bones) if int(c) in palm]
     groups = [(np.array(everything, dtype=np.int64), None)] if everything else []
-    groups += [(np.array(bs, dtype=np.int64), only) for only, bs in by_finger.values()]
+    for chain in finger_chains(skeleton):
+        # a finger's joints: its angle joints and their children (its first joint is a root's
+        # child, the bone to it moves the whole finger)
+        joints = set(int(k) for k in aj[chain]) | set(int(k) for k in children[chain])
+        own = [b for b, (_, c) in enumerate(skeleton.bones) if int(c) in joints - palm]
+        if own:
+            only = np.zeros(len(aj), dtype=bool)
+            only[chain] = True
+            groups.append((np.array(own, dtype=np.int64), only))
     _PRIOR_GROUPS[id(skeleton)] = (skeleton, groups)
     return groups
-
-
-def _finger_root(par: np.ndarray, root: int, k: int) -> int:
-    """The child of the root whose subtree holds joint ``k`` (``root`` for the root itself)."""
-    if k == root:
-        return root
-    while par[k] != root and par[k] >= 0:
-        k = int(par[k])
-    return k
 
 
 def violated_bones(skeleton: Skeleton, v0: np.ndarray) -> np.ndarray:

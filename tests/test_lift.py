@@ -376,7 +376,8 @@ def test_bone_lengths_estimated_from_exact_data():
     # (render() puts tips inside a sphere, ~5 mm below their surface, unlike synth's capsules
     # and real fingertips: the votes of references that see a tip would measure that, so every
     # reference votes here; tests/test_lift_synth.py checks the seen votes on capsule hands)
-    res = lift_references(anns, depths.__getitem__, CAM, SK, seen_votes=False)
+    # two processes (CI has two cores): the same lifts as one, sooner
+    res = lift_references(anns, depths.__getitem__, CAM, SK, seen_votes=False, workers=2)
     err = np.abs(res.bone_lengths_mm - true)
     start = np.abs(res.bone_history_mm[0] - true)
     # measured: mean 0.35, max 0.87 mm (from 0.97 mm mean at the scaled template)
@@ -387,7 +388,7 @@ def test_bone_lengths_estimated_from_exact_data():
     e_est = np.mean([np.linalg.norm(res.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
     assert e_est < 2.5
     pinned = lift_references(
-        anns, depths.__getitem__, CAM, SK, bone_lengths_mm=true, pin_bone_lengths=True
+        anns, depths.__getitem__, CAM, SK, bone_lengths_mm=true, pin_bone_lengths=True, workers=2
     )
     np.testing.assert_array_equal(pinned.bone_lengths_mm, true)
     e = np.mean([np.linalg.norm(pinned.joints_mm[f] - poses[f], axis=1).mean() for f in poses])
@@ -652,9 +653,11 @@ def test_bones_from_partial_annotations_of_a_larger_hand():
         a.depth_order[~keep] = 0
     # render() puts a tip at the centre of a sphere, not on the far end of its segment's cap
     # (synth's capsules, real fingertips): the tips' surface rule is left out here
+    # two processes (CI has two cores): the same lifts as one, in about half the time
     res = lift_references(
-        anns, depths.__getitem__, CAM, SK, incline_tips=False, seen_votes=False, **TOY_SURFACE
-    )
+        anns, depths.__getitem__, CAM, SK, incline_tips=False, seen_votes=False, workers=2,
+        **TOY_SURFACE,
+    )  # fmt: skip
     rel = np.abs(res.bone_lengths_mm - true) / true
     assert rel.max() < 0.05, np.round(rel, 3)
     both = keep[SK.bones[:, 0]] & keep[SK.bones[:, 1]]
@@ -695,7 +698,7 @@ def test_surface_offset_self_calibration_recovers_a_deeper_wrist():
     anns, depths, poses = _rendered_set(rng, true, n=24, offsets=offsets)
     # the toy poses are drawn uniformly inside the anatomical limits, not as real hands move:
     # the pose prior (tested on its own below) is off, so this measures the calibration alone
-    toy = dict(TOY_SURFACE, w_pose=0.0)
+    toy = dict(TOY_SURFACE, w_pose=0.0, workers=2)  # two processes: the same lifts, sooner
     cal = lift_references(anns, depths.__getitem__, CAM, SK, **toy)
     raw = lift_references(anns, depths.__getitem__, CAM, SK, calibrate_surface=False, **toy)
     np.testing.assert_array_equal(raw.surface_offsets_mm, OFF)

@@ -183,7 +183,7 @@ def test_cli_lift_refits_by_default_and_takes_the_click_noise(tmp_path, capsys):
         ("plain", ["--no-refit"]), ("estimated", []), ("given", ["--click-noise-px", "0"]),
     ]:  # fmt: skip
         capsys.readouterr()
-        assert main([*base, "lift", "s", *extra]) == 0
+        assert main([*base, "lift", "s", "--workers", "2", *extra]) == 0  # CI has two cores
         logs[name] = capsys.readouterr().out
         with Session.open(sessions / "s") as session:
             refs = session.reference_frames
@@ -222,7 +222,7 @@ def test_noisy_clicks_get_a_second_bone_estimate_kept_where_the_depth_favours_it
             session.model.settings.lift_denoise_min_px = least
             session.save()
         capsys.readouterr()
-        assert main([*base, "lift", "s"]) == 0
+        assert main([*base, "lift", "s", "--workers", "2"]) == 0  # CI has two cores
         logs[least] = capsys.readouterr().out
         with Session.open(sessions / "s") as session:
             refs = session.reference_frames

@@ -294,14 +294,21 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-_METERS: dict[int, _AngleMeter] = {}
+def _per_skeleton(cache: dict, skeleton: Skeleton, build):
+    """``build(skeleton)``, computed once per skeleton object and kept in ``cache``: keyed by
+    identity (a Skeleton holds arrays, so it does not hash), the object kept beside its value so
+    that a reused ``id`` of another skeleton cannot hit."""
+    hit = cache.get(id(skeleton))
+    if hit is None or hit[0] is not skeleton:
+        hit = cache[id(skeleton)] = (skeleton, build(skeleton))
+    return hit[1]
+
+
+_METERS: dict[int, tuple[Skeleton, _AngleMeter]] = {}
 
 
 def _meter(skeleton: Skeleton) -> _AngleMeter:
-    meter = _METERS.get(id(skeleton))
-    if meter is None or meter.skeleton is not skeleton:
-        meter = _METERS[id(skeleton)] = _AngleMeter(skeleton)
-    return meter
+    return _per_skeleton(_METERS, skeleton, _AngleMeter)
 
 
 def angle_violation(skeleton: Skeleton, x: np.ndarray) -> np.ndarray:
@@ -415,9 +422,10 @@ def _prior_groups(skeleton: Skeleton) -> list[tuple[np.ndarray, np.ndarray | Non
     (one finger: the joints below the bone move, the palm normal does not), or, ``only`` None,
     of every angle joint (the bone's child is one of the palm normal's joints). Bones that move
     no angle joint's directions are left out."""
-    hit = _PRIOR_GROUPS.get(id(skeleton))
-    if hit is not None and hit[0] is skeleton:
-        return hit[1]
+    return _per_skeleton(_PRIOR_GROUPS, skeleton, _build_prior_groups)
+
+
+def _build_prior_groups(skeleton: Skeleton) -> list[tuple[np.ndarray, np.ndarray | None]]:
     palm = set(int(k) for k in (skeleton.palm_joints or ()))
     aj, children = skeleton.angle_joints, skeleton.angle_children
     everything = [b for b, (_, c) in enumerate(skeleton.bones) if int(c) in palm]
@@ -431,7 +439,6 @@ def _prior_groups(skeleton: Skeleton) -> list[tuple[np.ndarray, np.ndarray | Non
             only = np.zeros(len(aj), dtype=bool)
             only[chain] = True
             groups.append((np.array(own, dtype=np.int64), only))
-    _PRIOR_GROUPS[id(skeleton)] = (skeleton, groups)
     return groups
 
 
@@ -452,9 +459,10 @@ _ANGLE_BONES: dict[int, tuple[Skeleton, np.ndarray]] = {}
 def _angle_bones(skeleton: Skeleton) -> np.ndarray:
     """(2A, B) bool: violation row ``a`` (flexion rows, then abduction rows) depends on bone ``b``
     (bones on the paths from the root to the angle's child joint and to the palm joints)."""
-    hit = _ANGLE_BONES.get(id(skeleton))
-    if hit is not None and hit[0] is skeleton:
-        return hit[1]
+    return _per_skeleton(_ANGLE_BONES, skeleton, _build_angle_bones)
+
+
+def _build_angle_bones(skeleton: Skeleton) -> np.ndarray:
     par = skeleton.parent_array
     bone_of_child = np.full(skeleton.num_joints, -1)
     bone_of_child[skeleton.bones[:, 1]] = np.arange(len(skeleton.bones))
@@ -470,9 +478,7 @@ def _angle_bones(skeleton: Skeleton) -> np.ndarray:
     for k in skeleton.palm_joints or ():
         palm |= path(int(k))
     rows = np.array([path(int(c)) | palm for c in skeleton.angle_children]).reshape(-1, len(palm))
-    out = np.concatenate([rows, rows])
-    _ANGLE_BONES[id(skeleton)] = (skeleton, out)
-    return out
+    return np.concatenate([rows, rows])
 
 
 # ------------------------------------------------------------------------------------------------

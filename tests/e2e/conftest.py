@@ -55,6 +55,8 @@ def _failure_artifacts_dir(tmp_path_factory):
     # next to the pytest-N folders, not in one: pytest deletes all but the last three of those,
     # which concurrent runs on a shared machine reach within minutes
     base = tmp_path_factory.getbasetemp()
+    if base.name.startswith("popen-gw"):  # pytest-xdist: <root>/pytest-N/popen-gwK per process
+        base = base.parent.parent / f"{base.parent.name}-{base.name.removeprefix('popen-')}"
     viser_helpers.ARTIFACTS = base.parent / "e2e-failures" / base.name
 
 

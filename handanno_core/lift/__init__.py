@@ -123,9 +123,12 @@ size gets all its bones). A bone *seen* in ``min_bone_votes`` references or more
 visible with a reading the lift kept, the bone not foreshortened: the sine of its angle to the
 image below 0.7) takes the median over those references only: a hidden joint's soft length is its
 start length again, so its vote is the prior's, not data. Rounds stop when no bone moves by more
-than 0.1 mm; a final lift uses the estimate as hard constraints, from both the last soft solution
-and the cold start, keeping the lower objective (the soft rounds can drift into the mirrored mode
-of a hidden finger). With ``shrink_bones`` each median is pulled towards the template's
+than 0.1 mm (at most 30 rounds: where no reference measures a hidden finger, its bones move by
+only 0.1-0.2 mm a round, each round a step of a slow fixed-point iteration, and a limit of 10
+stopped them before they settled on the suite's tune part, HISTORY.md stop 52); a final lift
+uses the estimate as hard constraints, from both the last soft solution and the cold start,
+keeping the lower objective (the soft rounds can drift into the mirrored mode of a hidden
+finger). With ``shrink_bones`` each median is pulled towards the template's
 proportions by its own uncertainty (:func:`references.shrink_to_template`); ``handanno lift`` uses
 it only in its second estimate for noisy clicks (``pipeline.lift``).
 

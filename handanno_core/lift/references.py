@@ -214,7 +214,7 @@ def lift_references(
     workers: int = 1,
     scheduler=None,
     progress: Callable[[int, int], None] | None = None,
-    max_rounds: int = 10,
+    max_rounds: int = 30,
     bone_tol_mm: float = 0.1,
     soft_bone_weight: float = 0.05,
     min_bone_votes: int = 3,

@@ -9,6 +9,13 @@ that finger to other flexions (:func:`handanno_core.handmodel.finger_hypotheses`
 :data:`handanno_core.handmodel.FINGER_FLEXIONS`) barely changes the personalized hand model's
 energy on the frame's own depth (:func:`handanno_core.handmodel.candidate_energies`, no priors).
 
+The energy leaves out the model's pose prior (learned from real hands,
+:mod:`handanno_core.pose_prior`) and keeps what the depth and anatomy say (points, free space,
+joint limits, fingers not inside each other). The prior is what decided a hidden finger in the
+first place: a ring finger curled behind the palm while the middle finger is straight costs the
+prior far more than the depth, so with the prior the curled hypothesis scored as excluded and
+the frame looked certain exactly where its finger was 90 mm off (the suite's tune part).
+
 Per frame the term is the largest joint displacement (mm) of any one-finger hypothesis, each
 weighted by ``exp(-max(dE, 0) / (tolerance * level))`` where ``dE`` is the hypothesis' energy
 above the shown pose's and ``level`` the references' (:func:`handanno_core.handmodel.reference_level`):
@@ -19,6 +26,8 @@ tolerance does not flip the term (a hard threshold was noisier on the suite's tu
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -59,7 +68,8 @@ def finger_ambiguity(
     skeleton = model.skeleton
     if not hm.finger_chains(skeleton):
         return out
-    w = weights or hm.FitWeights()
+    # the depth's say only: the pose prior is a belief, not evidence (module docstring)
+    w = replace(weights or hm.FitWeights(), prior=0.0)
     kin = hm.Kinematics(skeleton, model.bone_lengths_mm)
     root, u = kin.fit(x[ok])
     shown = kin.joints(root, u)

@@ -4,6 +4,8 @@ itself (exact ray casting, no noise), as in tests/test_handmodel.py."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from test_handmodel import _model, _pose, _render
 
@@ -11,6 +13,7 @@ from handanno_core import handmodel as hm
 from handanno_core.ambiguity import finger_ambiguity
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.crops import crop_boxes, crop_depth
+from handanno_core.pose_prior import PosePrior
 
 CAM = MSRA_CAMERA
 
@@ -32,20 +35,41 @@ def _observe(depth: np.ndarray, x: np.ndarray) -> hm.FrameObservations:
 LEVEL = 1.0
 
 
-def test_fingers_behind_an_occluder_are_ambiguous_and_fingers_in_view_are_not():
-    x, model, depth = _scene()
-    in_view = finger_ambiguity(model, x[None], _observe(depth, x), CAM, LEVEL)[0]
-    # a board 30 mm in front of the fingers, over every pixel above the knuckles: whatever the
-    # fingers do behind it, the camera sees the board
+def _behind_board(depth: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``depth`` with a board 30 mm in front of the fingers over every pixel above the knuckles."""
     mcp_v = CAM.project(x[[1, 5, 9, 13]])[:, 1].max()
     occluded = depth.copy()
     rows = np.arange(depth.shape[0])[:, None] < mcp_v - 4
-    board = float(np.nanmin(x[[1, 5, 9, 13], 2])) - 30.0
-    occluded[np.broadcast_to(rows, depth.shape)] = board
-    behind = finger_ambiguity(model, x[None], _observe(occluded, x), CAM, LEVEL)[0]
+    occluded[np.broadcast_to(rows, depth.shape)] = float(np.nanmin(x[[1, 5, 9, 13], 2])) - 30.0
+    return occluded
+
+
+def test_fingers_behind_an_occluder_are_ambiguous_and_fingers_in_view_are_not():
+    x, model, depth = _scene()
+    in_view = finger_ambiguity(model, x[None], _observe(depth, x), CAM, LEVEL)[0]
+    # whatever the fingers do behind the board, the camera sees the board
+    behind = finger_ambiguity(model, x[None], _observe(_behind_board(depth, x), x), CAM, LEVEL)[0]
     # an open hand's fingertip curls 60-90 mm away from where it was at the grid's far end
     assert behind > 40.0
     assert in_view < 0.5 * behind
+
+
+def test_a_pose_prior_does_not_make_a_hidden_finger_certain():
+    # a prior that holds every finger tightly where the shown pose has it: with the prior in the
+    # energy, every other flexion would cost far more than the references' level and the hidden
+    # fingers would score as pinned down; the depth cannot tell, so the term must not change
+    x, model, depth = _scene()
+    obs = _observe(_behind_board(depth, x), x)
+    plain = finger_ambiguity(model, x[None], obs, CAM, LEVEL)[0]
+    sk = model.skeleton
+    size = 3 * len(sk.angle_joints)
+    prior = PosePrior(sk.name, np.zeros(size), 30.0 * np.eye(size))
+    prior = replace(prior, mean=prior.features(sk, x))
+    held = replace(model, pose_prior=prior, pose_prior_weight=1.0)
+    assert prior.energy(sk, x) < 1e-9 < prior.energy(sk, _pose("fist"))
+    with_prior = finger_ambiguity(held, x[None], obs, CAM, LEVEL)[0]
+    assert plain > 40.0
+    assert with_prior == plain
 
 
 def test_a_pose_without_joints_has_no_ambiguity():

@@ -14,7 +14,7 @@ The energy leaves out the model's pose prior (learned from real hands,
 joint limits, fingers not inside each other). The prior is what decided a hidden finger in the
 first place: a ring finger curled behind the palm while the middle finger is straight costs the
 prior far more than the depth, so with the prior the curled hypothesis scored as excluded and
-the frame looked certain exactly where its finger was 90 mm off (the suite's tune part).
+the frame looked certain exactly where its finger was far off (README, stop 53).
 
 Per frame the term is the largest joint displacement (mm) of any one-finger hypothesis, each
 weighted by ``exp(-max(dE, 0) / (tolerance * level))`` where ``dE`` is the hypothesis' energy

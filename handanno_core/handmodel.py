@@ -1705,6 +1705,16 @@ class _FrameFit:
 # ------------------------------------------------------------------------------------------------
 # personalization
 # ------------------------------------------------------------------------------------------------
+#: an estimated capsule radius stays within these multiples of its default
+#: (:func:`build_model`: the skeleton's surface offset, 12 mm for the palm). The first-pass radii of
+#: the suite's tune part (24 sessions) lie within 0.79-1.26 of it. A segment seen by a few stray
+#: points grew without it: tune-fpha-1's ring finger proximal capsule, mostly hidden behind the
+#: knuckles, had 30 points over 47 references after three review rounds; each iteration claimed
+#: more of its neighbours' points, 9 -> 15.9 -> 19.7 mm, the references' fit level went 110 ->
+#: 250 and 48 % of the frames ended with a joint more than 20 mm off (HISTORY.md, stop 54).
+RADIUS_RANGE = (0.5, 1.6)
+
+
 def estimate_radii(
     model: HandModel,
     joints_mm: np.ndarray,
@@ -1723,10 +1733,14 @@ def estimate_radii(
     to its axis segment, using only points whose foot lies strictly inside the segment
     (``0.1 < t < 0.9``, away from the joints where capsules overlap) and not on the forearm (as
     the fit's data term, ``weights``). Repeated ``iterations`` times; capsules with fewer than
-    ``min_points`` points keep their radius.
+    ``min_points`` points keep their radius. Every radius stays within ``bounds_mm`` and within
+    :data:`RADIUS_RANGE` times its default.
     """
     w = weights or FitWeights()
     radii = model.radii.copy()
+    default = build_model(model.skeleton, model.bone_lengths_mm).radii
+    lo = np.maximum(bounds_mm[0], RADIUS_RANGE[0] * default)
+    hi = np.minimum(bounds_mm[1], RADIUS_RANGE[1] * default)
     x = np.asarray(joints_mm, dtype=np.float64)
     keep = np.all(np.isfinite(x), axis=(1, 2))
     x = x[keep]
@@ -1746,7 +1760,7 @@ def estimate_radii(
             wts = np.exp(-(((dd - r[ci]) / scale_mm) ** 2))
             num = np.bincount(ci, wts * dd, minlength=c_count)
             r = num / np.maximum(np.bincount(ci, wts, minlength=c_count), 1e-9)
-        new = np.where(enough, np.clip(r, *bounds_mm), radii)
+        new = np.where(enough, np.clip(r, lo, hi), radii)
         if np.max(np.abs(new - radii)) < 0.01:
             radii = new
             break

@@ -44,7 +44,15 @@ import numpy as np
 from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .prefill import MODEL_MIN_REFERENCES
-from .session import Batch, Session, SetFrameAnnotation, SetReference, SetReview
+from .session import (
+    LOCK_FILE,
+    Batch,
+    Session,
+    SetFrameAnnotation,
+    SetReference,
+    SetReview,
+    remove_session_folder,
+)
 
 __all__ = [
     "BAD_MM",
@@ -576,15 +584,18 @@ def bench_review(
     **kw,
 ) -> dict[str, list[dict]]:
     """:func:`review_rounds` per ranking, each on a copy ``<folder>-review-<ranking>`` of the
-    finished (closed) bench session in ``folder``; ``{ranking: entries}``."""
+    finished (closed) bench session in ``folder``; ``{ranking: entries}``. A copy another process
+    is still reviewing is not replaced (:class:`~handanno_core.session.SessionLockedError` naming
+    it): two runs on the same sessions would otherwise delete each other's copies mid-round."""
     folder = Path(folder)
     out: dict[str, list[dict]] = {}
     for ranking in rankings:
         copy = folder.with_name(f"{folder.name}-review-{ranking}")
+        writer = f"bench review rounds ({ranking}) of {folder}"
         if copy.exists():
-            shutil.rmtree(copy)
-        shutil.copytree(folder, copy, symlinks=True)
-        session = Session.open(copy)
+            remove_session_folder(copy, writer)
+        shutil.copytree(folder, copy, symlinks=True, ignore=shutil.ignore_patterns(LOCK_FILE))
+        session = Session.open(copy, writer=writer)
         try:
             out[ranking] = review_rounds(
                 session, rounds=rounds, budget=budget, ranking=ranking, **kw

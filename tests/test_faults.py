@@ -218,6 +218,44 @@ def test_second_writer_is_refused_with_the_owner_pid_and_a_dead_owner_is_taken_o
 
 
 # ------------------------------------------------------------------------------------- replay checks
+
+
+def test_a_review_copy_another_run_is_writing_is_not_replaced(tmp_path, monkeypatch):
+    """Must trigger: two bench review runs on the same first-pass session (``bench_review``
+    copies it to ``<folder>-review-<ranking>``); the second deleted the first's copy mid-round
+    and the first then wrote into the second's (found at stop 54). Now the second stops with
+    the first's PID and the copy keeps every edit. Must not: a copy left by a finished run is
+    replaced by a fresh one, held while it is reviewed."""
+    from handanno_core import review_loop
+
+    folder = tmp_path / "bench" / "uniform-0.05"
+    make_session(folder).close()
+    copy = folder.with_name("uniform-0.05-review-evidence")
+    make_session(copy).close()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(copy)], env=ENV, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout.readline().strip() == "ready"
+        with pytest.raises(SessionLockedError, match=f"PID {holder.pid}"):
+            review_loop.bench_review(folder, rankings=["evidence"], rounds=1, budget=1)
+        assert Session.open(copy).annotation(2).uv_px[1, 0] == 502.0  # its edits are all there
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    seen = []
+
+    def rounds(session, **kw):
+        seen.append((session.is_writer, session.annotation(2)))
+        return []
+
+    monkeypatch.setattr(review_loop, "review_rounds", rounds)
+    assert review_loop.bench_review(folder, rankings=["evidence"], rounds=1, budget=1) == {
+        "evidence": []
+    }
+    assert seen == [(True, None)]  # a fresh copy of the first pass, held while reviewed
+
+
 def _append_line(folder: Path, session_id: str, seq: int, command: dict, inverse=None) -> int:
     body = {
         "seq": seq,

@@ -43,6 +43,7 @@ from .files import (
     acquire_session_lock,
     default_writer_command,
     release_session_lock,
+    remove_session_folder,
     resolve_session,
     safe_session_path,
 )
@@ -97,6 +98,7 @@ __all__ = [
     "entry_checksum",
     "parse_command",
     "release_session_lock",
+    "remove_session_folder",
     "resolve_session",
     "safe_session_path",
 ]

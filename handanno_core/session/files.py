@@ -8,6 +8,7 @@ import fcntl
 import json
 import os
 import re
+import shutil
 import sys
 import threading
 import time
@@ -84,6 +85,16 @@ def release_session_lock(key: str) -> None:
             with contextlib.suppress(OSError):
                 os.ftruncate(held[0], 0)
             os.close(held[0])  # closing the only descriptor releases the flock
+
+
+def remove_session_folder(folder: Path, command: str) -> None:
+    """Delete the session ``folder`` (a bench run's copy about to be made again), unless another
+    process holds its writer lock: :class:`SessionLockedError` naming it. Two bench runs given
+    the same work folder deleted each other's sessions mid-run before this check (stop 54)."""
+    folder = Path(folder)
+    if (folder / LOCK_FILE).exists():
+        release_session_lock(acquire_session_lock(folder, command))
+    shutil.rmtree(folder)
 
 
 def default_writer_command() -> str:

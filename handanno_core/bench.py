@@ -25,7 +25,13 @@ import numpy as np
 from . import pipeline
 from .blas import blas_description
 from .evaluate import error_summary
-from .session import CROPS_FILE, CROPS_META_FILE, LOCK_FILE, Session, remove_session_folder
+from .session import (
+    CROPS_FILE,
+    CROPS_META_FILE,
+    Session,
+    copy_session_folder,
+    remove_session_folder,
+)
 
 
 def peak_rss_mb() -> float:
@@ -43,8 +49,7 @@ def _summary(pred: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None)
 def run_session(base: Session, folder: Path) -> Session:
     """A fresh session in ``folder`` (replaced if it exists) on ``base``'s dataset, sharing its
     crop cache (symlinked, not recomputed): one bench run."""
-    if folder.exists():
-        remove_session_folder(folder, f"handanno bench (replacing {folder.name})")
+    remove_session_folder(folder, f"handanno bench (replacing {folder.name})")
     session = Session.create(
         folder,
         base.model.dataset,
@@ -147,9 +152,7 @@ def suite_base_sessions(
 def copy_session(folder: Path, to: Path) -> None:
     """Copy a closed session folder to ``to`` (replaced if it exists); symlinks (the shared crop
     cache) stay symlinks."""
-    if to.exists():
-        remove_session_folder(to, f"handanno bench (replacing {to.name})")
-    shutil.copytree(folder, to, symlinks=True, ignore=shutil.ignore_patterns(LOCK_FILE))
+    copy_session_folder(folder, to, f"handanno bench (replacing {to.name})")
 
 
 def stage_errors(results: dict, gt: np.ndarray, refs: np.ndarray) -> dict:

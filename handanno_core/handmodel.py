@@ -595,6 +595,15 @@ def _palm_chain(skeleton: Skeleton) -> np.ndarray:
     return kids[min(i, k) : max(i, k) + 1]
 
 
+def _default_radii(skeleton: Skeleton, pairs: np.ndarray) -> np.ndarray:
+    """``(C,)`` mm: each capsule's default radius, the skeleton's surface offset of the bone's
+    parent joint (12 mm at the root and for the knuckle-line capsules after the bones)."""
+    offsets = np.asarray(skeleton.surface_offsets_mm, dtype=np.float64)
+    default = np.where(pairs[:, 0] == skeleton.root, 12.0, offsets[pairs[:, 0]])
+    default[len(skeleton.bones) :] = 12.0
+    return np.clip(default, 4.0, 20.0)
+
+
 def build_model(
     skeleton: Skeleton,
     bone_lengths_mm: np.ndarray,
@@ -616,10 +625,7 @@ def build_model(
     mcps = _palm_chain(sk)
     extra = np.stack([mcps[:-1], mcps[1:]], axis=1) if len(mcps) > 1 else np.zeros((0, 2), int)
     pairs = np.concatenate([bones, extra]).astype(np.int64)
-    offsets = np.asarray(sk.surface_offsets_mm, dtype=np.float64)
-    default = np.where(pairs[:, 0] == sk.root, 12.0, offsets[pairs[:, 0]])
-    default[len(bones) :] = 12.0
-    default = np.clip(default, 4.0, 20.0)
+    default = _default_radii(sk, pairs)
     radii = default if radii_mm is None else np.asarray(radii_mm, dtype=np.float64)
     tip = np.isin(pairs[:, 1], np.asarray(sk.fingertips, dtype=np.int64))
     tip[len(bones) :] = False
@@ -1705,13 +1711,11 @@ class _FrameFit:
 # ------------------------------------------------------------------------------------------------
 # personalization
 # ------------------------------------------------------------------------------------------------
-#: an estimated capsule radius stays within these multiples of its default
-#: (:func:`build_model`: the skeleton's surface offset, 12 mm for the palm). The first-pass radii of
-#: the suite's tune part (24 sessions) lie within 0.79-1.26 of it. A segment seen by a few stray
-#: points grew without it: tune-fpha-1's ring finger proximal capsule, mostly hidden behind the
-#: knuckles, had 30 points over 47 references after three review rounds; each iteration claimed
-#: more of its neighbours' points, 9 -> 15.9 -> 19.7 mm, the references' fit level went 110 ->
-#: 250 and 48 % of the frames ended with a joint more than 20 mm off (HISTORY.md, stop 54).
+#: an estimated capsule radius stays within these multiples of its default (:func:`_default_radii`):
+#: a segment seen by only a few stray points (a finger mostly hidden behind the knuckles) otherwise
+#: grows, each iteration claiming more of its neighbours' points, and a model personalized after a
+#: review round explained every frame worse (benchmarks/HISTORY.md, stop 54). Wide enough that no
+#: first pass of the suite reaches it.
 RADIUS_RANGE = (0.5, 1.6)
 
 
@@ -1738,7 +1742,7 @@ def estimate_radii(
     """
     w = weights or FitWeights()
     radii = model.radii.copy()
-    default = build_model(model.skeleton, model.bone_lengths_mm).radii
+    default = _default_radii(model.skeleton, model.pairs)
     lo = np.maximum(bounds_mm[0], RADIUS_RANGE[0] * default)
     hi = np.minimum(bounds_mm[1], RADIUS_RANGE[1] * default)
     x = np.asarray(joints_mm, dtype=np.float64)

@@ -35,7 +35,6 @@ app would, from ground truth (2D positions, visibility and depth order only):
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
@@ -45,13 +44,12 @@ from .annotation import FrameAnnotation
 from .camera import CameraIntrinsics
 from .prefill import MODEL_MIN_REFERENCES
 from .session import (
-    LOCK_FILE,
     Batch,
     Session,
     SetFrameAnnotation,
     SetReference,
     SetReview,
-    remove_session_folder,
+    copy_session_folder,
 )
 
 __all__ = [
@@ -592,9 +590,7 @@ def bench_review(
     for ranking in rankings:
         copy = folder.with_name(f"{folder.name}-review-{ranking}")
         writer = f"bench review rounds ({ranking}) of {folder}"
-        if copy.exists():
-            remove_session_folder(copy, writer)
-        shutil.copytree(folder, copy, symlinks=True, ignore=shutil.ignore_patterns(LOCK_FILE))
+        copy_session_folder(folder, copy, writer)
         session = Session.open(copy, writer=writer)
         try:
             out[ranking] = review_rounds(

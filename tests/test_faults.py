@@ -217,9 +217,6 @@ def test_second_writer_is_refused_with_the_owner_pid_and_a_dead_owner_is_taken_o
     assert uv_edits(entries) == [(500.0, 600.0), (501.0, 600.0), (502.0, 600.0), edit(9).uv_px]
 
 
-# ------------------------------------------------------------------------------------- replay checks
-
-
 def test_a_review_copy_another_run_is_writing_is_not_replaced(tmp_path, monkeypatch):
     """Must trigger: two bench review runs on the same first-pass session (``bench_review``
     copies it to ``<folder>-review-<ranking>``); the second deleted the first's copy mid-round
@@ -254,6 +251,9 @@ def test_a_review_copy_another_run_is_writing_is_not_replaced(tmp_path, monkeypa
         "evidence": []
     }
     assert seen == [(True, None)]  # a fresh copy of the first pass, held while reviewed
+
+
+# ------------------------------------------------------------------------------------- replay checks
 
 
 def _append_line(folder: Path, session_id: str, seq: int, command: dict, inverse=None) -> int:

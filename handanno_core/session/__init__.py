@@ -41,6 +41,7 @@ from .commands import (
 )
 from .files import (
     acquire_session_lock,
+    copy_session_folder,
     default_writer_command,
     release_session_lock,
     remove_session_folder,
@@ -95,6 +96,7 @@ __all__ = [
     "atomic_write_bytes",
     "default_writer_command",
     "encode_entry",
+    "copy_session_folder",
     "entry_checksum",
     "parse_command",
     "release_session_lock",

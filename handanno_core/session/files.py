@@ -88,13 +88,23 @@ def release_session_lock(key: str) -> None:
 
 
 def remove_session_folder(folder: Path, command: str) -> None:
-    """Delete the session ``folder`` (a bench run's copy about to be made again), unless another
-    process holds its writer lock: :class:`SessionLockedError` naming it. Two bench runs given
-    the same work folder deleted each other's sessions mid-run before this check (stop 54)."""
+    """Delete the session ``folder`` if it exists (a bench run's session about to be made again),
+    unless another process holds its writer lock: :class:`SessionLockedError` naming it. Two bench
+    runs given the same work folder deleted each other's sessions mid-run before this check."""
     folder = Path(folder)
+    if not folder.exists():
+        return
     if (folder / LOCK_FILE).exists():
         release_session_lock(acquire_session_lock(folder, command))
     shutil.rmtree(folder)
+
+
+def copy_session_folder(folder: Path, to: Path, command: str) -> None:
+    """Copy the closed session ``folder`` to ``to``, replacing it (:func:`remove_session_folder`:
+    not while another process writes it); symlinks (a shared crop cache) stay symlinks, the lock
+    file stays behind."""
+    remove_session_folder(to, command)
+    shutil.copytree(folder, to, symlinks=True, ignore=shutil.ignore_patterns(LOCK_FILE))
 
 
 def default_writer_command() -> str:

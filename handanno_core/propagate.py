@@ -23,24 +23,25 @@ reference), parents always before children:
    fit is rerun with hinge residuals on flexion/abduction (sigma 2 deg).
 
 5. with the hand model on (``hand_model=True``; this function's default is off, a session's
-   ``settings.hand_model`` is on; about 3x the CPU per frame; :mod:`handanno_core.handmodel`),
-   the personalized capsule model is fitted to the frame's own depth from the candidate start of
-   lowest energy (the flowed pose, the parent's pose, the nearest references before and after the
-   frame in time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fits`)
-   unless its own evidence says it failed: its data + free-space energy above
-   ``model_fail_ratio`` times the references' level (the model does not explain the frame's
-   depth: a wrong start, the hand fitted to another surface); the frame then keeps its flowed
-   pose. With ``finger_hypotheses`` a fit above ``finger_level`` times the references' level
-   is also tried with each finger set to a grid of flexions and to the angles it has in the
-   frame's other starts (:func:`handanno_core.handmodel.refit_fingers`: a finger stuck curled
-   where the depth shows it extended, or the reverse); the recombined, refitted pose is kept
-   only if its energy is lower. Where the flow moved the joints ``reference_min_motion_mm`` or
-   more, the references' most different poses (``reference_starts``,
-   :func:`handanno_core.handmodel.pose_library`), each turned into the flowed pose's palm, are
-   ranked on the frame's depth and the best is fitted without the flow's priors: it replaces
-   the fit where its energy is lower than the fit's without those priors (a flow that carried
-   several fingers the wrong way holds them there; a verified pose of the same hand does not).
-   Measured by ``handanno bench --model off,on`` (README, hand model section).
+   ``settings.hand_model`` is on; about 3x the CPU per frame; :mod:`handanno_core.handmodel`), the
+   personalized capsule model is fitted to the frame's own depth from the candidate start of lowest
+   energy (the flowed pose, the parent's pose, the nearest references before and after the frame in
+   time; ``model_fits`` starts) and the fit of lowest energy is kept (:func:`_model_fits`) unless
+   its own evidence says it failed: its data + free-space energy above ``model_fail_ratio`` times
+   the references' level (the model does not explain the frame's depth: a wrong start, the hand
+   fitted to another surface) or using fewer than ``min_explained_share`` of the frame's observed
+   points (the rest taken as forearm); the frame then keeps its flowed pose. With
+   ``finger_hypotheses`` a fit above ``finger_level`` times the references' level is also tried
+   with each finger set to a grid of flexions and to the angles it has in the frame's other starts
+   (:func:`handanno_core.handmodel.refit_fingers`: a finger stuck curled where the depth shows it
+   extended, or the reverse); the recombined, refitted pose is kept only if its energy is lower.
+   Where the flow moved the joints ``reference_min_motion_mm`` or more, the references' most
+   different poses (``reference_starts``, :func:`handanno_core.handmodel.pose_library`), each
+   turned into the flowed pose's palm, are ranked on the frame's depth and the best is fitted
+   without the flow's priors: it replaces the fit where its energy is lower than the fit's without
+   those priors (a flow that carried several fingers the wrong way holds them there; a verified
+   pose of the same hand does not). Measured by ``handanno bench --model off,on`` (README, hand
+   model section).
 
 6. several candidate forests (``parent`` of shape ``(P, N)``; a session with the hand model on
    passes its selection's forest and the two temporal chains between its references,
@@ -155,6 +156,12 @@ class PropagationSettings:
     #: (median over the lifted references, :func:`handmodel.reference_level`): the frame keeps
     #: its flowed pose (:data:`handmodel.UNEXPLAINED_LEVEL`, the level recovery accepts too)
     model_fail_ratio: float = hm.UNEXPLAINED_LEVEL
+    #: ... or when it uses fewer than this share of the frame's observed points: the data term
+    #: ignores the points a pose takes as forearm (behind its wrist) and averages over the rest,
+    #: so a pose turned until every point lies behind its wrist explains the frame at no data
+    #: cost and passes the level guard (chosen on the tune part from 0.05, 0.1, 0.2, HISTORY.md
+    #: stop 55); its level is reported at the guard's limit, so that another chain's fit is kept
+    min_explained_share: float = 0.1
     #: with the hand model, a session's propagation (:func:`handanno_core.pipeline.propagate`)
     #: also carries every frame between two references from both of them in time
     #: (:func:`handanno_core.select.temporal_chains`) and keeps, per frame, the candidate whose fit
@@ -789,6 +796,9 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
             r1, u1 = kin.fit(x_flow[i][None])
             root[i], u[i] = r1[0], u1[0]
     _, _, _, diag = hm.frame_energy(model, kin, root, u, obs_f, cam, w, pri_f)
+    limit = st.model_fail_ratio * ctx.model_levels[h]
+    if _reject_few_points(st, kin, x_flow, obs_f, diag, limit, (x, root, u, level, rejected)):
+        _, _, _, diag = hm.frame_energy(model, kin, root, u, obs_f, cam, w, pri_f)
     touch = np.zeros((j, len(model.pairs)), dtype=bool)
     touch[model.pairs[:, 0], np.arange(len(model.pairs))] = True
     touch[model.pairs[:, 1], np.arange(len(model.pairs))] = True
@@ -814,6 +824,24 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
             axis=1,
         )
     return list(zip(x, conf, evidence, strict=True))
+
+
+def _reject_few_points(st: PropagationSettings, kin, x_flow, obs, diag, limit, fits) -> bool:
+    """The second guard of :func:`_model_fits_one_hand`: its fits ``fits`` = (x (n,J,3) mm,
+    root (n,3), u (n,B,3), level (n,), rejected (n,) bool), not already rejected, that use fewer
+    than ``st.min_explained_share`` of their frame's observed points ``obs`` (``diag``: the
+    fits' :func:`handmodel.frame_energy` diagnostics) keep the flowed pose ``x_flow`` (n,J,3) mm,
+    with a level of at least ``limit`` (the first guard's). Changed in place; True if any was."""
+    x, root, u, level, rejected = fits
+    share = diag["capsule_points"].sum(axis=1) / np.maximum(obs.valid.sum(axis=1), 1)
+    few = (share < st.min_explained_share) & ~rejected
+    if not few.any():
+        return False
+    x[few] = x_flow[few]
+    root[few], u[few] = kin.fit(x_flow[few])
+    level[few] = np.maximum(level[few], limit)
+    rejected |= few
+    return True
 
 
 def _library_fit(

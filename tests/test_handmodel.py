@@ -528,6 +528,55 @@ def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_fails():
             np.testing.assert_array_equal(a, b)
 
 
+def test_propagation_guard_keeps_the_flowed_pose_where_the_fit_explains_no_point():
+    """A frame that shows only the forearm (a 25 mm capsule from the wrist back, the hand gone):
+    the fit turns the hand until the arm lies behind its wrist, where the data term ignores it,
+    and explains none of the frame's points at a level below the references' (tune-fpha-1 of
+    seed 3 had such fits, 139 mm off, chosen over the chain that explained the hand). The guard
+    rejects a fit that uses fewer than ``min_explained_share`` of the points: the frame keeps its
+    flowed pose, and its level is reported at the guard's limit for the choice between chains."""
+    from handanno_core import propagate as prop
+    from handanno_core.hands import bone_table
+
+    rng = np.random.default_rng(0)
+    x = _pose("open")
+    model = _model(x)
+    c0 = x.mean(axis=0)
+    ref_crop = _noisy_crop(_render(model, x), c0, rng)
+    level = hm.reference_level(
+        model, x[None], hm.observe(ref_crop[None], crop_boxes(c0, CAM)[None], c0[None], CAM), CAM
+    )
+    axis = x[model.palm_chain].mean(axis=0) - x[MSRA21.root]
+    axis /= np.linalg.norm(axis)
+    empty = np.zeros((0, 3))
+    wrist = x[MSRA21.root]
+    arm = Primitives(
+        wrist[None], (wrist - 200.0 * axis)[None], np.array([25.0]), empty, np.zeros((0, 3, 3)),
+        empty,
+    )  # fmt: skip
+    arm_crop = _noisy_crop(render_depth(arm, CAM), c0, rng)
+    boxes = np.stack([crop_boxes(c0, CAM)] * 2)
+    ctx = prop._Context(
+        None, 0, (2, *ref_crop.shape), "float32", boxes, np.stack([c0, c0]), None, CAM, MSRA21,
+        bone_table(model.bone_lengths_mm, 2, 20), "dis", {}, prop.PropagationSettings(),
+        hand_models=[model], model_levels=np.array([level]), model_refs=np.array([0]),
+        model_ref_joints=x[None],
+    )  # fmt: skip
+    item = prop._ModelInput(0, 1, x, x, CAM.project(x), np.zeros(21), arm_crop)
+    shipped = prop.PropagationSettings()
+
+    def fit(min_share):
+        c = replace(ctx, settings=replace(shipped, min_explained_share=min_share))
+        out, _, ev = prop._model_fits(c, [item])[0]
+        return np.linalg.norm(out - x, axis=-1).mean(), dict(zip(MODEL_FIT_TERMS, ev, strict=True))
+
+    moved, ev = fit(0.0)  # without it: the hand turned away, no point used, the guard passes it
+    assert moved > 50.0 and ev["rejected"] == 0.0 and ev["level"] < 2.0, (moved, ev)
+    moved, ev = fit(shipped.min_explained_share)
+    assert moved == 0.0 and ev["rejected"] == 1.0, (moved, ev)
+    assert ev["level"] >= shipped.model_fail_ratio
+
+
 def test_model_guesses_fit_unplaced_joints_to_the_frames_points():
     """The interactive annotator's refit with the hand model: the frame shows the hand bent 15
     degrees at every joint away from the guessed pose; with the wrist and the five fingertips

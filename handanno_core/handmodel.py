@@ -44,7 +44,8 @@ hundred per frame; forearm points are ignored (:func:`_forearm`: behind a plane 
 wrist along the wrist -> knuckles axis, or nearest to the wrist end of a capsule at the root). Model samples are 4 positions × 3 angles per capsule on the surface
 facing the camera; each is projected into the crop: on a hand pixel it must not lie more than
 ``free_margin_mm`` in front of the observed depth; off the silhouette it is pulled to the nearest
-hand pixel (distance transform, as in Tagliasacchi et al.).
+hand pixel (distance transform, as in Tagliasacchi et al.) or past the image's border, where it
+costs nothing (the sensor saw nothing there).
 
 **Solver** (:func:`fit_frames`): Levenberg-Marquardt on all given frames at once (independent
 frames: batched 43×43 systems, :func:`handanno_core.lm.levenberg_marquardt_batched` with
@@ -647,7 +648,8 @@ class FrameObservations:
 
     ``points`` (n, M, 3) mm observed hand points, ``valid`` (n, M) bool; ``depth`` (n, S, S) mm
     observed depth per crop pixel (NaN off the hand); ``nearest`` (n, S, S) int32 flat crop index
-    of the nearest hand pixel (distance transform); ``boxes`` (n, 4) crop boxes.
+    of the nearest hand pixel or pixel past the image's border (distance transform); ``boxes``
+    (n, 4) crop boxes.
     """
 
     points: np.ndarray
@@ -800,9 +802,25 @@ def observe(
                 else _pixel_points(flat[take], crop, boxes[i], zc[i], half, camera)
             )
             valid[i, :k] = True
-        _, ind = distance_transform_edt(~silhouette, return_indices=True)
+        # past the image's border the hand may be: the nearest place a model sample may lie
+        beyond = _beyond_image(grid, boxes[i], camera)
+        _, ind = distance_transform_edt(~(silhouette | beyond), return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out
+
+
+def _beyond_image(grid: np.ndarray, box: np.ndarray, camera) -> np.ndarray:
+    """``(S, S)`` bool: the crop pixels (``grid`` their flat indices) whose nearest image pixel
+    lies outside the camera's image (the crop shows no depth there: the sensor saw nothing)."""
+    s = grid.shape[-1]
+    xy = np.stack([grid % s, grid // s], axis=-1).astype(np.float64)
+    uv = np.rint(crop_to_image(xy, box))
+    return (
+        (uv[..., 0] < 0)
+        | (uv[..., 0] > camera.width - 1)
+        | (uv[..., 1] < 0)
+        | (uv[..., 1] > camera.height - 1)
+    )
 
 
 def _pixel_points(flat, crop, box, z_c: float, half: float, camera) -> np.ndarray:
@@ -1190,7 +1208,15 @@ def _energy(
         np.stack([near % s_px, near // s_px], axis=-1).astype(np.float64), obs.boxes[:, None, :]
     )
     mm_per_px = smp[..., 2] / camera.fx
-    off = ~on_hand
+    # past the image's border the sensor saw nothing: a sample there is neither on the hand nor
+    # off it (a hand partly out of view is not pulled into the image)
+    in_view = (
+        (uv[..., 0] >= -0.5)
+        & (uv[..., 0] <= camera.width - 0.5)
+        & (uv[..., 1] >= -0.5)
+        & (uv[..., 1] <= camera.height - 0.5)
+    )
+    off = ~on_hand & in_view
     duv = np.where(off[..., None], uv - target_uv, 0.0)
     duv = np.nan_to_num(duv)
     # a sample within ``free_tolerance_px`` image px of the silhouette is not penalized

@@ -10,7 +10,7 @@ import pytest
 
 from handanno_core import handmodel as hm
 from handanno_core.camera import MSRA_CAMERA
-from handanno_core.crops import DEFAULT_CROP, crop_boxes, crop_depth
+from handanno_core.crops import DEFAULT_CROP, crop_boxes, crop_depth, crop_to_image
 from handanno_core.pose_prior import pose_prior, session_prior
 from handanno_core.results import MODEL_FIT_TERMS
 from handanno_core.skeleton import MSRA21
@@ -346,6 +346,42 @@ def test_fit_recovers_pose_from_15_degree_perturbation(scene):
     assert res.energy[0] < res.energy_start[0]
     # bones stay exact
     assert np.allclose(MSRA21.bone_lengths(res.joints_mm[0]), model.bone_lengths_mm, atol=1e-6)
+
+
+def test_a_hand_partly_past_the_image_border_is_not_pulled_into_the_image():
+    """The fingertips above the image's top edge (FPHA's egocentric sequences leave the view):
+    the sensor saw nothing there, so the true pose costs no free space, a sample off the hand
+    next to the border is one pixel from where the hand may be, and the fit from a 15-degree
+    perturbation of every joint keeps the fingers out of view where they are (with the free
+    space pulling every model sample onto the observed silhouette the true pose cost 200 and the
+    fit ended with the out-of-view joints 25 mm off, the others 2.3 mm in the mean)."""
+    x = _pose("open")
+    model = replace(_model(x), pose_prior=pose_prior(MSRA21), pose_prior_weight=0.5)
+    cut = CAM.model_copy(update={"cy": CAM.cy - 60})
+    a, b = model.capsules(x[None])
+    empty = np.zeros((0, 3))
+    depth = render_depth(
+        Primitives(a[0], b[0], model.radii, empty, np.zeros((0, 3, 3)), empty), cut
+    )
+    c = x.mean(axis=0)
+    obs = hm.observe(crop_depth(depth, cut, c)[None], crop_boxes(c, cut)[None], c[None], cut)
+    out = cut.project(x)[:, 1] < -0.5
+    assert out.sum() == 5  # the index, middle and ring tips, the index and middle DIPs
+    # a crop pixel next to the border with no hand on it: the nearest place the hand may be is
+    # past the border, one pixel away (not the silhouette), so the cost is continuous there
+    s = obs.depth.shape[-1]
+    rows_v = crop_to_image(np.stack([np.zeros(s), np.arange(s)], axis=-1), obs.boxes[0])[:, 1]
+    y0 = int(np.argmax(np.rint(rows_v) >= 0))  # the first crop row inside the image
+    edge = y0 * s + np.flatnonzero(np.isnan(obs.depth[0, y0]))
+    assert y0 > 0 and len(edge) > 10
+    assert np.all(obs.nearest[0].reshape(-1)[edge] == edge - s)
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    _, terms, _, _ = hm.frame_energy(model, kin, *kin.fit(x[None]), obs, cut, hm.FitWeights())
+    assert terms["free_space"][0] < 1e-9 and terms["data"][0] < 1e-6, terms
+    signs = np.where(np.arange(len(MSRA21.angle_joints)) % 2 == 0, 1.0, -1.0)
+    res = hm.fit_frames(model, _perturb_joints(x, 15.0, signs)[None], obs, cut, iterations=60)
+    err = np.linalg.norm(res.joints_mm[0] - x, axis=1)
+    assert err[out].max() < 10.0 and err[~out].mean() < 1.0, np.round(err, 1)
 
 
 def test_fit_recovers_pose_from_fewer_observed_points(scene):

@@ -803,24 +803,25 @@ def observe(
             )
             valid[i, :k] = True
         # past the image's border the hand may be: the nearest place a model sample may lie
-        beyond = _beyond_image(grid, boxes[i], camera)
+        beyond = _beyond_image(s, boxes[i], camera)
         _, ind = distance_transform_edt(~(silhouette | beyond), return_indices=True)
         nearest[i] = ind[0] * s + ind[1]
     return out
 
 
-def _beyond_image(grid: np.ndarray, box: np.ndarray, camera) -> np.ndarray:
-    """``(S, S)`` bool: the crop pixels (``grid`` their flat indices) whose nearest image pixel
-    lies outside the camera's image (the crop shows no depth there: the sensor saw nothing)."""
-    s = grid.shape[-1]
-    xy = np.stack([grid % s, grid // s], axis=-1).astype(np.float64)
-    uv = np.rint(crop_to_image(xy, box))
-    return (
-        (uv[..., 0] < 0)
-        | (uv[..., 0] > camera.width - 1)
-        | (uv[..., 1] < 0)
-        | (uv[..., 1] > camera.height - 1)
-    )
+def _in_image(coord_px: np.ndarray, side_px: int) -> np.ndarray:
+    """Bool mask: image coordinates ``coord_px`` (one axis, any shape) that fall on one of the
+    image's ``side_px`` pixels along that axis (NaN: False)."""
+    return (coord_px >= -0.5) & (coord_px <= side_px - 0.5)
+
+
+def _beyond_image(size: int, box: np.ndarray, camera) -> np.ndarray:
+    """``(S, S)`` bool: the pixels of a ``size`` x ``size`` crop with box ``box`` (4,) that lie
+    outside the camera's image (the crop shows no depth there: the sensor saw nothing). A crop
+    box is axis-aligned, so a column's u and a row's v decide it."""
+    ax = np.arange(size, dtype=np.float64)
+    uv = crop_to_image(np.stack([ax, ax], axis=-1), box)  # (S, 2): column u, row v
+    return ~_in_image(uv[:, 1], camera.height)[:, None] | ~_in_image(uv[:, 0], camera.width)[None]
 
 
 def _pixel_points(flat, crop, box, z_c: float, half: float, camera) -> np.ndarray:
@@ -1210,12 +1211,7 @@ def _energy(
     mm_per_px = smp[..., 2] / camera.fx
     # past the image's border the sensor saw nothing: a sample there is neither on the hand nor
     # off it (a hand partly out of view is not pulled into the image)
-    in_view = (
-        (uv[..., 0] >= -0.5)
-        & (uv[..., 0] <= camera.width - 0.5)
-        & (uv[..., 1] >= -0.5)
-        & (uv[..., 1] <= camera.height - 0.5)
-    )
+    in_view = _in_image(uv[..., 0], camera.width) & _in_image(uv[..., 1], camera.height)
     off = ~on_hand & in_view
     duv = np.where(off[..., None], uv - target_uv, 0.0)
     duv = np.nan_to_num(duv)

@@ -792,12 +792,14 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
         rejected[i], level[i] = _guard(st, plain, level[i], ctx.model_levels[h])
         if rejected[i]:
             # the fit does not explain the frame's depth: keep the flowed pose
-            x[i] = x_flow[i]
-            r1, u1 = kin.fit(x_flow[i][None])
-            root[i], u[i] = r1[0], u1[0]
+            _keep_flowed_pose(kin, x_flow, [i], (x, root, u))
     _, _, _, diag = hm.frame_energy(model, kin, root, u, obs_f, cam, w, pri_f)
-    limit = st.model_fail_ratio * ctx.model_levels[h]
-    if _reject_few_points(st, kin, x_flow, obs_f, diag, limit, (x, root, u, level, rejected)):
+    few = _few_points(st, obs_f, diag) & ~rejected
+    if few.any():
+        # the second guard: the fit explains almost none of the frame's points
+        _keep_flowed_pose(kin, x_flow, few, (x, root, u))
+        level[few] = np.maximum(level[few], st.model_fail_ratio * ctx.model_levels[h])
+        rejected |= few
         _, _, _, diag = hm.frame_energy(model, kin, root, u, obs_f, cam, w, pri_f)
     touch = np.zeros((j, len(model.pairs)), dtype=bool)
     touch[model.pairs[:, 0], np.arange(len(model.pairs))] = True
@@ -826,22 +828,20 @@ def _model_fits_one_hand(ctx: _Context, h: int, items: list[_ModelInput]):
     return list(zip(x, conf, evidence, strict=True))
 
 
-def _reject_few_points(st: PropagationSettings, kin, x_flow, obs, diag, limit, fits) -> bool:
-    """The second guard of :func:`_model_fits_one_hand`: its fits ``fits`` = (x (n,J,3) mm,
-    root (n,3), u (n,B,3), level (n,), rejected (n,) bool), not already rejected, that use fewer
-    than ``st.min_explained_share`` of their frame's observed points ``obs`` (``diag``: the
-    fits' :func:`handmodel.frame_energy` diagnostics) keep the flowed pose ``x_flow`` (n,J,3) mm,
-    with a level of at least ``limit`` (the first guard's). Changed in place; True if any was."""
-    x, root, u, level, rejected = fits
+def _few_points(st: PropagationSettings, obs, diag) -> np.ndarray:
+    """``(n,)`` bool, the second guard of :func:`_model_fits_one_hand`: fits that use fewer than
+    ``st.min_explained_share`` of their frame's observed points ``obs`` (``diag``: the fits'
+    :func:`handmodel.frame_energy` diagnostics)."""
     share = diag["capsule_points"].sum(axis=1) / np.maximum(obs.valid.sum(axis=1), 1)
-    few = (share < st.min_explained_share) & ~rejected
-    if not few.any():
-        return False
-    x[few] = x_flow[few]
-    root[few], u[few] = kin.fit(x_flow[few])
-    level[few] = np.maximum(level[few], limit)
-    rejected |= few
-    return True
+    return share < st.min_explained_share
+
+
+def _keep_flowed_pose(kin, x_flow: np.ndarray, rows, pose) -> None:
+    """Rows ``rows`` of ``pose`` = (x (n,J,3) mm, root (n,3), u (n,B,3)), changed in place, take
+    the flowed pose ``x_flow`` (n,J,3) mm back (a guard rejected their fit)."""
+    x, root, u = pose
+    x[rows] = x_flow[rows]
+    root[rows], u[rows] = kin.fit(x_flow[rows])
 
 
 def _library_fit(

@@ -109,6 +109,11 @@ class RawClient:
         raise TimeoutError("no such message")
 
 
+def _markdown(m: dict) -> str:
+    """The markdown a GUI update message sets ('' for any other message)."""
+    return str(m["updates"].get("_markdown", "")) if m["type"] == "GuiUpdateMessage" else ""
+
+
 def is_button(label: str):
     return lambda m: m["type"] == "GuiButtonMessage" and m["props"]["label"].startswith(label)
 
@@ -149,15 +154,13 @@ def test_flood_from_one_client_leaves_another_responsive(app):
                 await a.send(message)
             async with RawClient(app.port) as b:
                 timings["panel_s"] = await b.wait_for(is_button("Visibility"), 10)
+                # click once the panel shows its first frame, as a person would (a click sent
+                # before the panel's callbacks are bound would be lost)
+                await b.wait_for(lambda m: "**Frame 0**" in _markdown(m), 10)
                 nav = b.find("GuiButtonGroupMessage", "Frame")
                 await b.send(_messages.GuiUpdateMessage(nav["uuid"], {"value": "Next (N) ▶"}))
                 timings["click_s"] = await b.wait_for(
-                    lambda m: (
-                        m["type"] == "GuiUpdateMessage"
-                        and "**Frame " in str(m["updates"].get("_markdown", ""))
-                        and "**Frame 0**" not in str(m["updates"]["_markdown"])
-                    ),
-                    10,
+                    lambda m: "**Frame " in _markdown(m) and "**Frame 0**" not in _markdown(m), 10
                 )
             timings["a_dropped"], timings["a_coalesced"] = app.guard["limiter"].stats(0)
 

@@ -74,6 +74,18 @@ class CameraIntrinsics(BaseModel):
             v = self.fy * xyz[..., 1] / safe_z + self.cy
         return np.stack([u, v], axis=-1)
 
+    def on_image(self, uv_px: np.ndarray) -> np.ndarray:
+        """``(...)`` bool: pixels ``(..., 2)`` (u, v) within ``[0, width - 1] x [0, height - 1]``,
+        where a click on the image can land (NaN: False)."""
+        uv = np.asarray(uv_px, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            return (
+                (uv[..., 0] >= 0)
+                & (uv[..., 0] <= self.width - 1)
+                & (uv[..., 1] >= 0)
+                & (uv[..., 1] <= self.height - 1)
+            )
+
     def backproject(self, uv_px: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
         """Back-project pixels ``(..., 2)`` with depths ``(...)`` in mm to points ``(..., 3)`` in mm."""
         uv = np.asarray(uv_px, dtype=np.float64)

@@ -1624,6 +1624,13 @@ def refit_fingers(
     current, energy = energy[: len(sel)], energy[len(sel) :].reshape(len(sel), nf, nk)
     best = np.argmin(energy, axis=2)  # (m,F)
     better = np.take_along_axis(energy, best[..., None], 2)[..., 0] < current[:, None]
+    # past the image's border the depth shows nothing, so it cannot choose among hypotheses of a
+    # finger that lies there: a finger with no joint on the image stays as fitted (swung anywhere
+    # out of view it costs nothing, and it was)
+    uv = camera.project(fit.joints_mm[sel])
+    on_image = _in_image(uv[..., 0], camera.width) & _in_image(uv[..., 1], camera.height)
+    moved = [model.skeleton.angle_children[chain] for chain in chains]
+    better &= np.stack([on_image[:, joints].any(axis=1) for joints in moved], axis=1)
     hit = np.flatnonzero(np.any(better, axis=1))
     if len(hit) == 0:
         return fit

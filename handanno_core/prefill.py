@@ -26,6 +26,8 @@ is wrong. The estimate, best first:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .datasets.base import segment_ids
@@ -276,19 +278,25 @@ def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | Non
     nothing in the session has joints yet (instead of joints hung off the wrist in a column).
     None for skeletons other than MSRA21's layout (the hand model is written for it)."""
     from .skeleton import MSRA21
-    from .synth import (
-        GESTURES,
-        build_hand_model,
-        forward_kinematics,
-        rotation_matrices,
-    )
 
     if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
         return None
-    model = build_hand_model(np.asarray(skeleton.template_bone_lengths_mm, dtype=np.float64))
+    hand = _relaxed_hand(tuple(float(x) for x in skeleton.template_bone_lengths_mm))
+    return hand + np.asarray(centre_mm, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=8)
+def _relaxed_hand(bone_lengths_mm: tuple[float, ...]) -> np.ndarray:
+    """:func:`template_hand`'s hand with its joints' mean at 0 (built once per bone lengths: the
+    lift asks for it on every frame with unplaced joints)."""
+    from .synth import GESTURES, build_hand_model, forward_kinematics, rotation_matrices
+
+    model = build_hand_model(np.asarray(bone_lengths_mm, dtype=np.float64))
     params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
     hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
-    return hand[0] - hand[0].mean(axis=0) + np.asarray(centre_mm, dtype=np.float64)
+    out = hand[0] - hand[0].mean(axis=0)
+    out.flags.writeable = False
+    return out
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

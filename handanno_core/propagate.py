@@ -100,6 +100,7 @@ from .hands import BoneTable, bone_table
 from .lm import Marquardt, NormalEquations, levenberg_marquardt, solve_dense
 from .parallel import Runner
 from .results import MODEL_FIT_TERMS
+from .rigid import kabsch
 from .sampling import bilinear, depth_at
 from .skeleton import Skeleton
 
@@ -624,14 +625,10 @@ def _carry_rigidly(joints_s, seen_f, seen, st) -> np.ndarray:
     their positions ``seen_f`` (J,3) mm in the frame (Kabsch), or by their mean displacement when
     fewer than ``st.carry_hidden_min_seen`` are seen or they are nearly collinear."""
     a, b = joints_s[seen], seen_f[seen]
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    if len(a) < st.carry_hidden_min_seen:
-        return joints_s + (cb - ca)
-    u, sv, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    if sv[1] < 1e-3 * max(sv[0], 1e-9):
-        return joints_s + (cb - ca)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    fit = kabsch(a, b) if len(a) >= st.carry_hidden_min_seen else None
+    if fit is None:
+        return joints_s + (b.mean(axis=0) - a.mean(axis=0))
+    rot, ca, cb = fit
     return (joints_s - ca) @ rot.T + cb
 
 

@@ -84,10 +84,11 @@ def simulated_fix(
     mm, and how many joints it moved (clicks), as in the app's review: the correction seeds the
     frame's annotation from the shown skeleton (:func:`handanno_core.review.seed_annotation`:
     every joint an accepted guess in 3D, visibility from the depth), and the annotator clicks
-    each joint drawn more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm: its 2D becomes the
-    truth's plus ``noise_px`` Gaussian noise, its 3D position is cleared (a click replaces it,
-    ``AnnotateState.place_2d``), and it gets the truth's visibility and depth order
-    (:func:`handanno_core.synth.simulate_annotation`). ``depth`` (H, W) mm."""
+    each joint drawn more than ``click_px`` from the truth ``gt_mm`` (J, 3) mm: its 2D becomes
+    the truth's plus ``noise_px`` Gaussian noise, its 3D position is cleared (a click replaces
+    it, ``AnnotateState.place_2d``), and it gets the truth's visibility and depth order
+    (:func:`handanno_core.synth.simulate_annotation`). A joint whose truth is off the image
+    cannot be clicked and stays as seeded. ``depth`` (H, W) mm."""
     from .review import seed_annotation
     from .synth import simulate_annotation
 
@@ -97,6 +98,7 @@ def simulated_fix(
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
     with np.errstate(invalid="ignore"):
         moved = ~(np.linalg.norm(camera.project(shown) - truth, axis=-1) <= click_px)
+    moved &= full.has_2d  # nobody clicks off the image
     ann.xyz_mm[moved] = np.nan  # NaN (not drawn): moved too
     ann.uv_px[moved] = full.uv_px[moved]
     ann.accepted[moved] = False
@@ -128,7 +130,9 @@ def interactive_fix(
     let the guesses refit
     (:func:`handanno_core.guesses.refit_guesses`, as the app's live lift, warm-started from the
     previous refit, ``bone_lengths_mm`` (B,) mm, ``eps_mm``/``angle_limits`` the session's), and
-    repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D).
+    repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D). A
+    joint whose truth is off the image is never clicked (nobody can), and a guess drawn off the
+    image is not accepted (the app skips it): such a joint is left to the lift's constraints.
 
     A moved joint gets the true 2D plus ``noise_px`` Gaussian noise and the truth's visibility and
     depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the
@@ -146,15 +150,13 @@ def interactive_fix(
     ann = FrameAnnotation.empty(skeleton.num_joints)
     shown, previous, slack = guess, None, ()
     clicked: list[int] = []
-    size = np.array([camera.width - 1.0, camera.height - 1.0])
     while True:
         placed = ann.annotated
+        drawn = camera.project(shown)
         with np.errstate(invalid="ignore"):
-            drawn = camera.project(shown)
-            inside = np.all((drawn >= 0) & (drawn <= size), axis=1) & (shown[:, 2] > 0)
-            off = np.where(inside, np.linalg.norm(drawn - truth, axis=-1), np.inf)
+            off = np.where(camera.on_image(drawn), np.linalg.norm(drawn - truth, axis=-1), np.inf)
         off = np.where(np.isnan(off), np.inf, off)
-        todo = ~placed & (off > click_px)
+        todo = ~placed & (off > click_px) & full.has_2d  # nobody clicks off the image
         if not todo.any():
             break
         cand = np.flatnonzero(todo)
@@ -189,8 +191,9 @@ def interactive_fix(
         shown, previous, slack = fit.joints_mm, fit.joints_mm, fit.slack_joints
     placed = ann.annotated
     uv = camera.project(shown)
-    ann.uv_px[~placed] = uv[~placed]  # "accept guesses"
-    ann.accepted[:] = ~placed & ann.has_2d
+    take = ~placed & camera.on_image(uv)  # "accept guesses" skips those off the image
+    ann.uv_px[take] = uv[take]
+    ann.accepted[:] = take
     ann.visible[:] = full.visible
     ann.depth_order[:] = full.depth_order
     return ann, len(clicked), clicked
@@ -349,7 +352,7 @@ def annotate_prefilled(
             ann = simulate_annotation(
                 gt.joints_mm[f], depth, sequence.camera, skeleton, noise_px, rng
             )
-            clicks[f] = skeleton.num_joints
+            clicks[f] = int(ann.has_2d.sum())
         else:
             guess_off[f] = _offsets_px(sequence.camera, guess, gt.joints_mm[f])  # evaluation
             guess_of[f] = np.asarray(guess, dtype=np.float64)
@@ -458,6 +461,14 @@ def _show(ranking: str, session: Session, results, k: int, reviewed, bad) -> tup
     return shown, recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
 
 
+def _typed_clicks(session: Session) -> int:
+    """Joints clicked on the references that are not corrections, annotated without pre-fill:
+    every joint with a 2D position (one whose truth is off the image has none)."""
+    corrections = {int(f) for f in session.model.corrections}
+    frames = [int(f) for f in session.reference_frames if int(f) not in corrections]
+    return int(sum(a.has_2d.sum() for a in session.annotations(frames).values()))
+
+
 def _review_frame(session: Session, sequence, frame: int, shown_mm, gt_mm, bones, **fix):
     """The simulated annotator on one shown frame (:func:`simulated_fix`, keyword arguments
     ``fix``): a correction journaled and lifted, or, with nothing to move, the frame accepted as
@@ -494,7 +505,8 @@ def review_rounds(
     """Simulated review rounds on a session whose first pass (lift, propagate, refine) is done.
 
     ``budget``: frames shown per round (``>= 1``), or a share of the sequence's frames (``< 1``).
-    ``reference_clicks``: joints clicked on the references (default: every joint of every one).
+    ``reference_clicks``: joints clicked on the references (default: every joint with a 2D
+    position on each reference that is not a correction, :func:`_typed_clicks`).
     Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references,
     corrections and frames accepted as shown), ``corrections``, ``accepted``, ``joints_clicked``,
     the error of all frames (``mean_mm``, ``median_mm``, ``max_mm``), ``bad_share`` (frames with
@@ -512,8 +524,7 @@ def review_rounds(
     k = int(round(budget * n)) if budget < 1 else int(budget)
     if k < 1:
         raise ValueError(f"review budget {budget} shows no frame of {n}")
-    refs0 = len(session.reference_frames) - len(session.model.corrections)
-    clicked = int(reference_clicks if reference_clicks is not None else refs0 * gt.shape[1])
+    clicked = int(reference_clicks if reference_clicks is not None else _typed_clicks(session))
     entries = [_entry(session, gt, 0, clicked, bad_mm)]
     if not quiet:
         print(f"  {ranking} round 0: {entries[0]}", flush=True)
@@ -624,8 +635,8 @@ def bench_run_review(
 ) -> None:
     """The bench's per-run review part: adds to ``run`` (one JSON run of :mod:`handanno_core.bench`)
     ``reference_clicks`` and ``clicks_per_reference`` (joints moved on pre-filled references, or
-    every joint without pre-fill), ``review`` (:func:`bench_review`'s entries per ranking) and
-    ``effort_to_target`` (frames touched to reach mean <= 3 mm with at most 1 % bad frames, per
+    every joint on the image without pre-fill), ``review`` (:func:`bench_review`'s entries per
+    ranking) and ``effort_to_target`` (frames touched to reach mean <= 3 mm with at most 1 % bad frames, per
     ranking). ``review``: ``rounds``, ``budget``, ``rankings`` (default evidence and uniform),
     ``prefill``, ``click_px``."""
     if prefilled is not None:
@@ -634,10 +645,9 @@ def bench_run_review(
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)
-        num_joints = session.skeleton.num_joints
+        clicks = _typed_clicks(session)
         session.close()
-        clicks = run["references"] * num_joints
-        run["clicks_per_reference"] = float(num_joints)
+        run["clicks_per_reference"] = round(clicks / max(run["references"], 1), 3)
     run["reference_clicks"] = clicks
     rounds = int(review.get("rounds") or 0)
     if rounds <= 0:

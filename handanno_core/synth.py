@@ -1166,11 +1166,15 @@ def simulate_annotation(
     """What a careful annotator would click for one frame, from ground truth (benchmarks only).
 
     * ``uv_px``: projection of the ground-truth joints ``(J, 3)`` plus Gaussian noise of std
-      ``noise_px`` per coordinate;
+      ``noise_px`` per coordinate, kept on the image (a click lands on it); NaN (not annotated)
+      for a joint whose true projection is off the image, which nobody can click (the app's
+      clicks and accepted guesses land on the image; the lift places such a joint by its
+      constraints);
     * ``visible``: :func:`sampling.visible_by_depth` of the ground truth (the closest valid depth
       ``D`` in the 3x3 pixels at the rounded projection satisfies ``D >= z - surface_offset - 10 mm``;
       no valid depth there, or off the image -> False);
-    * ``depth_order``: +1 if ``z > z_parent + 10 mm``, -1 if ``z < z_parent - 10 mm``, else 0 (root 0);
+    * ``depth_order``: +1 if ``z > z_parent + 10 mm``, -1 if ``z < z_parent - 10 mm``, else 0 (root 0;
+      0 for a joint off the image);
     * ``xyz_mm``: all NaN.
     """
     gt = np.asarray(gt_joints_mm, dtype=np.float64)
@@ -1179,10 +1183,13 @@ def simulate_annotation(
     if gt.shape != (j, 3):
         raise ValueError(f"ground truth must be ({j}, 3), got {gt.shape}")
     uv = camera.project(gt)
+    on_image = camera.on_image(uv)
     noisy = uv.copy()
     if noise_px > 0:
         rng = rng if rng is not None else np.random.default_rng()
         noisy = uv + rng.normal(0.0, noise_px, uv.shape)
+    noisy = np.clip(noisy, 0.0, [camera.width - 1.0, camera.height - 1.0])
+    noisy[~on_image] = np.nan
     visible = visible_by_depth(gt, depth, camera, skeleton.surface_offsets_mm)
     parents = skeleton.parent_array
     order = np.zeros(j, dtype=np.int8)
@@ -1190,6 +1197,7 @@ def simulate_annotation(
     dz = gt[:, 2] - gt[np.where(has_parent, parents, 0), 2]
     order[has_parent & (dz > 10.0)] = 1
     order[has_parent & (dz < -10.0)] = -1
+    order[~on_image] = 0
     return FrameAnnotation(
         uv_px=noisy, visible=visible, depth_order=order, xyz_mm=np.full((j, 3), np.nan)
     ).validate(j)

@@ -139,3 +139,37 @@ def test_the_app_and_the_bench_call_the_same_refit(session, monkeypatch):
         guess, x["gt"], x["depth"], x["camera"], x["skeleton"], x["bones"], **x["settings"]
     )
     assert clicks >= 1 and len(calls) == 1 + clicks  # one refit per click, the same function
+
+
+def test_nobody_clicks_a_joint_whose_truth_is_off_the_image(session):
+    """The app's clicks and accepted guesses land on the image, so the simulated annotator leaves
+    a joint whose true projection is past the image's border unannotated: it never clicks it
+    (the interactive fix still ends), accepts no guess drawn off the image, and a review
+    correction keeps such a joint where it was shown."""
+    from handanno_core.review_loop import simulated_fix
+
+    x = frame_inputs(session, 5)
+    sk, gt = x["skeleton"], x["gt"]
+    v = x["camera"].project(gt)[:, 1]
+    # the same camera looking lower: the hand's 4 topmost joints project above the image
+    cam = x["camera"].model_copy(update={"cy": x["camera"].cy - (np.sort(v)[4] - 2.0)})
+    truth = cam.project(gt)
+    off = ~cam.on_image(truth)
+    assert off.sum() == 4
+    full = simulate_annotation(gt, x["depth"], cam, sk, noise_px=3.0)
+    assert np.isnan(full.uv_px[off]).all() and not full.visible[off].any()
+    assert not full.depth_order[off].any() and cam.on_image(full.uv_px[~off]).all()
+
+    guess = gt + np.array([12.0, -8.0, 4.0])
+    ann, clicks, order = interactive_fix(
+        guess, gt, x["depth"], cam, sk, x["bones"], **x["settings"]
+    )
+    assert clicks == len(order) >= 1 and not set(order) & set(np.flatnonzero(off).tolist())
+    assert cam.on_image(ann.uv_px[ann.has_2d]).all()
+    assert np.all(np.linalg.norm(ann.uv_px[~off] - truth[~off], axis=1) <= 4.0 + 1e-9)
+
+    shown = gt + np.array([20.0, 0.0, 0.0])  # every joint ~20 px off
+    fixed, moved = simulated_fix(shown, gt, x["depth"], cam, sk)
+    assert moved == int((~off).sum())
+    np.testing.assert_allclose(fixed.xyz_mm[off], shown[off])  # left as the app seeded it
+    assert fixed.accepted[off].all() and not fixed.accepted[~off].any()

@@ -9,7 +9,9 @@ import pytest
 from test_handmodel import CAM, _model, _observe, _pose, _rot
 
 from handanno_core import handmodel as hm
+from handanno_core.crops import crop_boxes, crop_depth
 from handanno_core.skeleton import MSRA21
+from handanno_core.synth import Primitives, render_depth
 
 
 @pytest.fixture(scope="module")
@@ -168,3 +170,38 @@ def test_a_reference_pose_recovers_fingers_the_start_carried_the_wrong_way(gestu
     lib = hm.fit_frames(model, starts[np.argmin(energy)][None], obs, CAM, kin=kin)
     assert np.linalg.norm(lib.joints_mm[0] - x, axis=1).max() <= tol
     assert lib.energy[0] < fit.energy[0] - fit.terms["pose"][0] - fit.terms["uv"][0]
+
+
+def test_a_finger_past_the_image_border_keeps_its_fit():
+    """Past the image's border the sensor saw nothing, so no hypothesis of a finger lying there
+    can be judged: a finger with no joint on the image stays as fitted. Here the middle finger
+    is stuck flexed 90 degrees; seen in full the hypotheses bring it back; with the image cut 3
+    px below the stuck finger's joints they moved it 42 mm (its capsules reach into the image off
+    the hand, so any swing further out lowered the energy; a tune-part recording had its
+    out-of-view thumb swung 180 mm away so), and now leave it."""
+    x = _pose("open")
+    model = _model(x)
+    kin = hm.Kinematics(MSRA21, model.bone_lengths_mm)
+    start = _flex_finger(x, 2, 90.0)
+    pri = hm.Priors(pose=start[None], pose_w=np.ones((1, len(x))))
+    joints = MSRA21.angle_children[hm.finger_chains(MSRA21)[2]]
+
+    def observe(camera):
+        a, b = model.capsules(x[None])
+        empty = np.zeros((0, 3))
+        prims = Primitives(a[0], b[0], model.radii, empty, np.zeros((0, 3, 3)), empty)
+        c = x.mean(axis=0)
+        crops = crop_depth(render_depth(prims, camera), camera, c)[None]
+        return hm.observe(crops, crop_boxes(c, camera)[None], c[None], camera)
+
+    # the image's top edge 3 px below the stuck finger's lowest joint
+    cut = CAM.model_copy(update={"cy": CAM.cy - CAM.project(start[joints])[:, 1].max() - 3.0})
+    assert np.all(cut.project(start[joints])[:, 1] < -0.5)
+    for camera in (CAM, cut):
+        obs = observe(camera)
+        fit = hm.fit_frames(model, start[None], obs, camera, priors=pri, kin=kin, iterations=0)
+        out = hm.refit_fingers(model, fit, obs, camera, priors=pri, kin=kin)
+        if camera is cut:
+            np.testing.assert_array_equal(out.joints_mm[0, joints], fit.joints_mm[0, joints])
+        else:
+            assert np.linalg.norm(out.joints_mm[0] - x, axis=1).max() <= 2.0

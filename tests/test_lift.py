@@ -324,6 +324,29 @@ def test_missing_joints_and_missing_depth_still_lift(frames):
     assert np.median(err) < 3.0
 
 
+def test_a_hand_past_the_image_border_starts_from_the_template_hand_on_its_clicked_joints():
+    """A reference whose wrist, thumb and last two fingers are off the image has no clicks there.
+    Those joints start on the template hand moved rigidly onto the clicked ones, not hung off a
+    wrist put at the clicked joints' mean (113 mm off for these poses before)."""
+    from handanno_core import synth
+
+    model = synth.make_hand_model(0)
+    gestures = synth.gesture_library(model)
+    gone = [0, 10, 11, 12, 14, 15, 16, 17, 18, 19, 20]
+    for gesture, wrist_mm, gone_mm in (("relaxed", 10.0, 10.0), ("open", 50.0, 50.0)):
+        for yaw in (0.0, 40.0):
+            rot = synth.rotation_matrices(np.array([[yaw, 20.0, 0.0]]))
+            X = synth.forward_kinematics(model, gestures[gesture][None], rot, [[0, 0, 370.0]])[0]
+            depth = synth.render_frame(model, X, rot[0])
+            ann = synth.simulate_annotation(X, depth, CAM, SK)
+            ann.uv_px[gone], ann.depth_order[gone], ann.visible[gone] = np.nan, 0, False
+            start, _ = initial_pose(ann, depth, CAM, SK, SK.bone_lengths(X))
+            err = np.linalg.norm(start - X, axis=1)
+            assert err[0] < wrist_mm and err[gone].mean() < gone_mm, (gesture, yaw, err.round(1))
+            hung = np.isin(SK.bones[:, 1], gone)  # bones ending at a joint without a click
+            np.testing.assert_allclose(SK.bone_lengths(start)[hung], SK.bone_lengths(X)[hung])
+
+
 def test_joints_given_in_3d_are_kept(frames):
     X, depth, ann = frames[2]
     bones = SK.bone_lengths(X)

@@ -146,8 +146,7 @@ class AnnotateState:
         guesses = np.asarray(guesses_mm, dtype=np.float64)
         ok = ~ann.annotated & np.all(np.isfinite(guesses), axis=1) & (guesses[:, 2] > 0)
         uv = cam.project(np.where(ok[:, None], guesses, [[0.0, 0.0, 1.0]]))
-        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1)
-        ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+        ok &= cam.on_image(uv)
         if not ok.any():
             return None
         commands = [

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..annotation import FrameAnnotation
 from ..camera import CameraIntrinsics
+from ..rigid import kabsch
 from ..sampling import depth_at
 from ..skeleton import Skeleton
 
@@ -75,6 +76,22 @@ def _template_direction(skeleton: Skeleton, joint: int, pose: np.ndarray) -> np.
     return d / n if n > 1e-9 else np.array([0.0, -1.0, 0.0])
 
 
+def _template_placed(skeleton: Skeleton, pose: np.ndarray, placed: np.ndarray):
+    """The skeleton's template hand (:func:`handanno_core.prefill.template_hand`) moved rigidly
+    onto the ``placed`` joints of ``pose`` (J, 3) mm (Kabsch), or None: every joint placed, no
+    template, fewer than 3 placed joints or nearly collinear ones."""
+    from ..prefill import template_hand
+
+    if placed.all():
+        return None
+    tmpl = template_hand(skeleton, np.zeros(3))
+    fit = None if tmpl is None else kabsch(tmpl[placed], pose[placed])
+    if fit is None:
+        return None
+    rot, ca, cb = fit
+    return (tmpl - ca) @ rot.T + cb
+
+
 #: bone length (mm) of a skeleton without template lengths, when none are given
 _FALLBACK_BONE_MM = 40.0
 #: start depth (mm) of a frame without a single valid depth pixel
@@ -136,7 +153,9 @@ def initial_pose(
 
     Joints with 2D are back-projected at the observed depth plus their surface offset (the median
     of the other joints' depths where there is no valid depth); joints placed in 3D start there;
-    unannotated joints are hung off their parent along the parent bone's direction.
+    unannotated joints (a joint off the image has no 2D) are hung off their parent along the
+    template hand's bone, the template moved rigidly onto the placed joints (which also places an
+    unannotated root; :func:`_template_placed`), else along the parent bone's direction.
     """
     ann = annotation
     j = skeleton.num_joints
@@ -177,6 +196,9 @@ def initial_pose(
     bone_of_child[skeleton.bones[:, 1]] = np.arange(len(skeleton.bones))
     order = skeleton.topological_order
     root = skeleton.root
+    template = _template_placed(skeleton, pose, has2d | has3d)
+    if template is not None and not (has2d[root] or has3d[root]):
+        pose[root] = template[root]
     if not np.all(np.isfinite(pose[root])):
         pose[root] = (
             np.nanmean(pose, axis=0)
@@ -192,7 +214,11 @@ def initial_pose(
         if has3d[k]:
             continue
         if not has2d[k]:
-            pose[k] = pose[p] + length * _template_direction(skeleton, k, pose)
+            if template is not None:
+                d = template[k] - template[p]
+                pose[k] = pose[p] + length * d / max(np.linalg.norm(d), 1e-9)
+            else:
+                pose[k] = pose[p] + length * _template_direction(skeleton, k, pose)
             continue
         # on the joint's viewing ray at bone length from the (already placed) parent
         zt = z[k]

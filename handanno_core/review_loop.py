@@ -461,7 +461,7 @@ def _show(ranking: str, session: Session, results, k: int, reviewed, bad) -> tup
     return shown, recall_at(priority, bad, 0.10, exclude=reviewed, sequence_breaks=breaks)
 
 
-def _typed_clicks(session: Session) -> int:
+def _clicks_on_references(session: Session) -> int:
     """Joints clicked on the references that are not corrections, annotated without pre-fill:
     every joint with a 2D position (one whose truth is off the image has none)."""
     corrections = {int(f) for f in session.model.corrections}
@@ -506,7 +506,7 @@ def review_rounds(
 
     ``budget``: frames shown per round (``>= 1``), or a share of the sequence's frames (``< 1``).
     ``reference_clicks``: joints clicked on the references (default: every joint with a 2D
-    position on each reference that is not a correction, :func:`_typed_clicks`).
+    position on each reference that is not a correction, :func:`_clicks_on_references`).
     Returns one entry per round (round 0 = before any correction): ``frames_touched`` (references,
     corrections and frames accepted as shown), ``corrections``, ``accepted``, ``joints_clicked``,
     the error of all frames (``mean_mm``, ``median_mm``, ``max_mm``), ``bad_share`` (frames with
@@ -524,7 +524,9 @@ def review_rounds(
     k = int(round(budget * n)) if budget < 1 else int(budget)
     if k < 1:
         raise ValueError(f"review budget {budget} shows no frame of {n}")
-    clicked = int(reference_clicks if reference_clicks is not None else _typed_clicks(session))
+    clicked = int(
+        reference_clicks if reference_clicks is not None else _clicks_on_references(session)
+    )
     entries = [_entry(session, gt, 0, clicked, bad_mm)]
     if not quiet:
         print(f"  {ranking} round 0: {entries[0]}", flush=True)
@@ -645,7 +647,7 @@ def bench_run_review(
         run["prefilled_references"] = len(prefilled["prefilled"])
     else:
         session = Session.open(folder)
-        clicks = _typed_clicks(session)
+        clicks = _clicks_on_references(session)
         session.close()
         run["clicks_per_reference"] = round(clicks / max(run["references"], 1), 3)
     run["reference_clicks"] = clicks

@@ -86,6 +86,13 @@ class CameraIntrinsics(BaseModel):
                 & (uv[..., 1] <= self.height - 1)
             )
 
+    def onto_image(self, uv_px: np.ndarray) -> np.ndarray:
+        """Pixels ``(..., 2)`` (u, v) clipped into ``[0, width - 1] x [0, height - 1]``: where a
+        click at them lands (:meth:`on_image`)."""
+        return np.clip(
+            np.asarray(uv_px, dtype=np.float64), 0.0, [self.width - 1.0, self.height - 1.0]
+        )
+
     def backproject(self, uv_px: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
         """Back-project pixels ``(..., 2)`` with depths ``(...)`` in mm to points ``(..., 3)`` in mm."""
         uv = np.asarray(uv_px, dtype=np.float64)

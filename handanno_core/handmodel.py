@@ -815,6 +815,12 @@ def _in_image(coord_px: np.ndarray, side_px: int) -> np.ndarray:
     return (coord_px >= -0.5) & (coord_px <= side_px - 0.5)
 
 
+def _in_view(uv_px: np.ndarray, camera) -> np.ndarray:
+    """Bool mask ``(...)``: image points ``uv_px`` (..., 2) that fall on one of the image's
+    pixels (:func:`_in_image` along both axes)."""
+    return _in_image(uv_px[..., 0], camera.width) & _in_image(uv_px[..., 1], camera.height)
+
+
 def _beyond_image(size: int, box: np.ndarray, camera) -> np.ndarray:
     """``(S, S)`` bool: the pixels of a ``size`` x ``size`` crop with box ``box`` (4,) that lie
     outside the camera's image (the crop shows no depth there: the sensor saw nothing). A crop
@@ -1211,8 +1217,7 @@ def _energy(
     mm_per_px = smp[..., 2] / camera.fx
     # past the image's border the sensor saw nothing: a sample there is neither on the hand nor
     # off it (a hand partly out of view is not pulled into the image)
-    in_view = _in_image(uv[..., 0], camera.width) & _in_image(uv[..., 1], camera.height)
-    off = ~on_hand & in_view
+    off = ~on_hand & _in_view(uv, camera)
     duv = np.where(off[..., None], uv - target_uv, 0.0)
     duv = np.nan_to_num(duv)
     # a sample within ``free_tolerance_px`` image px of the silhouette is not penalized
@@ -1627,8 +1632,7 @@ def refit_fingers(
     # past the image's border the depth shows nothing, so it cannot choose among hypotheses of a
     # finger that lies there: a finger with no joint on the image stays as fitted (swung anywhere
     # out of view it costs nothing, and it was)
-    uv = camera.project(fit.joints_mm[sel])
-    on_image = _in_image(uv[..., 0], camera.width) & _in_image(uv[..., 1], camera.height)
+    on_image = _in_view(camera.project(fit.joints_mm[sel]), camera)
     moved = [model.skeleton.angle_children[chain] for chain in chains]
     better &= np.stack([on_image[:, joints].any(axis=1) for joints in moved], axis=1)
     hit = np.flatnonzero(np.any(better, axis=1))

@@ -26,13 +26,10 @@ is wrong. The estimate, best first:
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from .datasets.base import segment_ids
 from .session import CROPS_FILE, CROPS_META_FILE, Session
-from .skeleton import Skeleton
 
 __all__ = [
     "cached_crops",
@@ -43,7 +40,6 @@ __all__ = [
     "guess_model",
     "reference_hand_model",
     "session_hand_model",
-    "template_hand",
 ]
 
 #: result arrays a frame's own estimate is read from, best first
@@ -270,33 +266,6 @@ def guess_model(session: Session, frame: int, results: dict[str, np.ndarray] | N
     model = session_hand_model(session, frame, results)
     obs = frame_observation(session, frame) if model else None
     return {} if obs is None else {"hand_model": model, "observation": obs}
-
-
-def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
-    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
-    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
-    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
-    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
-    from .skeleton import MSRA21
-
-    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
-        return None
-    hand = _relaxed_hand(tuple(float(x) for x in skeleton.template_bone_lengths_mm))
-    return hand + np.asarray(centre_mm, dtype=np.float64)
-
-
-@functools.lru_cache(maxsize=8)
-def _relaxed_hand(bone_lengths_mm: tuple[float, ...]) -> np.ndarray:
-    """:func:`template_hand`'s hand with its joints' mean at 0 (built once per bone lengths: the
-    lift asks for it on every frame with unplaced joints)."""
-    from .synth import GESTURES, build_hand_model, forward_kinematics, rotation_matrices
-
-    model = build_hand_model(np.asarray(bone_lengths_mm, dtype=np.float64))
-    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
-    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
-    out = hand[0] - hand[0].mean(axis=0)
-    out.flags.writeable = False
-    return out
 
 
 def prefill_uv(session: Session, joints_mm: np.ndarray) -> np.ndarray:

@@ -242,7 +242,8 @@ def _model_refit_inputs(session: Session, frame: int, model) -> dict:
 def _template_guess(session: Session, frame: int) -> np.ndarray | None:
     """The app's first guess of a frame when nothing has joints: the template hand at the hand
     centre of the frame's crop (None without the crop cache or a template)."""
-    from .prefill import cached_crops, template_hand
+    from .prefill import cached_crops
+    from .synth import template_hand
 
     crop_data = cached_crops(session)
     centre = None if crop_data is None else np.asarray(crop_data[1][frame], dtype=np.float64)
@@ -292,7 +293,7 @@ def annotate_prefilled(
     The references are annotated in time order, each opened with its pre-fill and fixed by
     :func:`interactive_fix` (each refit's seconds appended to ``refit_s``); the first, with
     nothing to pre-fill from, opens with the template hand at its hand centre, as in the app
-    (:func:`handanno_core.prefill.template_hand`; all its joints clicked without the crop cache).
+    (:func:`handanno_core.synth.template_hand`; all its joints clicked without the crop cache).
     After each reference, the references annotated so far are lifted with their bone lengths
     estimated (:func:`handanno_core.lift.lift_references`, what the app's "Lift all" does), and
     those bones and lifts feed the next pre-fill and refits (one bone set for the session).

@@ -22,6 +22,7 @@ Also here: the simulated annotator used by benchmarks (:func:`simulate_annotatio
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -1154,6 +1155,30 @@ def describe_motion(motion: SynthMotion, seed: int) -> dict:
     }
 
 
+# ---------------------------------------------------------------------------- template hand
+def template_hand(skeleton: Skeleton, centre_mm: np.ndarray) -> np.ndarray | None:
+    """``(J, 3)`` mm: a relaxed hand of the skeleton's template bone lengths, palm facing the
+    camera, fingers up, the joints' mean at ``centre_mm`` (3,) mm: the first guess of a frame when
+    nothing in the session has joints yet (instead of joints hung off the wrist in a column).
+    None for skeletons other than MSRA21's layout (the hand model is written for it)."""
+    if skeleton.joint_names != MSRA21.joint_names or skeleton.template_bone_lengths_mm is None:
+        return None
+    hand = _relaxed_hand(tuple(float(x) for x in skeleton.template_bone_lengths_mm))
+    return hand + np.asarray(centre_mm, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=8)
+def _relaxed_hand(bone_lengths_mm: tuple[float, ...]) -> np.ndarray:
+    """:func:`template_hand`'s hand with its joints' mean at 0 (built once per bone lengths: the
+    lift asks for it on every frame with unplaced joints)."""
+    model = build_hand_model(np.asarray(bone_lengths_mm, dtype=np.float64))
+    params = np.asarray(GESTURES["relaxed"], dtype=np.float64)[None]
+    hand = forward_kinematics(model, params, rotation_matrices(np.zeros((1, 3))), np.zeros((1, 3)))
+    out = hand[0] - hand[0].mean(axis=0)
+    out.flags.writeable = False
+    return out
+
+
 # ---------------------------------------------------------------------------- simulated annotator
 def simulate_annotation(
     gt_joints_mm: np.ndarray,
@@ -1188,7 +1213,7 @@ def simulate_annotation(
     if noise_px > 0:
         rng = rng if rng is not None else np.random.default_rng()
         noisy = uv + rng.normal(0.0, noise_px, uv.shape)
-    noisy = np.clip(noisy, 0.0, [camera.width - 1.0, camera.height - 1.0])
+    noisy = camera.onto_image(noisy)
     noisy[~on_image] = np.nan
     visible = visible_by_depth(gt, depth, camera, skeleton.surface_offsets_mm)
     parents = skeleton.parent_array
@@ -1252,5 +1277,6 @@ __all__ = [
     "rotation_matrices",
     "simulate_annotation",
     "simulate_annotations",
+    "template_hand",
     "synthesize_motion",
 ]

@@ -363,8 +363,8 @@ def test_joint_legend_shows_placed_occluded_and_selected():
 
 def test_hand_diagram_draws_every_joint_and_bone_placed_filled():
     from app.ui.theme import hand_diagram_svg, joint_colours, load_colours
-    from handanno_core.prefill import template_hand
     from handanno_core.skeleton import MSRA21
+    from handanno_core.synth import template_hand
 
     xy = template_hand(MSRA21, np.zeros(3))[:, :2]
     ann = FrameAnnotation.empty(21)

@@ -108,9 +108,7 @@ class AnnotateState:
         correction) loses that 3D position in the same journal entry: the click says where the
         joint is, and a 3D position elsewhere would pull the lift back to where it was."""
         j = self.joint if joint is None else int(joint)
-        uv = np.asarray(uv_px, dtype=np.float64)
-        cam = self.session.camera
-        uv = np.clip(uv, [0.0, 0.0], [cam.width - 1.0, cam.height - 1.0])
+        uv = self.session.camera.onto_image(uv_px)
         click = SetJoint2D(
             frame=self.frame, joint=j, uv_px=(round(float(uv[0]), 2), round(float(uv[1]), 2))
         )

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from handanno_core.prefill import template_hand
 from handanno_core.results import Stage
 from handanno_core.session import JournalEntry, Session
+from handanno_core.synth import template_hand
 
 from .annotate import AnnotateState
 from .events import EventBus, Update, UpdateTopic, entry_update, job_update, lift_update
@@ -88,7 +88,7 @@ class AppContext:
         propagation step from the nearest frame with joints, fitted to the frame's own depth with
         the hand model personalized from the lifted references once there are two,
         :func:`handanno_core.prefill.session_hand_model`), else, when nothing in the session
-        has joints yet, :func:`handanno_core.prefill.template_hand` at the frame's hand centre.
+        has joints yet, :func:`handanno_core.synth.template_hand` at the frame's hand centre.
         None where neither exists. Never raises: a failed pre-fill only means no first guess."""
         from handanno_core.prefill import prefill_reference, session_hand_model
 

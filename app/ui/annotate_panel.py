@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from handanno_core.annotation import FrameAnnotation
-from handanno_core.prefill import template_hand
 from handanno_core.session import JournalEntry, SessionError
+from handanno_core.synth import template_hand
 
 from ..control.annotate import display_joints
 from ..control.events import Update, UpdateTopic, entry_frame

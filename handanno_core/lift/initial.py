@@ -12,6 +12,7 @@ from ..camera import CameraIntrinsics
 from ..rigid import kabsch
 from ..sampling import depth_at
 from ..skeleton import Skeleton
+from ..synth import template_hand
 
 
 # ---------------------------------------------------------------------------------------- depth
@@ -77,11 +78,9 @@ def _template_direction(skeleton: Skeleton, joint: int, pose: np.ndarray) -> np.
 
 
 def _template_placed(skeleton: Skeleton, pose: np.ndarray, placed: np.ndarray):
-    """The skeleton's template hand (:func:`handanno_core.prefill.template_hand`) moved rigidly
+    """The skeleton's template hand (:func:`handanno_core.synth.template_hand`) moved rigidly
     onto the ``placed`` joints of ``pose`` (J, 3) mm (Kabsch), or None: every joint placed, no
     template, fewer than 3 placed joints or nearly collinear ones."""
-    from ..prefill import template_hand
-
     if placed.all():
         return None
     tmpl = template_hand(skeleton, np.zeros(3))

@@ -441,8 +441,8 @@ def _serve(args) -> int | None:
 
 def warn_incomplete_references(session) -> list[str]:
     """Print (stderr) and return one warning line per kind of incomplete reference: references
-    with only some joints placed are lifted from those (the rest is guessed), references with no
-    joint placed are skipped."""
+    with only some joints placed (not counting joints marked outside the image) are lifted from
+    those (the rest is guessed), references with no joint placed are skipped."""
 
     def frames_text(frames: list[int]) -> str:
         shown = ", ".join(map(str, frames[:10]))
@@ -450,7 +450,7 @@ def warn_incomplete_references(session) -> list[str]:
 
     anns = session.annotations(session.reference_frames)
     partial = [
-        int(f) for f, a in sorted(anns.items()) if a.annotated.any() and not a.annotated.all()
+        int(f) for f, a in sorted(anns.items()) if a.annotated.any() and not a.complete.all()
     ]
     empty = [
         int(f) for f in session.reference_frames if f not in anns or not anns[f].annotated.any()

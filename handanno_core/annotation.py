@@ -9,10 +9,15 @@ Per joint ``k`` of a J-joint skeleton:
 * ``xyz_mm[k]``: optional 3D position in mm placed directly on the point cloud; NaN where not given;
 * ``accepted[k]``: True where the 2D position is a guess the annotator accepted without moving it
   (the app's "accept guesses"), False where they clicked or dragged it; the lift weighs an
-  accepted position below a click (:data:`handanno_core.lift.ACCEPTED_UV_WEIGHT`).
+  accepted position below a click (:data:`handanno_core.lift.ACCEPTED_UV_WEIGHT`);
+* ``outside[k]``: True where the annotator says the joint lies past the image's border, where
+  nobody can click it (the hand leaves the view); such a joint has no 2D and no 3D position, and
+  the lift places it like any joint without a position (a penalty keeping its projection off
+  the image made the tune part's lifted references worse: benchmarks/HISTORY.md, stop 58).
 
 A joint with neither 2D nor 3D is "unannotated": lifting still places it by the constraints and flags
-it as low confidence.
+it as low confidence. A frame is complete (:attr:`FrameAnnotation.complete`) when every joint is
+annotated or marked outside the image.
 """
 
 from __future__ import annotations
@@ -33,10 +38,13 @@ class FrameAnnotation:
     depth_order: np.ndarray  # (J,) int8 in {-1, 0, +1}
     xyz_mm: np.ndarray  # (J, 3) float64, NaN = not placed in 3D
     accepted: np.ndarray = None  # type: ignore[assignment]  # (J,) bool; None: all False
+    outside: np.ndarray = None  # type: ignore[assignment]  # (J,) bool; None: all False
 
     def __post_init__(self) -> None:
         if self.accepted is None:
             self.accepted = np.zeros(np.shape(self.uv_px)[0], dtype=bool)
+        if self.outside is None:
+            self.outside = np.zeros(np.shape(self.uv_px)[0], dtype=bool)
 
     @classmethod
     def empty(cls, num_joints: int) -> FrameAnnotation:
@@ -63,7 +71,13 @@ class FrameAnnotation:
 
     @property
     def annotated(self) -> np.ndarray:
+        """``(J,)`` bool: joint has a 2D or a 3D position."""
         return self.has_2d | self.has_3d
+
+    @property
+    def complete(self) -> np.ndarray:
+        """``(J,)`` bool: joint annotated, or marked outside the image (nothing left to do)."""
+        return self.annotated | self.outside
 
     def validate(self, num_joints: int, where: str = "annotation") -> FrameAnnotation:
         """Check shapes and values against a J-joint skeleton; return self or raise AnnotationError."""
@@ -73,6 +87,7 @@ class FrameAnnotation:
             "depth_order": (num_joints,),
             "xyz_mm": (num_joints, 3),
             "accepted": (num_joints,),
+            "outside": (num_joints,),
         }
         for name, shape in expected.items():
             value = np.asarray(getattr(self, name))
@@ -98,6 +113,8 @@ class FrameAnnotation:
         self.depth_order = np.asarray(self.depth_order, dtype=np.int8)
         # an accepted guess is a 2D position: the flag means nothing where there is none
         self.accepted = np.asarray(self.accepted, dtype=bool) & self.has_2d
+        # a joint with a position is where it was placed, not outside the image
+        self.outside = np.asarray(self.outside, dtype=bool) & ~self.annotated
         return self
 
     def copy(self) -> FrameAnnotation:
@@ -107,10 +124,12 @@ class FrameAnnotation:
             self.depth_order.copy(),
             self.xyz_mm.copy(),
             self.accepted.copy(),
+            self.outside.copy(),
         )
 
-    # JSON: lists with None for NaN, so session.json stays valid JSON; "accepted" only where some
-    # joint is an accepted guess (annotations written before the flag read as all clicked).
+    # JSON: lists with None for NaN, so session.json stays valid JSON; "accepted" ("outside") only
+    # where some joint is an accepted guess (marked outside the image): annotations written before
+    # the flags read as all clicked (all inside).
     def to_json(self) -> dict:
         def rows(a: np.ndarray) -> list:
             return [None if np.isnan(r).any() else [round(float(x), 4) for x in r] for r in a]
@@ -123,6 +142,8 @@ class FrameAnnotation:
         }
         if np.any(self.accepted):
             out["accepted"] = [bool(x) for x in self.accepted]
+        if np.any(self.outside):
+            out["outside"] = [bool(x) for x in self.outside]
         return out
 
     @classmethod
@@ -143,6 +164,7 @@ class FrameAnnotation:
                 accepted=np.asarray(
                     data.get("accepted") or [False] * len(data["uv_px"]), dtype=bool
                 ),
+                outside=np.asarray(data.get("outside") or [False] * len(data["uv_px"]), dtype=bool),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise AnnotationError(f"{where}: malformed annotation: {exc}") from exc

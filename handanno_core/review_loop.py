@@ -88,7 +88,9 @@ def simulated_fix(
     the truth's plus ``noise_px`` Gaussian noise, its 3D position is cleared (a click replaces
     it, ``AnnotateState.place_2d``), and it gets the truth's visibility and depth order
     (:func:`handanno_core.synth.simulate_annotation`). A joint whose truth is off the image
-    cannot be clicked and stays as seeded. ``depth`` (H, W) mm."""
+    cannot be clicked: it stays as seeded where the shown skeleton draws it off the image too,
+    else the annotator marks it outside the image (the app's "Outside the image", not counted
+    as a click). ``depth`` (H, W) mm."""
     from .review import seed_annotation
     from .synth import simulate_annotation
 
@@ -104,6 +106,11 @@ def simulated_fix(
     ann.accepted[moved] = False
     ann.visible[moved] = full.visible[moved]
     ann.depth_order[moved] = full.depth_order[moved]
+    mark = full.outside & camera.on_image(camera.project(shown))
+    ann.uv_px[mark] = np.nan
+    ann.xyz_mm[mark] = np.nan
+    ann.accepted[mark] = False
+    ann.outside[mark] = True
     return ann, int(moved.sum())
 
 
@@ -131,8 +138,10 @@ def interactive_fix(
     (:func:`handanno_core.guesses.refit_guesses`, as the app's live lift, warm-started from the
     previous refit, ``bone_lengths_mm`` (B,) mm, ``eps_mm``/``angle_limits`` the session's), and
     repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D). A
-    joint whose truth is off the image is never clicked (nobody can), and a guess drawn off the
-    image is not accepted (the app skips it): such a joint is left to the lift's constraints.
+    joint whose truth is off the image is never clicked (nobody can): the annotator marks it
+    outside the image before the first click (the app's "Outside the image", not counted as a
+    click), so every refit keeps it off the image, and no guess of it is accepted; a guess drawn
+    off the image is not accepted either (the app skips it).
 
     A moved joint gets the true 2D plus ``noise_px`` Gaussian noise and the truth's visibility and
     depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the
@@ -148,6 +157,7 @@ def interactive_fix(
     truth = camera.project(np.asarray(gt_mm, dtype=np.float64))
     guess = np.asarray(guess_mm, dtype=np.float64)
     ann = FrameAnnotation.empty(skeleton.num_joints)
+    ann.outside[:] = full.outside
     shown, previous, slack = guess, None, ()
     clicked: list[int] = []
     while True:
@@ -189,9 +199,8 @@ def interactive_fix(
             if refit_s is not None:
                 refit_s.append(time.perf_counter() - t0)
         shown, previous, slack = fit.joints_mm, fit.joints_mm, fit.slack_joints
-    placed = ann.annotated
     uv = camera.project(shown)
-    take = ~placed & camera.on_image(uv)  # "accept guesses" skips those off the image
+    take = ~ann.complete & camera.on_image(uv)  # "accept guesses" skips marked and off-image
     ann.uv_px[take] = uv[take]
     ann.accepted[:] = take
     ann.visible[:] = full.visible

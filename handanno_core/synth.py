@@ -1193,8 +1193,8 @@ def simulate_annotation(
     * ``uv_px``: projection of the ground-truth joints ``(J, 3)`` plus Gaussian noise of std
       ``noise_px`` per coordinate, kept on the image (a click lands on it); NaN (not annotated)
       for a joint whose true projection is off the image, which nobody can click (the app's
-      clicks and accepted guesses land on the image; the lift places such a joint by its
-      constraints);
+      clicks and accepted guesses land on the image); such a joint is marked ``outside`` (the
+      app's "Outside the image"), which the lift places by its constraints;
     * ``visible``: :func:`sampling.visible_by_depth` of the ground truth (the closest valid depth
       ``D`` in the 3x3 pixels at the rounded projection satisfies ``D >= z - surface_offset - 10 mm``;
       no valid depth there, or off the image -> False);
@@ -1224,7 +1224,11 @@ def simulate_annotation(
     order[has_parent & (dz < -10.0)] = -1
     order[~on_image] = 0
     return FrameAnnotation(
-        uv_px=noisy, visible=visible, depth_order=order, xyz_mm=np.full((j, 3), np.nan)
+        uv_px=noisy,
+        visible=visible,
+        depth_order=order,
+        xyz_mm=np.full((j, 3), np.nan),
+        outside=~on_image,
     ).validate(j)
 
 

@@ -21,7 +21,7 @@ from handanno_core.annotation import FrameAnnotation
 from handanno_core.camera import CameraIntrinsics
 from handanno_core.results import Stage, update_lifted
 from handanno_core.review import rank_priority
-from handanno_core.session import SetJoint2D, SetReview
+from handanno_core.session import SetFrameAnnotation, SetJoint2D, SetOutside, SetReview
 
 FRAMES = 40
 
@@ -282,6 +282,40 @@ def test_undo_selects_the_undone_joint(session):
     assert state.joint == placed
 
 
+def test_a_joint_marked_outside_the_image_completes_the_frame_and_is_never_accepted(session):
+    """A reference whose hand leaves the view: the joints nobody can click are marked outside the
+    image (O), after which the frame counts as complete, "accept guesses" leaves them alone, and
+    one undo (or X) takes a mark away."""
+    session.execute(SetFrameAnnotation(frame=session.reference_frames[0], annotation=None))
+    state = AnnotateState(session, client="u")
+    frame, j = state.frame, session.skeleton.num_joints
+    done = session.progress()[0]
+    assert frame == session.reference_frames[0] and not session.is_annotated(frame)
+    guesses = np.tile([0.0, 0.0, 400.0], (j, 1))  # every guess drawn at the image's centre
+    state.select_joint(20)
+    state.toggle_outside()
+    assert state.joint == 0  # the next unplaced joint
+    assert state.joint_text()[0] == "visible"
+    state.select_joint(16)
+    state.toggle_outside()
+    state.accept_guesses(guesses)
+    ann = session.annotation(frame)
+    assert ann.outside[[16, 20]].all() and not ann.annotated[[16, 20]].any()
+    assert ann.annotated.sum() == j - 2 and session.is_annotated(frame)
+    assert session.progress()[0] == done + 1
+    again = type(session).open(session.folder)  # replayed from the journal
+    assert again.annotation(frame).outside[[16, 20]].all() and again.is_annotated(frame)
+    again.close()
+    state.undo()  # the accepted guesses
+    state.undo()  # the mark of joint 16
+    ann = session.annotation(frame)
+    assert not ann.outside[16] and ann.outside[20] and not session.is_annotated(frame)
+    state.select_joint(20)
+    assert state.joint_text()[0] == "outside the image"
+    state.clear_joint()
+    assert not session.annotation(frame).outside.any()
+
+
 def test_display_joints_edited_joints_follow_their_annotation():
     camera = CameraIntrinsics(fx=200.0, fy=200.0, cx=64.0, cy=64.0, width=128, height=128)
     ann = FrameAnnotation.empty(3)
@@ -321,7 +355,6 @@ def test_first_guess_of_a_fresh_session_is_hand_shaped(data_dir, tmp_path):
 
 def test_lift_warns_about_incomplete_references(session, capsys):
     from app.cli import warn_incomplete_references
-    from handanno_core.session import SetFrameAnnotation
 
     assert warn_incomplete_references(session) == []  # every reference fully annotated
     session.execute(SetJoint2D(frame=10, joint=5, uv_px=None), client="t")
@@ -332,6 +365,8 @@ def test_lift_warns_about_incomplete_references(session, capsys):
     assert "1 of 4 reference frames are only partly annotated (frames 10)" in lines[0]
     assert "(frames 20): they are not lifted" in lines[1]
     assert "handanno: warning: 1 of 4" in capsys.readouterr().err
+    session.execute(SetOutside(frame=10, joint=5, outside=True), client="t")  # past the border
+    assert len(warn_incomplete_references(session)) == 1
 
 
 def test_frame_store_names_the_source_file(session):
@@ -359,6 +394,10 @@ def test_joint_legend_shows_placed_occluded_and_selected():
     assert "occluded" in rows[1] and "opacity" in rows[1] and "occluded" not in rows[0]
     assert "font-weight:bold" in rows[2] and "rgb(0,0,255)" in rows[2]
     assert "I-tip" in rows[2]
+    ann.uv_px[0] = np.nan
+    ann.outside[0] = True
+    rows = joint_legend(["wrist", "index_mcp", "index_tip"], colours, ann, 2).split("<tr")[1:]
+    assert "⊘" in rows[0] and "outside the image" in rows[0]
 
 
 def test_hand_diagram_draws_every_joint_and_bone_placed_filled():

@@ -102,7 +102,7 @@ def test_cli_reaches_the_ui_only_through_its_server() -> None:
 
 #: command classes of the session: the UI asks app.control to build and execute them
 COMMAND_NAMES = {
-    "Batch", "SetFrameAnnotation", "SetJointState", "SetJoint2D", "SetJoint3D", "SetVisibility",
+    "Batch", "SetFrameAnnotation", "SetJointState", "SetJoint2D", "SetJoint3D", "SetOutside", "SetVisibility",
     "SetDepthOrder", "SetReference", "SetReview", "parse_command",
 }  # fmt: skip
 

@@ -143,9 +143,10 @@ def test_the_app_and_the_bench_call_the_same_refit(session, monkeypatch):
 
 def test_nobody_clicks_a_joint_whose_truth_is_off_the_image(session):
     """The app's clicks and accepted guesses land on the image, so the simulated annotator leaves
-    a joint whose true projection is past the image's border unannotated: it never clicks it
-    (the interactive fix still ends), accepts no guess drawn off the image, and a review
-    correction keeps such a joint where it was shown."""
+    a joint whose true projection is past the image's border unannotated and marks it outside
+    the image (the app's O): it never clicks it (the interactive fix still ends), accepts no
+    guess of it, and a review correction keeps such a joint where it was shown when that is off
+    the image too, else marks it outside."""
     from handanno_core.review_loop import simulated_fix
 
     x = frame_inputs(session, 5)
@@ -159,6 +160,7 @@ def test_nobody_clicks_a_joint_whose_truth_is_off_the_image(session):
     full = simulate_annotation(gt, x["depth"], cam, sk, noise_px=3.0)
     assert np.isnan(full.uv_px[off]).all() and not full.visible[off].any()
     assert not full.depth_order[off].any() and cam.on_image(full.uv_px[~off]).all()
+    np.testing.assert_array_equal(full.outside, off)
 
     guess = gt + np.array([12.0, -8.0, 4.0])
     ann, clicks, order = interactive_fix(
@@ -167,9 +169,18 @@ def test_nobody_clicks_a_joint_whose_truth_is_off_the_image(session):
     assert clicks == len(order) >= 1 and not set(order) & set(np.flatnonzero(off).tolist())
     assert cam.on_image(ann.uv_px[ann.has_2d]).all()
     assert np.all(np.linalg.norm(ann.uv_px[~off] - truth[~off], axis=1) <= 4.0 + 1e-9)
+    assert ann.outside[off].all() and not ann.annotated[off].any() and ann.complete.all()
+    inward = gt + np.array([0.0, 30.0, 0.0])  # drawn 30 mm lower: every joint on the image
+    assert cam.on_image(cam.project(inward)).all()
+    ann, _, order = interactive_fix(inward, gt, x["depth"], cam, sk, x["bones"], **x["settings"])
+    assert ann.outside[off].all() and not ann.annotated[off].any() and ann.complete.all()
 
     shown = gt + np.array([20.0, 0.0, 0.0])  # every joint ~20 px off
     fixed, moved = simulated_fix(shown, gt, x["depth"], cam, sk)
     assert moved == int((~off).sum())
     np.testing.assert_allclose(fixed.xyz_mm[off], shown[off])  # left as the app seeded it
     assert fixed.accepted[off].all() and not fixed.accepted[~off].any()
+    assert cam.on_image(cam.project(shown))[off].sum() < off.sum()  # some drawn on the image
+    fixed, moved = simulated_fix(inward, gt, x["depth"], cam, sk)
+    assert moved == int((~off).sum()) and fixed.outside[off].all() and fixed.complete.all()
+    assert not fixed.annotated[off].any() and not fixed.outside[~off].any()

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from handanno_core.annotation import FrameAnnotation
 from handanno_core.camera import MSRA_CAMERA
 from handanno_core.session import (
     Batch,
@@ -16,6 +17,7 @@ from handanno_core.session import (
     SetDepthOrder,
     SetJoint2D,
     SetJoint3D,
+    SetOutside,
     SetReference,
     SetReview,
     SetVisibility,
@@ -225,3 +227,24 @@ def test_annotation_json_keeps_the_accepted_flag_and_reads_old_json_as_clicks():
     assert not FrameAnnotation.from_json(data, 21).accepted.any()
     with pytest.raises(AnnotationError, match="accepted has shape"):
         FrameAnnotation.from_json({**data, "accepted": [True] * 5}, 21)
+
+
+def test_a_joint_marked_outside_the_image_loses_its_placement_and_a_click_takes_the_mark(session):
+    session.execute(SetJoint2D(frame=0, joint=4, uv_px=(319.0, 10.0)), client="a")
+    session.execute(SetJoint3D(frame=0, joint=5, xyz_mm=(1.0, 2.0, 300.0)), client="a")
+    session.execute(SetOutside(frame=0, joint=4, outside=True), client="a")
+    session.execute(SetOutside(frame=0, joint=5, outside=True), client="a")
+    ann = session.annotation(0)
+    assert ann.outside[[4, 5]].all() and not ann.annotated[[4, 5]].any()
+    assert ann.complete[[4, 5]].all() and not ann.complete[6]
+    assert session.model.annotations["0"]["outside"][4] is True
+    session.undo("a")  # joint 5 is placed in 3D again (2D by projection), unmarked
+    ann = session.annotation(0)
+    assert ann.xyz_mm[5].tolist() == [1.0, 2.0, 300.0] and not ann.outside[5]
+    session.execute(SetJoint2D(frame=0, joint=4, uv_px=(300.0, 12.0)), client="a")
+    ann = session.annotation(0)
+    assert not ann.outside[4] and ann.uv_px[4].tolist() == [300.0, 12.0]
+    session.undo("a")  # the click undone: the mark is back
+    assert session.annotation(0).outside[4]
+    before = {k: v for k, v in session.model.annotations["0"].items() if k != "outside"}
+    assert not FrameAnnotation.from_json(before, 21).outside.any()  # written before the mark

@@ -21,6 +21,7 @@ from handanno_core.session import (
     SetDepthOrder,
     SetJoint2D,
     SetJoint3D,
+    SetOutside,
     SetVisibility,
 )
 
@@ -78,14 +79,14 @@ class AnnotateState:
         return self.session.annotation(self.frame) or FrameAnnotation.empty(self.num_joints)
 
     def first_unplaced_joint(self) -> int:
-        placed = self.annotation().annotated
+        placed = self.annotation().complete
         missing = np.flatnonzero(~placed)
         return int(missing[0]) if missing.size else 0
 
     def advance_joint(self) -> int:
         """After placing: select the next unplaced joint after the current one (wrapping), or
-        simply the next joint when all are placed."""
-        placed = self.annotation().annotated
+        simply the next joint when all are placed (or marked outside the image)."""
+        placed = self.annotation().complete
         j = self.num_joints
         for step in range(1, j + 1):
             k = (self.joint + step) % j
@@ -136,13 +137,14 @@ class AnnotateState:
 
     def accept_guesses(self, guesses_mm: np.ndarray) -> JournalEntry | None:
         """Place every joint not placed yet at the 2D projection of its guess ``guesses_mm``
-        ``(J, 3)`` mm (NaN rows = no guess; guesses outside the image are skipped), flagged as
+        ``(J, 3)`` mm (NaN rows = no guess; guesses drawn off the image and joints marked outside
+        it are skipped), flagged as
         accepted (the lift weighs them below clicks; a later click or drag clears the flag): ONE
         journal entry (a Batch), undone in one step. None if there is nothing to place."""
         cam = self.session.camera
         ann = self.annotation()
         guesses = np.asarray(guesses_mm, dtype=np.float64)
-        ok = ~ann.annotated & np.all(np.isfinite(guesses), axis=1) & (guesses[:, 2] > 0)
+        ok = ~ann.complete & np.all(np.isfinite(guesses), axis=1) & (guesses[:, 2] > 0)
         uv = cam.project(np.where(ok[:, None], guesses, [[0.0, 0.0, 1.0]]))
         ok &= cam.on_image(uv)
         if not ok.any():
@@ -167,7 +169,19 @@ class AnnotateState:
             return self._execute(SetJoint3D(frame=self.frame, joint=j, xyz_mm=None))
         if ann.has_2d[j]:
             return self._execute(SetJoint2D(frame=self.frame, joint=j, uv_px=None))
+        if ann.outside[j]:
+            return self._execute(SetOutside(frame=self.frame, joint=j, outside=False))
         return None
+
+    def toggle_outside(self) -> JournalEntry:
+        """Mark the selected joint outside the image (clearing its placement; the next unplaced
+        joint becomes selected) or, if it is marked, take the mark away."""
+        j = self.joint
+        outside = not bool(self.annotation().outside[j])
+        entry = self._execute(SetOutside(frame=self.frame, joint=j, outside=outside))
+        if outside:
+            self.advance_joint()
+        return entry
 
     def toggle_visibility(self) -> JournalEntry:
         visible = bool(self.annotation().visible[self.joint])
@@ -208,6 +222,8 @@ class AnnotateState:
     def joint_text(self) -> tuple[str, str]:
         """(visibility text, depth-order text) of the selected joint."""
         ann = self.annotation()
+        if ann.outside[self.joint]:
+            return "outside the image", "n/a (outside the image)"
         vis = "visible" if ann.visible[self.joint] else "occluded"
         if self.session.skeleton.parent_array[self.joint] < 0:
             return vis, "n/a (root)"

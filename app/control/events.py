@@ -35,6 +35,7 @@ _KIND_TOPICS: dict[str, frozenset[UpdateTopic]] = {
     "set_joint": frozenset({UpdateTopic.ANNOTATION}),
     "set_2d": frozenset({UpdateTopic.ANNOTATION}),
     "set_3d": frozenset({UpdateTopic.ANNOTATION}),
+    "set_outside": frozenset({UpdateTopic.ANNOTATION}),
     "set_visible": frozenset({UpdateTopic.ANNOTATION}),
     "set_depth_order": frozenset({UpdateTopic.ANNOTATION}),
     "set_reference": frozenset({UpdateTopic.REFERENCES}),
@@ -77,7 +78,7 @@ def edited_joints(entry: JournalEntry, num_joints: int) -> tuple[int, ...]:
     out: set[int] = set()
     for c in _commands(entry):
         kind = c.get("kind")
-        if kind in ("set_2d", "set_3d"):
+        if kind in ("set_2d", "set_3d", "set_outside"):
             out.add(int(c["joint"]))
         elif kind == "set_frame":
             out.update(range(num_joints))

@@ -46,6 +46,7 @@ class AnnotateWidgets:
     joint_dropdown: Any
     visibility_button: Any
     depth_button: Any
+    outside_button: Any
     click_mode: Any
     edit_buttons: Any
     accept_button: Any
@@ -79,6 +80,11 @@ def make_annotate_widgets(
         ),
         depth_button=gui.add_button(
             "Depth vs parent: unknown (D)", hint="Cycle unknown → closer → farther"
+        ),
+        outside_button=gui.add_button(
+            "Outside the image (O)",
+            hint="The selected joint lies past the image's border, where nobody can click it "
+            "(press again to take the mark away)",
         ),
         click_mode=gui.add_dropdown(
             "Click places",
@@ -141,6 +147,7 @@ def _bind_widgets(self: AnnotatePanel) -> None:
     )
     w.visibility_button.on_click(claimed(lambda _: self.toggle_visibility()))
     w.depth_button.on_click(claimed(lambda _: self.cycle_depth_order()))
+    w.outside_button.on_click(claimed(lambda _: self.toggle_outside()))
     w.click_mode.on_update(lambda _: self._set_click_mode(w.click_mode.value))
     w.edit_buttons.on_click(
         claimed(lambda e: {"Undo": self.undo, "Redo": self.redo, "Clear joint": self.clear_joint}[e.target.value]())
@@ -248,7 +255,7 @@ class AnnotatePanel:
             )
         if self._lifted is None and annotation.annotated.any():
             self.ctx.worker.submit(frame)
-        if self._lifted is None and not annotation.annotated.all():
+        if self._lifted is None and not annotation.complete.all():
             threading.Thread(
                 target=self._load_prefill, args=(frame,), name="handanno-prefill", daemon=True
             ).start()
@@ -271,6 +278,9 @@ class AnnotatePanel:
 
     def cycle_depth_order(self) -> JournalEntry | None:
         return self.edit(self.state.cycle_depth_order)
+
+    def toggle_outside(self) -> JournalEntry | None:
+        return self.edit(self.state.toggle_outside)
 
     def clear_joint(self) -> JournalEntry | None:
         return self.edit(self.state.clear_joint)
@@ -426,6 +436,10 @@ class AnnotatePanel:
             w.joint_dropdown.value = self._options[st.joint]
         w.visibility_button.label = f"Visibility: {vis} (V)"
         w.depth_button.label = f"Depth vs parent: {order} (D)"
+        outside = bool(self._annotation.outside[st.joint])
+        w.outside_button.label = (
+            "Outside the image: yes (O)" if outside else "Outside the image (O)"
+        )
         data = self.frame_data
         w.message_md.content = f"**⚠ {data.error}**" if data is not None and data.error else ""
         colours, ann = self.hand.base_colours, self._annotation

@@ -123,6 +123,7 @@ class ClientUI:
             "toggle_visibility": (a.toggle_visibility, None),
             "cycle_depth_order": (a.cycle_depth_order, None),
             "clear_joint": (a.clear_joint, None),
+            "toggle_outside": (a.toggle_outside, None),
             "accept_guesses": (a.accept_guesses, None),
             "toggle_click_mode": (a.toggle_click_mode, None),
             "undo": (a.undo, None),

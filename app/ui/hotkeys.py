@@ -73,7 +73,19 @@ HOTKEYS: tuple[Hotkey, ...] = (
         "D",
         description="selected joint vs its parent: unknown → closer → farther",
     ),
-    Hotkey("clear_joint", "Clear joint", "X", description="remove the selected joint's placement"),
+    Hotkey(
+        "clear_joint",
+        "Clear joint",
+        "X",
+        description="remove the selected joint's placement (or its outside-the-image mark)",
+    ),
+    Hotkey(
+        "toggle_outside",
+        "Outside the image",
+        "O",
+        description="selected joint lies past the image's border, where nobody can click it "
+        "(again: take the mark away)",
+    ),
     Hotkey(
         "accept_guesses",
         "Accept guesses",

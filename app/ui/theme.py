@@ -73,17 +73,18 @@ def load_help_markdown() -> str:
 
 def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selected: int) -> str:
     """HTML legend of the joints: each joint's colour (as drawn), its label and full name, and
-    whether it is placed (● placed, ◐ an accepted guess, ○ not yet), occluded (greyed, "occluded")
-    or selected (bold)."""
+    whether it is placed (● placed, ◐ an accepted guess, ⊘ marked outside the image, ○ not yet),
+    occluded (greyed, "occluded") or selected (bold)."""
     rows = []
     for k, name in enumerate(names):
         r, g, b = (int(c) for c in colours[k])
         placed = bool(annotation.annotated[k])
-        occluded = not bool(annotation.visible[k])
-        mark = ("◐" if annotation.accepted[k] else "●") if placed else "○"
-        style = "opacity:0.45;" if occluded else ""
+        outside = bool(annotation.outside[k])
+        occluded = not bool(annotation.visible[k]) and not outside
+        mark = ("◐" if annotation.accepted[k] else "●") if placed else "⊘" if outside else "○"
+        style = "opacity:0.45;" if occluded or outside else ""
         weight = "font-weight:bold;" if k == selected else ""
-        note = " occluded" if occluded else ""
+        note = " occluded" if occluded else " outside the image" if outside else ""
         rows.append(
             f'<tr style="{style}{weight}"><td style="color:rgb({r},{g},{b})">{mark}</td>'
             f"<td>{k}</td><td>{short_name(name)}</td><td>{name}{note}</td></tr>"
@@ -92,7 +93,7 @@ def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selecte
         '<table class="handanno-legend" style="font-size:0.8em">'
         + "".join(rows)
         + "</table><div style='font-size:0.75em'>● placed · ◐ accepted guess (a drag places it "
-        "yourself; the lift trusts it less) · ○ not placed (drawn as a small faded guess) · "
+        "yourself; the lift trusts it less) · ⊘ outside the image · ○ not placed (drawn as a small faded guess) · "
         "faded row / grey sphere: occluded · bold: selected</div>"
     )
 

@@ -87,6 +87,7 @@ class _JointEdit(_Command):
             "visible": bool(ann.visible[k]),
             "order": int(ann.depth_order[k]),
             "accepted": bool(ann.accepted[k]),
+            "outside": bool(ann.outside[k]),
         }
 
     #: the joint fields this edit changes; its inverse restores exactly these (per joint, per
@@ -107,6 +108,7 @@ class _JointEdit(_Command):
             visible=keep.get("visible"),
             order=keep.get("order"),
             accepted=keep.get("accepted"),
+            outside=keep.get("outside"),
         )
 
 
@@ -118,8 +120,8 @@ class SetJointState(_JointEdit):
     """Set several fields of one joint at once (the inverse of every single-joint edit).
 
     ``uv_px``/``xyz_mm``: a position, ``None`` (clear) or ``"unchanged"``; ``visible``/``order``/
-    ``accepted``: a value or ``None`` (unchanged). Entries written before the journal had checksums
-    set the first four; entries written before the ``accepted`` flag leave it unchanged.
+    ``accepted``/``outside``: a value or ``None`` (unchanged). Entries written before the journal
+    had checksums set the first four; entries written before a flag leave it unchanged.
     """
 
     kind: Literal["set_joint"] = "set_joint"
@@ -128,10 +130,11 @@ class SetJointState(_JointEdit):
     visible: bool | None = None
     order: Literal[-1, 0, 1] | None = None
     accepted: bool | None = None
+    outside: bool | None = None
 
     def changed_fields(self) -> tuple[str, ...]:
         out = [f for f in ("uv_px", "xyz_mm") if getattr(self, f) != _UNCHANGED]
-        kept = ("visible", "order", "accepted")
+        kept = ("visible", "order", "accepted", "outside")
         return (*out, *(f for f in kept if getattr(self, f) is not None))
 
     def check(self, session: Session) -> None:
@@ -154,6 +157,8 @@ class SetJointState(_JointEdit):
             ann.depth_order[k] = self.order
         if self.accepted is not None:
             ann.accepted[k] = self.accepted
+        if self.outside is not None:
+            ann.outside[k] = self.outside
         self._store(session, ann)
 
 
@@ -162,12 +167,12 @@ class SetJoint2D(_JointEdit):
 
     ``accepted``: the position is a guess the annotator accepted without moving it (the app's
     "accept guesses"); a click or a drag leaves it False. Entries written before the flag are
-    clicks."""
+    clicks. A position clears the joint's "outside the image" mark."""
 
     kind: Literal["set_2d"] = "set_2d"
     uv_px: tuple[float, float] | None
     accepted: bool = False
-    fields: ClassVar[tuple[str, ...]] = ("uv_px", "accepted")
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "accepted", "outside")
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -178,15 +183,18 @@ class SetJoint2D(_JointEdit):
         ann = self._annotation(session)
         ann.uv_px[self.joint] = np.nan if self.uv_px is None else self.uv_px
         ann.accepted[self.joint] = self.accepted and self.uv_px is not None
+        if self.uv_px is not None:
+            ann.outside[self.joint] = False
         self._store(session, ann)
 
 
 class SetJoint3D(_JointEdit):
-    """Place (or clear) one joint directly in 3D (mm); its 2D position follows by projection."""
+    """Place (or clear) one joint directly in 3D (mm); its 2D position follows by projection (and
+    the joint is no longer marked outside the image)."""
 
     kind: Literal["set_3d"] = "set_3d"
     xyz_mm: tuple[float, float, float] | None
-    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm", "accepted")
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm", "accepted", "outside")
 
     def check(self, session: Session) -> None:
         super().check(session)
@@ -203,6 +211,26 @@ class SetJoint3D(_JointEdit):
             ann.xyz_mm[self.joint] = self.xyz_mm
             ann.uv_px[self.joint] = session.camera.project(np.asarray(self.xyz_mm))
             ann.accepted[self.joint] = False  # placed by hand
+            ann.outside[self.joint] = False
+        self._store(session, ann)
+
+
+class SetOutside(_JointEdit):
+    """Mark one joint as lying past the image's border (``outside=True``: its 2D and 3D positions
+    are cleared, since nobody can place it where the sensor saw nothing) or take the mark away."""
+
+    kind: Literal["set_outside"] = "set_outside"
+    outside: bool
+    fields: ClassVar[tuple[str, ...]] = ("uv_px", "xyz_mm", "accepted", "outside")
+
+    def apply(self, session: Session) -> None:
+        ann = self._annotation(session)
+        k = self.joint
+        if self.outside:
+            ann.uv_px[k] = np.nan
+            ann.xyz_mm[k] = np.nan
+            ann.accepted[k] = False
+        ann.outside[k] = self.outside
         self._store(session, ann)
 
 
@@ -329,6 +357,7 @@ Command = Annotated[
     | SetJointState
     | SetJoint2D
     | SetJoint3D
+    | SetOutside
     | SetVisibility
     | SetDepthOrder
     | SetReference

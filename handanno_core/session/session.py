@@ -336,7 +336,7 @@ class Session:
         return out
 
     def is_annotated(self, frame: int) -> bool:
-        """Every joint of ``frame`` placed. Memoized per stored annotation (commands replace a
+        """Every joint of ``frame`` placed or marked outside the image. Memoized per stored annotation (commands replace a
         frame's annotation, never edit it in place), so :meth:`progress` over thousands of
         references parses only what changed."""
         data = self.model.annotations.get(str(frame))
@@ -346,7 +346,7 @@ class Session:
         if memo is not None and memo[0] is data:
             return memo[1]
         ann = self.annotation(frame)
-        done = ann is not None and bool(ann.annotated.all())
+        done = ann is not None and bool(ann.complete.all())
         self._complete[frame] = (data, done)
         return done
 

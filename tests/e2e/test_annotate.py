@@ -344,3 +344,37 @@ def test_undo_survives_a_page_reload(ctx: Ctx):
     wait_until(lambda: journal(folder)[-1]["action"] == "undo", what="an undo after the reload")
     undo = journal(folder)[-1]
     assert undo["target"] == edit["seq"] and undo["client"] == edit["client"]
+
+
+def test_a_joint_past_the_border_is_marked_outside_the_image_by_its_hotkey(ctx: Ctx):
+    """A hand past the image's border: the annotator presses O on the selected joint. The journal
+    holds the mark, the next joint is selected, the panel's button says so for the marked joint
+    (selected again), and O again takes the mark away."""
+    page, folder, view = ctx.page, ctx.folder, ctx.view
+    ctx.settle()
+    frame, joint = view.frame, view.state.joint
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    n = len(journal(folder))
+    page.keyboard.press("o")
+    wait_until(lambda: len(journal(folder)) > n, what="the outside-the-image mark")
+    entry = journal(folder)[-1]
+    assert entry["command"] == {
+        "kind": "set_outside", "frame": frame, "joint": joint, "outside": True
+    }  # fmt: skip
+    ann = reopen(folder).annotation(frame)
+    assert ann.outside[joint] and not ann.annotated[joint]
+    assert view.state.joint != joint  # the next unplaced joint is selected
+    view.select_joint(joint)
+    wait_until(
+        lambda: page.get_by_role("button", name="Outside the image: yes (O)").is_visible(),
+        what="the button showing the mark",
+    )
+    ctx.settle()
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    page.keyboard.press("o")
+    wait_until(lambda: len(journal(folder)) > n + 1, what="the mark taken away")
+    assert not reopen(folder).annotation(frame).outside[joint]
+    wait_until(
+        lambda: page.get_by_role("button", name="Outside the image (O)").is_visible(),
+        what="the button without the mark",
+    )

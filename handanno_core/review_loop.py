@@ -140,8 +140,8 @@ def interactive_fix(
     repeat until no guess is more than ``click_px`` off; then accept the guesses (their 2D). A
     joint whose truth is off the image is never clicked (nobody can): the annotator marks it
     outside the image before the first click (the app's "Outside the image", not counted as a
-    click), so every refit keeps it off the image, and no guess of it is accepted; a guess drawn
-    off the image is not accepted either (the app skips it).
+    click), and no guess of it is accepted; a guess drawn off the image is not accepted either
+    (the app skips it).
 
     A moved joint gets the true 2D plus ``noise_px`` Gaussian noise and the truth's visibility and
     depth order (:func:`handanno_core.synth.simulate_annotation`), which every joint gets in the

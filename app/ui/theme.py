@@ -93,8 +93,8 @@ def joint_legend(names: list[str], colours: np.ndarray, annotation: Any, selecte
         '<table class="handanno-legend" style="font-size:0.8em">'
         + "".join(rows)
         + "</table><div style='font-size:0.75em'>● placed · ◐ accepted guess (a drag places it "
-        "yourself; the lift trusts it less) · ⊘ outside the image · ○ not placed (drawn as a small faded guess) · "
-        "faded row / grey sphere: occluded · bold: selected</div>"
+        "yourself; the lift trusts it less) · ⊘ outside the image · ○ not placed (drawn as a "
+        "small faded guess) · faded row / grey sphere: occluded · bold: selected</div>"
     )
 
 

@@ -79,6 +79,15 @@ class FrameAnnotation:
         """``(J,)`` bool: joint annotated, or marked outside the image (nothing left to do)."""
         return self.annotated | self.outside
 
+    def mark_outside(self, joints) -> None:
+        """Mark ``joints`` (indices, or a ``(J,)`` bool mask) outside the image: their 2D and 3D
+        positions and accepted flags are cleared (nobody can place a joint where the sensor saw
+        nothing)."""
+        self.uv_px[joints] = np.nan
+        self.xyz_mm[joints] = np.nan
+        self.accepted[joints] = False
+        self.outside[joints] = True
+
     def validate(self, num_joints: int, where: str = "annotation") -> FrameAnnotation:
         """Check shapes and values against a J-joint skeleton; return self or raise AnnotationError."""
         expected = {

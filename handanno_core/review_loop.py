@@ -106,11 +106,7 @@ def simulated_fix(
     ann.accepted[moved] = False
     ann.visible[moved] = full.visible[moved]
     ann.depth_order[moved] = full.depth_order[moved]
-    mark = full.outside & camera.on_image(camera.project(shown))
-    ann.uv_px[mark] = np.nan
-    ann.xyz_mm[mark] = np.nan
-    ann.accepted[mark] = False
-    ann.outside[mark] = True
+    ann.mark_outside(full.outside & camera.on_image(camera.project(shown)))
     return ann, int(moved.sum())
 
 

@@ -225,12 +225,10 @@ class SetOutside(_JointEdit):
 
     def apply(self, session: Session) -> None:
         ann = self._annotation(session)
-        k = self.joint
         if self.outside:
-            ann.uv_px[k] = np.nan
-            ann.xyz_mm[k] = np.nan
-            ann.accepted[k] = False
-        ann.outside[k] = self.outside
+            ann.mark_outside(self.joint)
+        else:
+            ann.outside[self.joint] = False
         self._store(session, ann)
 
 

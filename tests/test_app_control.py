@@ -21,7 +21,13 @@ from handanno_core.annotation import FrameAnnotation
 from handanno_core.camera import CameraIntrinsics
 from handanno_core.results import Stage, update_lifted
 from handanno_core.review import rank_priority
-from handanno_core.session import SetFrameAnnotation, SetJoint2D, SetOutside, SetReview
+from handanno_core.session import (
+    SetFrameAnnotation,
+    SetJoint2D,
+    SetOutside,
+    SetReview,
+    SetVisibility,
+)
 
 FRAMES = 40
 
@@ -62,6 +68,17 @@ def test_entry_topics_frame_and_joints(session):
     assert u.client == "a" and u.seq == e.seq
     r = entry_update(session.execute(SetReview(frame=5, status="flagged"), client="a"), 21)
     assert r.topics == {UpdateTopic.REVIEW} and r.frame == 5 and r.joints == ()
+    undo = entry_update(session.undo(client="a"), 21)  # the review, then the click
+    assert undo.topics == {UpdateTopic.REVIEW} and undo.joints == ()
+    back = session.undo(client="a")
+    assert back.command["kind"] == "set_joint"
+    undo = entry_update(back, 21)
+    assert undo.topics == {UpdateTopic.ANNOTATION} and undo.frame == 0 and undo.joints == (3,)
+    session.execute(SetVisibility(frame=0, joint=3, visible=False), client="a")
+    back = session.undo(client="a")
+    assert back.command["kind"] == "set_joint"  # of the flag alone
+    flags = entry_update(back, 21)
+    assert flags.topics == {UpdateTopic.ANNOTATION} and flags.joints == ()
 
 
 def test_bus_keeps_publishing_when_a_subscriber_fails():
@@ -329,6 +346,19 @@ def test_display_joints_edited_joints_follow_their_annotation():
     first = display_joints(ann, camera, depth, np.array([0, 0, 300.0]))
     assert np.allclose(first[2], (0.0, 0.0, 350.0))  # 2D only: on the depth surface
     assert np.all(np.isnan(first[0]))
+
+
+def test_a_joint_marked_outside_the_image_is_not_drawn_on_it():
+    """The live lift may put a marked joint on the image; it is not drawn there (the annotator
+    said it is not on the image), but a position past the border is still drawn."""
+    camera = CameraIntrinsics(fx=200.0, fy=200.0, cx=64.0, cy=64.0, width=128, height=128)
+    ann = FrameAnnotation.empty(3)
+    ann.mark_outside([1, 2])
+    lifted = np.array([[1.0, 1.0, 300.0], [2.0, 2.0, 300.0], [300.0, 3.0, 300.0]])
+    out = display_joints(ann, camera, None, np.array([0, 0, 300.0]), lifted_mm=lifted)
+    assert np.allclose(out[0], lifted[0])
+    assert np.all(np.isnan(out[1]))  # on the image: not drawn
+    assert np.allclose(out[2], lifted[2])  # projects to u = 264 px, past the border
 
 
 def test_first_guess_of_a_fresh_session_is_hand_shaped(data_dir, tmp_path):

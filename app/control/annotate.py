@@ -246,7 +246,8 @@ def display_joints(
     their annotation at once: instant feedback until the next lift), else the pre-fill
     ``prefill_mm`` for joints not placed; then for every joint still unknown its placed 3D point,
     else its 2D point on the depth surface ``depth`` (H, W) mm (at the hand centre's depth
-    ``centre_mm[2]`` where the depth has a hole).
+    ``centre_mm[2]`` where the depth has a hole). A joint marked outside the image is drawn only
+    where its position projects off the image: the annotator said it is not on it.
     """
     ann = annotation
     out = np.full((len(ann.annotated), 3), np.nan)
@@ -267,4 +268,8 @@ def display_joints(
             d = surface_under(depth, uv)
             z = np.where(np.isfinite(d), d, z)
         out[only2d] = camera.backproject(uv, z)
+    marked = ann.outside & np.all(np.isfinite(out), axis=1) & (out[:, 2] > 0)
+    if marked.any():
+        marked[marked] = camera.on_image(camera.project(out[marked]))
+        out[marked] = np.nan
     return out

@@ -39,12 +39,14 @@ def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
     """One finished bench session: its evidence, the old ranking, ground-truth frame errors. With
     ``cache`` (a folder) the arrays are stored there and read back on the next run."""
     name = f"{folder.parent.parent.name}/{folder.parent.name}/{folder.name}"
+    sequence = _sequence_name(folder)
     hit = None if cache is None else cache / (name.replace("/", "__") + ".npz")
     if hit is not None and hit.exists():
         with np.load(hit) as z:
             ev = {k[3:]: z[k] for k in z.files if k.startswith("ev_")}
             return {
                 "name": name,
+                "sequence": sequence,
                 "evidence": ev,
                 "score": z["score"],
                 "err": z["err"],
@@ -63,6 +65,7 @@ def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
         score = review.rank_priority("score", session, results, crop_data)
         d = {
             "name": name,
+            "sequence": sequence,
             "evidence": ev,
             "score": score,
             "err": err,
@@ -193,10 +196,21 @@ def spearman(priority: np.ndarray, err: np.ndarray, refs: np.ndarray) -> float:
     return float(spearmanr(priority[m], err[m]).statistic)
 
 
+def _sequence_name(folder: Path) -> str:
+    """The name of the dataset folder a bench session ran on (``tune-fpha-1``). Not the session's
+    work folder: one ``handanno bench`` run over several suite replicas names those
+    ``tune-fpha-1``, ``tune-fpha-1-2``, ..., and holding out only one of them left the same
+    sequence's other replicas in the fit (stop 59)."""
+    try:
+        return Path(json.loads((folder / "session.json").read_text())["dataset"]["path"]).name
+    except (OSError, KeyError, ValueError, TypeError):
+        return folder.parent.name
+
+
 def family(d: dict) -> str:
     """The sequence a session runs on, whatever suite replica (seed) it comes from: the name of
     its dataset folder (``tune-fpha-1``)."""
-    return d["name"].split("/")[-2]
+    return d["sequence"]
 
 
 def leave_one_out(tune: list[dict], choose, start: dict, bad_mm: float) -> list[dict]:

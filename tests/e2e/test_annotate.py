@@ -363,7 +363,8 @@ def test_a_joint_past_the_border_is_marked_outside_the_image_by_its_hotkey(ctx: 
     }  # fmt: skip
     ann = reopen(folder).annotation(frame)
     assert ann.outside[joint] and not ann.annotated[joint]
-    assert view.state.joint != joint  # the next unplaced joint is selected
+    # the next unplaced joint is selected (by the app's thread, after the journal entry is written)
+    wait_until(lambda: view.state.joint != joint, what="the next joint selected")
     view.select_joint(joint)
     wait_until(
         lambda: page.get_by_role("button", name="Outside the image: yes (O)").is_visible(),

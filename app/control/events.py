@@ -29,13 +29,12 @@ class UpdateTopic(Enum):
     RANKING = auto()  # the background review ranking of the live results is new
 
 
-#: journal command kinds that edit one joint's placement (its 2D or 3D point or its mark outside
-#: the image); ``set_joint`` (an undo's inverse) does where it sets one of those fields
-_JOINT_KINDS = ("set_2d", "set_3d", "set_outside", "set_joint")
-
 #: journal command kind -> topics it touches (a batch: the union of its commands')
 _KIND_TOPICS: dict[str, frozenset[UpdateTopic]] = {
-    **{kind: frozenset({UpdateTopic.ANNOTATION}) for kind in _JOINT_KINDS},
+    "set_joint": frozenset({UpdateTopic.ANNOTATION}),
+    "set_2d": frozenset({UpdateTopic.ANNOTATION}),
+    "set_3d": frozenset({UpdateTopic.ANNOTATION}),
+    "set_outside": frozenset({UpdateTopic.ANNOTATION}),
     "set_frame": frozenset({UpdateTopic.ANNOTATION}),
     "set_visible": frozenset({UpdateTopic.ANNOTATION}),
     "set_depth_order": frozenset({UpdateTopic.ANNOTATION}),
@@ -74,23 +73,23 @@ def entry_frame(entry: JournalEntry) -> int:
         return -1
 
 
-def _moves_joint(command: dict[str, Any]) -> bool:
-    """Whether a joint command changes where its joint is (a ``set_joint`` may set only flags)."""
-    if command.get("kind") != "set_joint":
-        return True
-    moved = any(command.get(f, "unchanged") != "unchanged" for f in ("uv_px", "xyz_mm"))
-    return moved or command.get("outside") is not None
+#: the joint fields that say where a joint is (its 2D or 3D point, or its mark outside the image)
+_PLACEMENT_FIELDS = frozenset({"uv_px", "xyz_mm", "outside"})
 
 
 def edited_joints(entry: JournalEntry, num_joints: int) -> tuple[int, ...]:
-    """Joints whose placement a journal entry changes (all joints for whole-frame commands)."""
+    """Joints whose placement a journal entry changes (all joints for whole-frame commands): a
+    joint edit whose :meth:`changed_fields` include a placement field (an undo's ``set_joint``
+    that restores only a flag moves nothing)."""
     out: set[int] = set()
     for c in _commands(entry):
-        kind = c.get("kind")
-        if kind in _JOINT_KINDS and _moves_joint(c):
-            out.add(int(c["joint"]))
-        elif kind == "set_frame":
+        if c.get("kind") == "set_frame":
             out.update(range(num_joints))
+            continue
+        command = parse_command(c)
+        changed = getattr(command, "changed_fields", None)
+        if changed is not None and _PLACEMENT_FIELDS.intersection(changed()):
+            out.add(int(command.joint))
     return tuple(sorted(out))
 
 

@@ -335,6 +335,37 @@ def crop_coverage(session: Session, gt: np.ndarray) -> dict:
     }
 
 
+#: frame-error thresholds (mm) of :func:`hidden_bad_joints`
+BAD_JOINT_MM = (20.0, 40.0)
+
+
+def hidden_bad_joints(session: Session, gt: np.ndarray, final_mm: np.ndarray) -> dict:
+    """Evaluation: per threshold T of :data:`BAD_JOINT_MM`, ``joints_over_T_mm``, the (frame,
+    joint) estimates ``final_mm`` ``(N, J, 3)`` more than T mm from ``gt``, and ``hidden_over_T_mm``,
+    those whose true position the frame's depth does not show (off the image, or behind a nearer
+    surface: :func:`handanno_core.sampling.visible_by_depth`, the simulated annotator's rule). A
+    hidden joint's position is decided by the priors and its neighbours in time, not by its frame's
+    depth. Reads only the frames with a joint over the lowest threshold."""
+    from .evaluate import joint_errors_mm
+    from .sampling import visible_by_depth
+
+    err = joint_errors_mm(final_mm, gt)
+    with np.errstate(invalid="ignore"):
+        over = err > min(BAD_JOINT_MM)
+    sequence = session.open_sequence()
+    offsets = session.skeleton.surface_offsets_mm
+    hidden = np.zeros_like(over)
+    for f in np.flatnonzero(over.any(axis=1)):
+        hidden[f] = ~visible_by_depth(gt[f], sequence.depth(int(f)), sequence.camera, offsets)
+    out = {}
+    for t in BAD_JOINT_MM:
+        with np.errstate(invalid="ignore"):
+            bad = err > t
+        out[f"joints_over_{t:g}_mm"] = int(bad.sum())
+        out[f"hidden_over_{t:g}_mm"] = int((bad & hidden).sum())
+    return out
+
+
 def _propagate_and_refine(
     folder: Path,
     use_model: bool | None,
@@ -366,16 +397,18 @@ def _propagate_and_refine(
     # ``workers`` cores (threads: the same result as one thread)
     refined = pipeline.refine(session, quiet=True, threads=workers)
     timings["refine"] = round(time.perf_counter() - t, 3)
+    results = session.load_results()
     run = {
         **fields,
         "corrections": len(session.model.corrections),
         "noise_px": noise_px,
         "bones": "ground-truth" if gt_bones else "estimated",
-        **stage_errors(session.load_results(), gt, refs),
+        **stage_errors(results, gt, refs),
         "timings_s": timings,
         "peak_rss_mb": round(peak_rss_mb(), 1),
     }
     run.update(crop_coverage(session, gt))
+    run.update(hidden_bad_joints(session, gt, results["final_mm"]))
     if with_model_keys:
         run["model"] = bool(session.model.settings.hand_model)
         run["kept_initialization"] = len(refined.info.get("kept_initialization", []))
@@ -404,7 +437,8 @@ def _row(run: dict) -> str:
         f"| {run['init']['mean_mm']:6.2f} {run['init']['median_mm']:6.2f} {run['init']['max_mm']:7.1f} "
         f"| {run['final']['mean_mm']:6.2f} {run['final']['median_mm']:6.2f} {run['final']['max_mm']:7.1f} "
         f"| {run['final_non_reference']['mean_mm']:6.2f} | {run['lift']['mean_mm']:5.2f} "
-        f"| {t['select']:5.1f} {t['lift']:5.1f} {t['propagate']:6.1f} {t['refine']:6.1f}"
+        f"| {t['select']:5.1f} {t['lift']:5.1f} {t['propagate']:6.1f} {t['refine']:6.1f} "
+        f"| {_hidden_cell(run, 40.0):>15}"
     )
 
 
@@ -413,10 +447,14 @@ def format_table(doc: dict) -> str:
         f"{'strategy':>{_width(doc['runs'])}} {'refs':>6} {'K':>5} | {'init: mean':>10} "
         f"{'median':>6} {'max':>7} "
         f"| {'final: mean':>11} {'median':>5} {'max':>7} | {'nonref':>6} | {'lift':>5} "
-        f"| {'t_sel':>5} {'t_lift':>5} {'t_prop':>6} {'t_ref':>6}"
+        f"| {'t_sel':>5} {'t_lift':>5} {'t_prop':>6} {'t_ref':>6} | {'>40 mm (hidden)':>15}"
     )
     return "\n".join(
-        [f"{doc['dataset']} ({doc['frames']} frames), errors in mm, times in s", head]
+        [
+            f"{doc['dataset']} ({doc['frames']} frames), errors in mm, times in s; joints over "
+            "40 mm off (of them hidden in their frame's depth)",
+            head,
+        ]
         + [_row(r) for r in doc["runs"]]
     )
 
@@ -475,8 +513,9 @@ def expand_datasets(paths: list[str | Path], part: str | None = None) -> list[di
 def summarize_datasets(docs: list[dict]) -> list[dict]:
     """Per (strategy, fraction, noise, bones): the mean over datasets of each dataset's mean error
     and the worst max (mm), for lift, init, final and final_non_reference; ``datasets`` counts
-    the datasets that ran that configuration; ``refine_worse`` lists those where final > init.
-    Runs with and without the hand model (``"model"``) are separate rows."""
+    the datasets that ran that configuration; ``refine_worse`` lists those where final > init;
+    ``joints_over_T_mm`` / ``hidden_over_T_mm`` summed (:func:`hidden_bad_joints`). Runs with and
+    without the hand model (``"model"``) are separate rows."""
     groups: dict[tuple, list[tuple[str, dict]]] = {}
     for doc in docs:
         for run in doc["runs"]:
@@ -510,6 +549,9 @@ def summarize_datasets(docs: list[dict]) -> list[dict]:
         row["refine_worse"] = [
             name for name, r in runs if r["final"]["mean_mm"] > r["init"]["mean_mm"]
         ]
+        for t in BAD_JOINT_MM:  # runs from before these keys count nothing
+            for key in (f"joints_over_{t:g}_mm", f"hidden_over_{t:g}_mm"):
+                row[key] = int(sum(r.get(key, 0) for _, r in runs))
         row["timings_s"] = {
             k: round(float(sum(r["timings_s"].get(k, 0.0) for _, r in runs)), 3)
             for k in runs[0][1]["timings_s"]
@@ -518,16 +560,23 @@ def summarize_datasets(docs: list[dict]) -> list[dict]:
     return rows
 
 
+def _hidden_cell(row: dict, t: float) -> str:
+    """``"n (m)"``: joints over ``t`` mm, of them hidden in the depth (:func:`hidden_bad_joints`)."""
+    n = row.get(f"joints_over_{t:g}_mm")
+    return "-" if n is None else f"{n} ({row[f'hidden_over_{t:g}_mm']})"
+
+
 def format_summary(doc: dict) -> str:
     """The suite summary table of :func:`run_bench_datasets`' JSON."""
     head = (
         f"{'strategy':>{_width(doc['summary'])}} {'refs':>6} {'n':>3} | {'lift':>5} | {'init':>6} "
         f"| {'final: mean':>11} "
-        f"{'worst':>6} {'max':>7} | {'nonref':>6} | refine worse on"
+        f"{'worst':>6} {'max':>7} | {'nonref':>6} | {'>40 mm (hidden)':>15} | refine worse on"
     )
     lines = [
         f"suite summary over {len(doc['datasets'])} datasets ({doc['frames']} frames): "
-        "mean of per-dataset means, worst per-dataset mean, worst max (mm)",
+        "mean of per-dataset means, worst per-dataset mean, worst max (mm); joints over 40 mm off "
+        "(of them hidden in their frame's depth)",
         head,
     ]
     for r in doc["summary"]:
@@ -536,7 +585,7 @@ def format_summary(doc: dict) -> str:
             f"| {r['lift']['mean_of_means_mm']:5.2f} | {r['init']['mean_of_means_mm']:6.2f} "
             f"| {r['final']['mean_of_means_mm']:11.2f} {r['final']['worst_mean_mm']:6.2f} "
             f"{r['final']['worst_max_mm']:7.1f} | {r['final_non_reference']['mean_of_means_mm']:6.2f} "
-            f"| {', '.join(r['refine_worse']) or '-'}"
+            f"| {_hidden_cell(r, 40.0):>15} | {', '.join(r['refine_worse']) or '-'}"
         )
     return "\n".join(lines)
 

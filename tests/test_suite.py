@@ -263,6 +263,38 @@ def test_summary_is_mean_of_means_and_worst_max():
     assert "forest" in bench.format_summary({"datasets": docs, "summary": [row], "frames": 9})
 
 
+def test_bad_joints_are_split_by_what_their_frames_depth_shows():
+    from types import SimpleNamespace
+
+    from handanno_core.camera import CameraIntrinsics
+
+    cam = CameraIntrinsics(fx=200.0, fy=200.0, cx=32.0, cy=24.0, width=64, height=48)
+    wall = np.full((48, 64), 300.0)  # a wall 300 mm from the camera fills the view
+    sequence = SimpleNamespace(camera=cam, depth=lambda f: wall)
+    session = SimpleNamespace(open_sequence=lambda: sequence, skeleton=MSRA21)
+    gt = np.zeros((2, MSRA21.num_joints, 3))
+    gt[:, :, 2] = 300.0  # on the wall: the depth shows them
+    gt[0, 1, 2] = 400.0  # 100 mm behind the wall: hidden
+    gt[0, 2, 0] = 400.0  # projects 267 px right of the image: hidden
+    final = gt.copy()
+    final[0, :3, 1] += 50.0  # joints 0-2 of frame 0 50 mm off: one shown, two hidden
+    final[1, 3, 1] += 30.0  # one shown joint 30 mm off
+    out = bench.hidden_bad_joints(session, gt, final)
+    assert out == {
+        "joints_over_20_mm": 4,
+        "hidden_over_20_mm": 2,
+        "joints_over_40_mm": 3,
+        "hidden_over_40_mm": 2,
+    }
+    docs = [
+        {"name": n, "dataset": n, "runs": [{**_run("uniform", 0.05, 2.0, 50.0, 3.0), **out}]}
+        for n in ("a", "b")
+    ]
+    (row,) = bench.summarize_datasets(docs)
+    assert (row["joints_over_40_mm"], row["hidden_over_40_mm"]) == (6, 4)
+    assert "6 (4)" in bench.format_summary({"datasets": docs, "summary": [row], "frames": 4})
+
+
 def test_machine_line_names_the_libraries_and_blas_kernels():
     # two installs (or CPUs) of one commit round differently: the line must tell them apart
     import scipy

@@ -30,9 +30,7 @@ from viser_helpers import (
     open_app,
     readme_screenshot,
     screen_of,
-    sync_browser,
-    wait_camera_still,
-    wait_drawn,
+    settle_app,
     wait_for_node,
     wait_notification,
     wait_until,
@@ -60,18 +58,8 @@ class Ctx:
         return views[0]
 
     def settle(self) -> None:
-        """Wait until the scene holds still: every journaled edit's listeners have run (they run
-        under the session lock), its lift has landed and been drawn by the view, and the browser
-        has applied all of it (joints, 2D rings, image, camera)."""
-        with self.app.session.lock:
-            pass
-        assert self.app.worker.wait_idle(120), "the lift worker did not finish"
-        view = self.view
-        view.flush()
-        sync_browser(self.page, view.client)
-        for handle in (view.hand.joints, view.hand.handles2d, view.hand.image):
-            wait_drawn(self.page, handle)
-        wait_camera_still(self.page)
+        """Wait until the scene holds still (:func:`settle_app`)."""
+        settle_app(self.page, self.app)
 
     def image_point(self, uv) -> tuple[float, float]:
         """Page position of depth-image pixel ``uv`` (on the image plane)."""

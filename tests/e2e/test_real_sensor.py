@@ -31,7 +31,7 @@ from viser_helpers import (
     readme_screenshot,
     screen_of,
     screen_of_points,
-    wait_camera_still,
+    settle_app,
     wait_until,
 )
 
@@ -96,7 +96,10 @@ def test_sr305_hand_fills_the_view_and_the_cloud_stops_at_the_wrist(tmp_path):
     try:
         with browser() as b:
             page = open_app(b, app.url)
-            settle = lambda: wait_camera_still(page)  # noqa: E731
+            wait_until(lambda: app.annotate_panels(), what="the view of the browser")
+            # the server's sensor-view camera can reach a loaded browser after its camera has
+            # looked still for a while: a click aimed before it lands hits nothing
+            settle = lambda: settle_app(page, app)  # noqa: E731
 
             def first_cloud():
                 p = drawn_points(page, "/hand/cloud")

@@ -364,6 +364,24 @@ def sync_browser(page, client, timeout_s: float = DEADLINE_S) -> None:
     )
 
 
+def settle_app(page, app, timeout_s: float = DEADLINE_S) -> None:
+    """Wait until the app's one browser view holds still: every journaled edit's listeners have
+    run (they run under the session lock), the lift worker is idle, and the browser has applied
+    everything the server sent it (joints, 2D rings, image, and the camera the server set, which a
+    loaded machine can deliver after the page already looks still)."""
+    with app.session.lock:
+        pass
+    assert app.worker.wait_idle(120), "the lift worker did not finish"
+    views = app.annotate_panels()
+    assert len(views) == 1, f"expected one connected browser, got {len(views)}"
+    view = views[0]
+    view.flush()
+    sync_browser(page, view.client, timeout_s)
+    for handle in (view.hand.joints, view.hand.handles2d, view.hand.image):
+        wait_drawn(page, handle, timeout_s=timeout_s)
+    wait_camera_still(page, timeout_s)
+
+
 def camera_state(page) -> list[float]:
     return page.evaluate(
         "() => { const c = window.__viserMutable.camera; return [...c.position.toArray(), ...c.quaternion.toArray(), c.fov]; }"

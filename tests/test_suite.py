@@ -275,7 +275,7 @@ def test_bad_joints_are_split_by_what_their_frames_depth_shows():
     gt = np.zeros((2, MSRA21.num_joints, 3))
     gt[:, :, 2] = 300.0  # on the wall: the depth shows them
     gt[0, 1, 2] = 400.0  # 100 mm behind the wall: hidden
-    gt[0, 2, 0] = 400.0  # projects 267 px right of the image: hidden
+    gt[0, 2, 0] = 400.0  # projects at u = 299 px, past the 64 px wide image: hidden
     final = gt.copy()
     final[0, :3, 1] += 50.0  # joints 0-2 of frame 0 50 mm off: one shown, two hidden
     final[1, 3, 1] += 30.0  # one shown joint 30 mm off

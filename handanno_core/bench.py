@@ -339,21 +339,22 @@ def crop_coverage(session: Session, gt: np.ndarray) -> dict:
 BAD_JOINT_MM = (20.0, 40.0)
 
 
-def hidden_bad_joints(session: Session, gt: np.ndarray, final_mm: np.ndarray) -> dict:
+def hidden_bad_joints(sequence, skeleton, gt: np.ndarray, final_mm: np.ndarray) -> dict:
     """Evaluation: per threshold T of :data:`BAD_JOINT_MM`, ``joints_over_T_mm``, the (frame,
     joint) estimates ``final_mm`` ``(N, J, 3)`` more than T mm from ``gt``, and ``hidden_over_T_mm``,
     those whose true position the frame's depth does not show (off the image, or behind a nearer
     surface: :func:`handanno_core.sampling.visible_by_depth`, the simulated annotator's rule). A
     hidden joint's position is decided by the priors and its neighbours in time, not by its frame's
-    depth. Reads only the frames with a joint over the lowest threshold."""
+    depth. ``sequence``: the :class:`~handanno_core.datasets.base.DepthSequence` (its depth
+    frames and camera); ``skeleton``: its joints' surface offsets. Reads only the frames with a
+    joint over the lowest threshold."""
     from .evaluate import joint_errors_mm
     from .sampling import visible_by_depth
 
     err = joint_errors_mm(final_mm, gt)
     with np.errstate(invalid="ignore"):
         over = err > min(BAD_JOINT_MM)
-    sequence = session.open_sequence()
-    offsets = session.skeleton.surface_offsets_mm
+    offsets = skeleton.surface_offsets_mm
     hidden = np.zeros_like(over)
     for f in np.flatnonzero(over.any(axis=1)):
         hidden[f] = ~visible_by_depth(gt[f], sequence.depth(int(f)), sequence.camera, offsets)
@@ -408,7 +409,9 @@ def _propagate_and_refine(
         "peak_rss_mb": round(peak_rss_mb(), 1),
     }
     run.update(crop_coverage(session, gt))
-    run.update(hidden_bad_joints(session, gt, results["final_mm"]))
+    run.update(
+        hidden_bad_joints(session.open_sequence(), session.skeleton, gt, results["final_mm"])
+    )
     if with_model_keys:
         run["model"] = bool(session.model.settings.hand_model)
         run["kept_initialization"] = len(refined.info.get("kept_initialization", []))

@@ -271,7 +271,6 @@ def test_bad_joints_are_split_by_what_their_frames_depth_shows():
     cam = CameraIntrinsics(fx=200.0, fy=200.0, cx=32.0, cy=24.0, width=64, height=48)
     wall = np.full((48, 64), 300.0)  # a wall 300 mm from the camera fills the view
     sequence = SimpleNamespace(camera=cam, depth=lambda f: wall)
-    session = SimpleNamespace(open_sequence=lambda: sequence, skeleton=MSRA21)
     gt = np.zeros((2, MSRA21.num_joints, 3))
     gt[:, :, 2] = 300.0  # on the wall: the depth shows them
     gt[0, 1, 2] = 400.0  # 100 mm behind the wall: hidden
@@ -279,7 +278,7 @@ def test_bad_joints_are_split_by_what_their_frames_depth_shows():
     final = gt.copy()
     final[0, :3, 1] += 50.0  # joints 0-2 of frame 0 50 mm off: one shown, two hidden
     final[1, 3, 1] += 30.0  # one shown joint 30 mm off
-    out = bench.hidden_bad_joints(session, gt, final)
+    out = bench.hidden_bad_joints(sequence, MSRA21, gt, final)
     assert out == {
         "joints_over_20_mm": 4,
         "hidden_over_20_mm": 2,

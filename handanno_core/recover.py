@@ -28,6 +28,11 @@ tune-icvl the ground truth itself sits at 3-9x the references' level over whole 
 model explains those poses poorly), while the wrong basin there is at 10-20x; a cap at 3x kept
 the wrong pose (issue 13; tune-icvl final 4.13 -> 3.28 mm, max 93.9 -> 75.3).
 
+A joint that the frame's current estimate puts past the image's border, and every joint below
+it, keeps the estimate's articulation (each bone's direction in the palm's frame) and moves with
+the new fit's palm (:func:`carry_unseen`): no depth shows it there, and a fit free to place it
+had carried an out-of-view thumb 213 mm off after a review round (stop 61).
+
 The model cannot see hidden fingers and its level rises on frames it explains poorly for other
 reasons (an egocentric forearm): hence the large ``min_gain``. Constants chosen on the benchmark
 suite's tune part (README, "Stop 30: frames the hand model cannot explain, fitted again").
@@ -42,6 +47,7 @@ import numpy as np
 from . import handmodel as hm
 from .camera import CameraIntrinsics
 from .datasets.base import segment_ids
+from .skeleton import Skeleton
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,30 @@ def _refit(
     new = fit.terms["data"] + fit.terms["free_space"]
     pick = np.array([r[np.argmin(new[r])] for r in rows])
     return fit.joints_mm[pick], new[pick]
+
+
+def carry_unseen(
+    skeleton: Skeleton, old_mm: np.ndarray, new_mm: np.ndarray, unseen: np.ndarray
+) -> np.ndarray:
+    """``new_mm`` (J, 3) mm with every joint of ``unseen`` (J,) bool, and every joint below one,
+    placed as in ``old_mm`` (J, 3) mm relative to its parent in the palm's frame
+    (:meth:`Skeleton.palm_rotation`): the chain keeps its old articulation and moves with the
+    new palm; bone lengths are those of ``old_mm``. The root stays where ``new_mm`` has it."""
+    parents = skeleton.parent_array
+    order = skeleton.topological_order
+    carry = np.asarray(unseen, dtype=bool).copy()
+    for j in order:
+        if parents[j] >= 0 and carry[parents[j]]:
+            carry[j] = True
+    if not carry.any():
+        return new_mm
+    rot_old, rot_new = skeleton.palm_rotation(old_mm), skeleton.palm_rotation(new_mm)
+    out = np.array(new_mm, dtype=np.float64)
+    for j in order:
+        p = parents[j]
+        if carry[j] and p >= 0:
+            out[j] = out[p] + ((old_mm[j] - old_mm[p]) @ rot_old) @ rot_new.T
+    return out
 
 
 def _reference_starts(
@@ -218,7 +248,9 @@ def recover_frames(
             new = new / reference_level
             ok = (new <= st.accept_level) & (new * st.min_gain <= level[frames])
             for f, xj, lv in zip(np.asarray(frames)[ok], joints[ok], new[ok], strict=True):
-                x[f], level[f] = xj, lv
+                # past the image's border the depth shows nothing: the new fit has no say there
+                unseen = ~camera.on_image(camera.project(x[f]))
+                x[f], level[f] = carry_unseen(model.skeleton, x[f], xj, unseen), lv
                 recovered.add(int(f))
             changed += int(ok.sum())
         return changed

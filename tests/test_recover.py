@@ -10,7 +10,7 @@ from test_handmodel import CAM, _model, _noisy_crop, _pose, _render, _rot
 
 from handanno_core import handmodel as hm
 from handanno_core.crops import crop_boxes
-from handanno_core.recover import RecoverySettings, _nearest_good, recover_frames
+from handanno_core.recover import RecoverySettings, _nearest_good, carry_unseen, recover_frames
 from handanno_core.skeleton import MSRA21
 
 
@@ -124,6 +124,62 @@ def test_a_hand_without_a_neighbour_in_its_basin_is_refitted_from_the_references
     assert list(res.recovered) == [2]
     err = np.linalg.norm(res.joints_mm[2] - truth[2], axis=1)
     assert err.max() <= 5.0 and err.mean() <= 2.0, np.round(err, 1)
+
+
+def _local_bones(x: np.ndarray) -> np.ndarray:
+    """(J, 3): each joint relative to its parent in the palm's frame (the root's row is 0)."""
+    par = MSRA21.parent_array
+    rel = np.where((par >= 0)[:, None], x - x[np.maximum(par, 0)], 0.0)
+    return rel @ MSRA21.palm_rotation(x)
+
+
+def test_carried_joints_keep_their_old_articulation_on_the_new_palm():
+    old = _pose("open")
+    fist = _pose("fist", ypr=(20.0, -10.0, 35.0), centre=(15.0, -8.0, 430.0))
+    unseen = np.zeros(21, dtype=bool)
+    unseen[[18, 7]] = True  # the thumb's MCP and the middle finger's DIP
+    out = carry_unseen(MSRA21, old, fist, unseen)
+    carried = [18, 19, 20, 7, 8]  # and every joint below them
+    rest = np.setdiff1d(np.arange(21), carried)
+    assert np.array_equal(out[rest], fist[rest])
+    np.testing.assert_allclose(_local_bones(out)[carried], _local_bones(old)[carried], atol=1e-9)
+    np.testing.assert_allclose(MSRA21.bone_lengths(out), MSRA21.bone_lengths(fist), atol=1e-9)
+    assert np.linalg.norm(out[20] - fist[20]) > 20.0  # the open thumb, not the fist's
+    # the whole hand moved rigidly: its articulation is the old one everywhere, nothing changes
+    moved = _spin(old, 50.0) + [5.0, 0.0, 20.0]
+    np.testing.assert_allclose(carry_unseen(MSRA21, old, moved, unseen), moved, atol=1e-9)
+    assert carry_unseen(MSRA21, old, fist, np.zeros(21, dtype=bool)) is fist
+
+
+def test_a_recovered_hand_carries_what_lies_past_the_images_border(scene):
+    """A sensor whose image ends across the thumb (no depth past row 125): frame 2 turned 70
+    degrees, its estimated thumb past the border. Recovery turns the hand back from its
+    neighbours; the thumb, which no depth shows, keeps the estimate's articulation and comes
+    back with the palm instead of being placed by a fit that cannot see it."""
+    truth, model, _, centres, level = scene
+    rng = np.random.default_rng(1)
+    border = 125
+    cam = CAM.model_copy(update={"height": border})
+    crops = []
+    for p, c in zip(truth, centres, strict=True):
+        depth = _render(model, p)
+        depth[border:] = 0.0
+        crops.append(_noisy_crop(depth, c, rng))
+    obs = hm.observe(np.stack(crops), crop_boxes(centres, CAM), centres, CAM)
+    est = truth.copy()
+    est[2] = _spin(truth[2], 70.0)
+    off = ~cam.on_image(cam.project(est[2]))
+    assert list(np.flatnonzero(off)) == [19, 20]
+    keep = np.array([True, False, False, False, True])
+    res = recover_frames(model, est, obs, centres, cam, level, keep=keep)
+    assert list(res.recovered) == [2]
+    err = np.linalg.norm(res.joints_mm[2] - truth[2], axis=1)
+    seen = ~off & cam.on_image(cam.project(truth[2]))  # the depth shows it at both poses
+    assert err[seen].max() <= 5.0, np.round(err, 1)
+    np.testing.assert_allclose(
+        _local_bones(res.joints_mm[2])[off], _local_bones(est[2])[off], atol=1e-6
+    )
+    assert err[off].max() <= 8.0, np.round(err, 1)  # spun rigidly: the old thumb was right
 
 
 def test_neighbours_are_taken_within_the_frames_segment_only():

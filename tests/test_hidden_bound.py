@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
+from benchmark_scripts import load_benchmark
 
 from handanno_core.skeleton import MSRA21
 from handanno_core.synth import rotation_matrices
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 def _bound_module():
-    spec = importlib.util.spec_from_file_location(
-        "bench_hidden_bound", REPO / "benchmarks" / "bench_hidden_bound.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_hidden_bound")
 
 
 def _poses(n: int, seed: int = 0) -> np.ndarray:

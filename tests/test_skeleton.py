@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import load_benchmark
 
 from handanno_core.skeleton import ICVL16, MSRA21, NYU14, get_skeleton
 from handanno_core.synth import gesture_library, local_pose, make_hand_model
@@ -24,12 +24,7 @@ needs_real = pytest.mark.skipif(REAL is None, reason="shared/data/real-motion no
 
 
 def _learn_module():
-    spec = importlib.util.spec_from_file_location(
-        "learn_angle_ranges", REPO / "benchmarks" / "learn_angle_ranges.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("learn_angle_ranges")
 
 
 @needs_real

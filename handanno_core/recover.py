@@ -139,7 +139,7 @@ def carry_unseen(
     """``new_mm`` (J, 3) mm with every joint of ``unseen`` (J,) bool, and every joint below one,
     placed as in ``old_mm`` (J, 3) mm relative to its parent in the palm's frame
     (:meth:`Skeleton.palm_rotation`): the chain keeps its old articulation and moves with the
-    new palm; bone lengths are those of ``old_mm``. The root stays where ``new_mm`` has it."""
+    new palm, its bones as long as in ``old_mm``. The root stays where ``new_mm`` has it."""
     parents = skeleton.parent_array
     order = skeleton.topological_order
     carry = np.asarray(unseen, dtype=bool).copy()
@@ -249,6 +249,7 @@ def recover_frames(
             ok = (new <= st.accept_level) & (new * st.min_gain <= level[frames])
             for f, xj, lv in zip(np.asarray(frames)[ok], joints[ok], new[ok], strict=True):
                 # past the image's border the depth shows nothing: the new fit has no say there
+                # (the level kept is the fit's; model samples past the border cost nothing)
                 unseen = ~camera.on_image(camera.project(x[f]))
                 x[f], level[f] = carry_unseen(model.skeleton, x[f], xj, unseen), lv
                 recovered.add(int(f))

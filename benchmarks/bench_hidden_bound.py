@@ -46,7 +46,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from handanno_core.sampling import visible_by_depth
+from handanno_core.bench import shown_by_depth
 from handanno_core.session import Session
 from handanno_core.skeleton import Skeleton
 
@@ -63,20 +63,10 @@ ESTIMATES = (
 READINGS = ("interpolated", "shown_anchors")
 
 
-def finger_bases(skeleton: Skeleton) -> np.ndarray:
-    """``(J,)`` int: each joint's ancestor that is a child of the root (the root maps to itself)."""
-    parents = skeleton.parent_array
-    base = np.arange(skeleton.num_joints)
-    for j in range(skeleton.num_joints):
-        while parents[base[j]] >= 0 and parents[parents[base[j]]] >= 0:
-            base[j] = parents[base[j]]
-    return base
-
-
 def finger_shapes(skeleton: Skeleton, poses_mm: np.ndarray) -> np.ndarray:
     """``(..., J, 3)`` mm: every joint relative to its finger's first joint, in the palm's frame."""
     local = skeleton.palm_coordinates(poses_mm)
-    return local - local[..., finger_bases(skeleton), :]
+    return local - local[..., skeleton.finger_bases, :]
 
 
 def place_shapes(
@@ -88,7 +78,7 @@ def place_shapes(
     x = np.asarray(palm_poses_mm, dtype=np.float64)
     rot = skeleton.palm_rotation(x)
     local = skeleton.palm_coordinates(x)
-    placed = local[..., finger_bases(skeleton), :] + shapes_mm
+    placed = local[..., skeleton.finger_bases, :] + shapes_mm
     root = x[..., skeleton.root, None, :]
     return np.einsum("...jc,...kc->...jk", placed, rot) + root
 
@@ -145,15 +135,6 @@ def _open(folder: Path) -> SimpleNamespace:
         raise
 
 
-def _shown(d: SimpleNamespace, poses_mm: np.ndarray, frames: np.ndarray) -> np.ndarray:
-    """``(len(frames), J)`` bool: :func:`visible_by_depth` of ``poses_mm[f]`` in frame f's depth."""
-    offsets = d.skeleton.surface_offsets_mm
-    out = np.zeros((len(frames), d.skeleton.num_joints), dtype=bool)
-    for i, f in enumerate(frames):
-        out[i] = visible_by_depth(poses_mm[f], d.sequence.depth(int(f)), d.sequence.camera, offsets)
-    return out
-
-
 def session_bound(folder: Path, threshold_mm: float) -> dict:
     """The counts of the module docstring for one bench session folder."""
     d = _open(folder)
@@ -165,7 +146,7 @@ def session_bound(folder: Path, threshold_mm: float) -> dict:
         over[refs] = False
         frames = np.flatnonzero(over.any(axis=1))
         hidden = np.zeros_like(over)
-        hidden[frames] = ~_shown(d, gt, frames)
+        hidden[frames] = ~shown_by_depth(d.sequence, d.skeleton, gt, frames)
     finally:
         d.session.close()
     segment = d.segment
@@ -210,11 +191,11 @@ def replace_unshown(folder: Path, threshold_mm: float) -> dict:
     d = _open(folder)
     try:
         skeleton, gt, final, lifted, refs, n = d.skeleton, d.gt, d.final, d.lifted, d.refs, d.n
-        shown = _shown(d, final, np.arange(n))
+        shown = shown_by_depth(d.sequence, skeleton, final, np.arange(n))
     finally:
         d.session.close()
     segment = d.segment
-    parents, base = skeleton.parent_array, finger_bases(skeleton)
+    parents, base = skeleton.parent_array, skeleton.finger_bases
     for j in skeleton.topological_order:
         if base[j] != j:  # shown only with every joint up to its finger's first joint
             shown[:, j] &= shown[:, parents[j]]

@@ -339,6 +339,19 @@ def crop_coverage(session: Session, gt: np.ndarray) -> dict:
 BAD_JOINT_MM = (20.0, 40.0)
 
 
+def shown_by_depth(sequence, skeleton, poses_mm: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """``(len(frames), J)`` bool: the joints of ``poses_mm[f]`` ``(N, J, 3)`` mm that frame f's
+    depth shows (:func:`handanno_core.sampling.visible_by_depth` with the skeleton's surface
+    offsets), for each f of ``frames``; reads those frames' depth only."""
+    from .sampling import visible_by_depth
+
+    offsets = skeleton.surface_offsets_mm
+    out = np.zeros((len(frames), skeleton.num_joints), dtype=bool)
+    for i, f in enumerate(frames):
+        out[i] = visible_by_depth(poses_mm[f], sequence.depth(int(f)), sequence.camera, offsets)
+    return out
+
+
 def hidden_bad_joints(sequence, skeleton, gt: np.ndarray, final_mm: np.ndarray) -> dict:
     """Evaluation: per threshold T of :data:`BAD_JOINT_MM`, ``joints_over_T_mm``, the (frame,
     joint) estimates ``final_mm`` ``(N, J, 3)`` more than T mm from ``gt``, and ``hidden_over_T_mm``,
@@ -349,15 +362,13 @@ def hidden_bad_joints(sequence, skeleton, gt: np.ndarray, final_mm: np.ndarray) 
     frames and camera); ``skeleton``: its joints' surface offsets. Reads only the frames with a
     joint over the lowest threshold."""
     from .evaluate import joint_errors_mm
-    from .sampling import visible_by_depth
 
     err = joint_errors_mm(final_mm, gt)
     with np.errstate(invalid="ignore"):
         over = err > min(BAD_JOINT_MM)
-    offsets = skeleton.surface_offsets_mm
     hidden = np.zeros_like(over)
-    for f in np.flatnonzero(over.any(axis=1)):
-        hidden[f] = ~visible_by_depth(gt[f], sequence.depth(int(f)), sequence.camera, offsets)
+    frames = np.flatnonzero(over.any(axis=1))
+    hidden[frames] = ~shown_by_depth(sequence, skeleton, gt, frames)
     out = {}
     for t in BAD_JOINT_MM:
         with np.errstate(invalid="ignore"):

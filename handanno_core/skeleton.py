@@ -109,6 +109,17 @@ class Skeleton:
         return np.flatnonzero(self.parent_array == joint)
 
     @property
+    def finger_bases(self) -> np.ndarray:
+        """``(J,)`` int: each joint's ancestor that is a child of the root, the first joint of its
+        finger (the root maps to itself)."""
+        parents = self.parent_array
+        base = np.arange(len(parents))
+        for j in range(len(parents)):
+            while parents[base[j]] >= 0 and parents[parents[base[j]]] >= 0:
+                base[j] = parents[base[j]]
+        return base
+
+    @property
     def has_finger_segments(self) -> bool:
         """Every fingertip is at least 3 bones from the root: the fingers' proximal, middle and
         distal segments are bones, so the capsule hand model (:mod:`handanno_core.handmodel`) can

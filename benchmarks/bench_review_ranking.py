@@ -15,7 +15,9 @@ smoothing and neighbour suppression (off otherwise: the committed ``review.SMOOT
 ``SUPPRESS_RADIUS``). ``--fixed``: report the committed ``review.EVIDENCE_WEIGHTS``. recall@10 %
 (share of bad frames among the ranking's first 10 % of frames) at ``--bad-mm`` and 40 mm, and the
 rank correlation with the frame error, are then reported per session for the app's ranking
-until now (``score``), :data:`BEFORE_WEIGHTS`, the chosen weights and each term alone. The
+until now (``score``), :data:`BEFORE_WEIGHTS`, the chosen weights and each term alone, with the
+bad frames the chosen ranking finds and misses and how many of each are bad only in joints the
+frame's depth does not show at their true position (:func:`missed_counts`). The
 weights to paste into ``handanno_core/review.py`` are printed and written with the report.
 
     python benchmarks/bench_review_ranking.py --tune S0 S1 --report S2 S3 --loso \
@@ -31,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from handanno_core import review
+from handanno_core.bench import shown_by_depth
 from handanno_core.prefill import cached_crops
 from handanno_core.session import Session
 
@@ -43,24 +46,30 @@ def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
     hit = None if cache is None else cache / (name.replace("/", "__") + ".npz")
     if hit is not None and hit.exists():
         with np.load(hit) as z:
-            ev = {k[3:]: z[k] for k in z.files if k.startswith("ev_")}
-            return {
-                "name": name,
-                "sequence": sequence,
-                "evidence": ev,
-                "score": z["score"],
-                "err": z["err"],
-                "refs": z["refs"],
-                "n": int(z["n"]),
-                "breaks": list(z["breaks"]),
-            }
+            if "shown_err" in z.files:  # else a cache of an older version: computed again
+                ev = {k[3:]: z[k] for k in z.files if k.startswith("ev_")}
+                return {
+                    "name": name,
+                    "sequence": sequence,
+                    "evidence": ev,
+                    "score": z["score"],
+                    "err": z["err"],
+                    "shown_err": z["shown_err"],
+                    "refs": z["refs"],
+                    "n": int(z["n"]),
+                    "breaks": list(z["breaks"]),
+                }
     session = Session.open(folder)
     try:
         results = session.load_results()
         crop_data = cached_crops(session)
-        gt = session.open_sequence().ground_truth.joints_mm
+        sequence_data = session.open_sequence()
+        gt = sequence_data.ground_truth.joints_mm
         final = np.asarray(results["final_mm"], dtype=np.float64)
-        err = np.linalg.norm(final - gt, axis=-1).max(axis=1)
+        joint_err = np.linalg.norm(final - gt, axis=-1)
+        err = joint_err.max(axis=1)
+        shown = shown_by_depth(sequence_data, session.skeleton, gt, np.arange(len(gt)))
+        shown_err = np.max(np.where(shown, np.nan_to_num(joint_err, nan=np.inf), 0.0), axis=1)
         ev = review.review_evidence(session, results, crop_data)
         score = review.rank_priority("score", session, results, crop_data)
         d = {
@@ -69,6 +78,7 @@ def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
             "evidence": ev,
             "score": score,
             "err": err,
+            "shown_err": shown_err,
             "refs": np.asarray(session.reference_frames, dtype=np.int64),
             "n": session.num_frames,
             "breaks": list(session.model.sequence_breaks),
@@ -81,6 +91,7 @@ def load(folder: Path, bad_mm: float, cache: Path | None = None) -> dict:
             hit,
             score=d["score"],
             err=d["err"],
+            shown_err=d["shown_err"],
             refs=d["refs"],
             n=d["n"],
             breaks=np.asarray(d["breaks"], dtype=np.int64),
@@ -121,6 +132,36 @@ def ceiling(bad: np.ndarray, refs: np.ndarray, share: float = 0.10) -> float:
     b = bad.copy()
     b[refs] = False
     return min(1.0, round(share * len(bad)) / max(int(b.sum()), 1))
+
+
+def missed_counts(
+    priority: np.ndarray,
+    err: np.ndarray,
+    shown_err: np.ndarray,
+    refs: np.ndarray,
+    bad_mm: float,
+    share: float = 0.10,
+    **pick,
+) -> dict:
+    """Which bad frames (worst joint ``err`` (N,) mm over ``bad_mm``, references left out) the
+    ranking's first ``share`` of frames (:func:`review.pick_frames` of ``priority`` (N,), keyword
+    arguments ``pick``) finds and which it misses, and of each, how many are bad only in joints
+    their frame's depth does not show (``shown_err`` (N,) mm: the largest error over the joints
+    it shows at their true position; such a frame's error is invisible to any evidence from its
+    own depth)."""
+    err = np.asarray(err, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = err > bad_mm
+        hidden_only = bad & ~(np.asarray(shown_err, dtype=np.float64) > bad_mm)
+    bad[refs] = False
+    top = np.zeros(len(err), dtype=bool)
+    top[review.pick_frames(priority, int(round(share * len(err))), exclude=refs, **pick)] = True
+    return {
+        "found": int((bad & top).sum()),
+        "found_hidden_only": int((bad & top & hidden_only).sum()),
+        "missed": int((bad & ~top).sum()),
+        "missed_hidden_only": int((bad & ~top & hidden_only).sum()),
+    }
 
 
 def priority_of(d: dict, weights: dict, smooth: tuple[int, float]) -> np.ndarray:
@@ -332,6 +373,10 @@ def report_row(
     row["before40"] = review.recall_at(p_before, bad40, exclude=ex)
     row["after40"] = review.recall_at(p_after, bad40, exclude=ex, radius=radius, sequence_breaks=br)
     row["uniform40"] = float(bad40[top].sum() / bad40.sum()) if bad40.any() else float("nan")
+    for k, v in missed_counts(
+        p_after, d["err"], d["shown_err"], ex, bad_mm, radius=radius, sequence_breaks=br
+    ).items():
+        row[f"{k}_frames"] = v
     row["spearman_before"] = spearman(p_before, d["err"], ex)
     row["spearman_after"] = spearman(p_after, d["err"], ex)
     for k in names:
@@ -342,6 +387,7 @@ def report_row(
         part,
         d["name"],
         f"bad={row['bad_frames']} bad40={row['bad40_frames']}",
+        f"missed={row['missed_frames']} (hidden only {row['missed_hidden_only_frames']})",
         " ".join(f"{k}={v:.2f}" for k, v in row.items() if isinstance(v, float)),
         flush=True,
     )

@@ -515,16 +515,9 @@ class HandModel:
     def finger_of(self) -> np.ndarray:
         """(C,) the root child each capsule's chain starts at (-1 for capsules at the root)."""
         sk = self.skeleton
-        par = sk.parent_array
-        out = np.full(len(self.pairs), -1)
-        for c, (a, b) in enumerate(self.pairs):
-            if a == sk.root or par[b] != a:
-                continue
-            k = int(a)
-            while par[k] != sk.root:
-                k = int(par[k])
-            out[c] = k
-        return out
+        a, b = np.asarray(self.pairs, dtype=np.int64).reshape(-1, 2).T
+        along = (a != sk.root) & (sk.parent_array[b] == a)  # a bone below the root's children
+        return np.where(along, sk.finger_bases[a], -1)
 
     @cached_property
     def collision_pairs(self) -> tuple[np.ndarray, np.ndarray]:
@@ -1447,13 +1440,11 @@ RANKING_CHUNK = 256
 def finger_chains(skeleton: Skeleton) -> list[np.ndarray]:
     """Per finger (chain below a child of the root), the positions in ``skeleton.angle_joints`` of
     its angle joints, proximal first (fingers without angle joints are left out)."""
-    par = skeleton.parent_array
+    base = skeleton.finger_bases
+    order = np.argsort(skeleton.topological_order)  # a joint's place: proximal first
     groups: dict[int, list[tuple[int, int]]] = {}
     for i, k in enumerate(skeleton.angle_joints):
-        q, depth = int(k), 0
-        while par[q] != skeleton.root and par[q] >= 0:
-            q, depth = int(par[q]), depth + 1
-        groups.setdefault(q, []).append((depth, i))
+        groups.setdefault(int(base[k]), []).append((int(order[k]), i))
     return [np.array([i for _, i in sorted(g)], dtype=np.int64) for _, g in sorted(groups.items())]
 
 

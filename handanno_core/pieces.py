@@ -253,6 +253,7 @@ def refine_pieces(
     log: Callable[[str], None] | None = None,
     progress: Callable[[int, int], None] | None = None,
     hand_model=False,
+    fixed_frames: Iterable[int] | None = None,
     **refine_kwargs,
 ) -> PiecesResult:
     """Refine ``init_mm`` (N, J, 3) mm piece by piece (see the module docstring).
@@ -266,7 +267,8 @@ def refine_pieces(
     all references (as the whole solve would) and gives it to every piece. ``bone_lengths_mm``
     ``(N, B)`` (several hands, :mod:`handanno_core.hands`): every piece is solved with its
     frames' bones (one set per sequence) and gets a hand model personalized from that set's
-    references.
+    references. ``fixed_frames``: frames kept at their initialization in every piece that
+    holds them (as :func:`handanno_core.refine.refine`'s).
     """
     init = np.asarray(init_mm, dtype=np.float64)
     n, j = init.shape[:2]
@@ -280,6 +282,9 @@ def refine_pieces(
     refs = np.asarray(sorted({int(r) for r in reference_frames}), dtype=np.int64)
     is_ref = np.zeros(n, dtype=bool)
     is_ref[refs] = True
+    held = np.zeros(n, dtype=bool)
+    if fixed_frames is not None:
+        held[np.asarray(list(fixed_frames), dtype=np.int64)] = True
     table = bone_table(bone_lengths_mm, n, len(skeleton.bones))
     say = log or (lambda _m: None)
     pieces = plan_pieces(n, sequence_breaks, window, overlap)
@@ -318,7 +323,7 @@ def refine_pieces(
             annotations=sub.annotations,
             closest=sub.closest,
             breaks=sub.breaks,
-            fixed=sub.extra,
+            fixed=np.union1d(sub.extra, np.flatnonzero(held[sub.frames[: sub.own]])),
             kwargs=kwargs[hand_of_piece[p.index]],
         )
 

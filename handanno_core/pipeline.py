@@ -865,8 +865,13 @@ def refine(
     resume: bool = True,
     whole: bool = False,
     threads: int = 1,
+    frames=None,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
+
+    ``frames``: refine only these; every other frame that has a refined result keeps it, held
+    fixed in the system (its neighbours' temporal terms still see it). A review round passes
+    the frames its corrections propagated again: the frames it did not touch do not move.
 
     References start from their current lifted pose (a reference made by a review correction has a
     fresh lift but an old propagated ``init_mm``), every other frame from its propagated pose.
@@ -895,12 +900,15 @@ def refine(
     if pieces:
         return _refine_pieces(
             session, quiet=quiet, save=save, use_model=use_model, window=window,
-            overlap=overlap, workers=workers, scheduler=scheduler, resume=resume,
+            overlap=overlap, workers=workers, scheduler=scheduler, resume=resume, frames=frames,
         )  # fmt: skip
     from .refine import refine as run_refine
 
     init, problem = refine_inputs(session, quiet)
-    result = run_refine(init, progress=progress, hand_model=use_model, threads=threads, **problem)
+    result = run_refine(
+        init, progress=progress, hand_model=use_model, threads=threads,
+        fixed_frames=_keep_refined(session, init, frames), **problem,
+    )  # fmt: skip
     _log_recovered(result.info.get("recovered", []), quiet)
     if save:
         session.save_results(final_mm=result.joints_mm)
@@ -917,6 +925,18 @@ def _log_recovered(frames, quiet: bool) -> None:
             f"and replaced (frames {shown}{more})",
             quiet,
         )
+
+
+def _keep_refined(session: Session, init: np.ndarray, frames) -> np.ndarray | None:
+    """The frames outside ``frames`` (None: none) with a refined result, which keep it: their
+    ``init`` (N, J, 3) mm rows become ``final_mm`` (in place), to be held fixed."""
+    if frames is None:
+        return None
+    final = session.load_results()["final_mm"]
+    keep = np.all(np.isfinite(final), axis=(1, 2))
+    keep[np.asarray(frames, dtype=np.int64)] = False
+    init[keep] = final[keep]
+    return np.flatnonzero(keep)
 
 
 def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
@@ -951,13 +971,14 @@ def refine_inputs(session: Session, quiet: bool) -> tuple[np.ndarray, dict]:
 
 
 def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap, workers,
-                   scheduler, resume):  # fmt: skip
+                   scheduler, resume, frames):  # fmt: skip
     """:func:`refine` in pieces (see there)."""
     import shutil
 
     from .pieces import DEFAULT_OVERLAP, DEFAULT_WINDOW, refine_pieces
 
     init, problem = refine_inputs(session, quiet)
+    held = _keep_refined(session, init, frames)
     folder = session.folder / REFINE_PIECES_DIR
     if not resume and folder.exists():
         shutil.rmtree(folder)
@@ -973,6 +994,7 @@ def _refine_pieces(session: Session, *, quiet, save, use_model, window, overlap,
         checkpoint_dir=folder,
         checkpoint_key=str(crops_fingerprint(session.folder / CROPS_FILE)),
         log=lambda m: _log(m, quiet),
+        fixed_frames=held,
         **problem,
     )
     if save:

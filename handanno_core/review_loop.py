@@ -28,7 +28,8 @@ app would, from ground truth (2D positions, visibility and depth order only):
   annotated and re-root its neighbours on it). Every shown frame counts as touched. The
   corrected frames are lifted, only their descendants in the propagation's forests re-propagate
   (:func:`handanno_core.pipeline.frames_to_repropagate`, as the app's review runner does), then
-  everything is refined. One report entry per round (round 0 = the first pass).
+  those frames are refined again, the others held at their refined result (``pipeline.refine(
+  frames=)``). One report entry per round (round 0 = the first pass).
 * :func:`bench_review` - :func:`review_rounds` once per ranking, each on its own copy of a finished
   bench session, so that every ranking starts from the same first pass.
 """
@@ -572,7 +573,7 @@ def review_rounds(
             pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
             timings["propagate"] = round(time.perf_counter() - t, 3)
             t = time.perf_counter()
-            pipeline.refine(session, quiet=True)
+            pipeline.refine(session, quiet=True, frames=np.union1d(frames, corrected))
             timings["refine"] = round(time.perf_counter() - t, 3)
         clicked += round_clicks
         entry = _entry(session, gt, r, clicked, bad_mm)

@@ -335,6 +335,9 @@ def test_correction_repropagates_only_descendants_with_the_real_pipeline(session
         assert set(changed) <= set(range(11, 20)) and len({16, 17, 18, 19} & set(changed)) >= 2
         assert np.allclose(second["lifted_mm"][frame], gt[frame])
         assert np.all(np.isfinite(second["final_mm"]))
+        # refinement moved only those frames: every other one keeps its refined result
+        outside = np.setdiff1d(np.arange(session.num_frames), range(11, 20))
+        assert np.array_equal(second["final_mm"][outside], first["final_mm"][outside])
         reopened = Session.open(session.folder)
         assert (
             frame in reopened.model.corrections
@@ -498,6 +501,34 @@ def test_review_rounds_correct_shown_frames_and_repropagate_descendants(session)
         assert key in second
     assert effort_to_target(entries, mean_mm=1e3, bad_share=1.0) == len(refs)
     assert effort_to_target(entries, mean_mm=0.0) is None
+
+
+def test_a_review_round_moves_only_the_frames_its_corrections_propagated_again(session):
+    from handanno_core import pipeline
+    from handanno_core.review_loop import review_rounds
+
+    pipeline.ensure_crops(session, quiet=True)
+    pipeline.propagate(session, quiet=True)
+    pipeline.refine(session, quiet=True)
+    refs = session.reference_frames.tolist()
+    # an index fingertip 15 mm off on every propagated frame: each frame shown needs a click
+    before = session.load_results()["final_mm"]
+    before[np.setdiff1d(np.arange(session.num_frames), refs), 8, 0] += 15.0
+    session.save_results(final_mm=before)
+    review_rounds(session, rounds=1, budget=2, ranking="evidence", quiet=True)
+    shown = sorted(set(session.model.corrections))
+    now_refs = np.asarray(sorted(set(refs) | set(shown)))
+    touched = set(shown)
+    for f in shown:
+        lo = now_refs[now_refs < f].max(initial=-1)
+        hi = now_refs[now_refs > f].min(initial=session.num_frames)
+        touched |= set(range(lo + 1, hi))
+    untouched = np.setdiff1d(np.arange(session.num_frames), sorted(touched))
+    after = session.load_results()["final_mm"]
+    assert len(shown) == 2 and len(untouched) > 0
+    assert np.array_equal(after[untouched], before[untouched])
+    moved = np.linalg.norm(after - before, axis=-1).max(axis=1)
+    assert moved[sorted(touched - set(shown))].min() > 1.0  # refined again, the 15 mm gone
 
 
 def test_a_shown_frame_with_nothing_to_move_is_accepted_not_made_a_reference(session):

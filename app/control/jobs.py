@@ -330,13 +330,17 @@ class Cancelled(Exception):
 
 
 def refine_all(
-    session: Session, progress: Callable[[int, float], None] | None = None
+    session: Session,
+    progress: Callable[[int, float], None] | None = None,
+    frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Global refinement of the session's current results; returns ``final_mm`` (N, J, 3) mm
-    without saving it (the runner saves it with propagation's results, in one replace)."""
+    without saving it (the runner saves it with propagation's results, in one replace).
+    ``frames``: refine only these, every other refined frame keeps its result
+    (:func:`handanno_core.pipeline.refine`)."""
     from handanno_core.pipeline import refine
 
-    result = refine(session, progress=progress, save=False, quiet=True)
+    result = refine(session, progress=progress, save=False, quiet=True, frames=frames)
     return np.asarray(result.joints_mm, dtype=np.float64)
 
 
@@ -605,7 +609,8 @@ class ReviewRunner:
         parent = self.session.parent
         todo = np.flatnonzero(parent >= 0) if frames is None else frames[parent[frames] >= 0]
         self._propagate_refine(todo, frames)
-        self._finish("done", f"done: {len(todo)} frame(s) propagated, all frames refined")
+        refined = "all frames refined" if frames is None else f"{len(frames)} refined"
+        self._finish("done", f"done: {len(todo)} frame(s) propagated, {refined}")
 
     def _lift_corrections(self, corrections: dict[int, int]) -> np.ndarray:
         """Lift each corrected frame (at its journal entry or later); returns the frames to
@@ -622,7 +627,8 @@ class ReviewRunner:
         return frames_to_repropagate(self.session, sorted(corrections))
 
     def _propagate_refine(self, todo: np.ndarray, frames: np.ndarray | None) -> None:
-        """Propagate ``todo`` (``frames`` None: every non-reference frame), then refine all;
+        """Propagate ``todo`` (``frames`` None: every non-reference frame), then refine all
+        (``frames`` given: only those, the others keep their refined result);
         propagation's init_mm and refinement's final_mm reach results.npz together in one atomic
         replace (session.staged_results), so a cancel, an error or a kill at any instant leaves
         results.npz exactly as it was before the job."""
@@ -652,7 +658,10 @@ class ReviewRunner:
                 )
             self.check_cancelled()
             self._set(phase="refine", done=0, total=30, message="")
-            final = self.refine_fn(session, progress=refine_progress)
+            if frames is None:
+                final = self.refine_fn(session, progress=refine_progress)
+            else:  # a correction moves only the frames it propagated again
+                final = self.refine_fn(session, progress=refine_progress, frames=frames)
             self.check_cancelled()
             self._set(phase="saving")
             session.save_results(final_mm=final)

@@ -865,13 +865,13 @@ def refine(
     resume: bool = True,
     whole: bool = False,
     threads: int = 1,
-    frames=None,
+    frames: np.ndarray | None = None,
 ):
     """Global refinement of all frames (thesis Eq. 4); stores ``final_mm`` unless ``save=False``.
 
-    ``frames``: refine only these; every other frame that has a refined result keeps it, held
-    fixed in the system (its neighbours' temporal terms still see it). A review round passes
-    the frames its corrections propagated again: the frames it did not touch do not move.
+    ``frames`` (K,) int: refine only these; every other frame that has a refined result keeps
+    it, held fixed in the system (its neighbours' temporal terms still see it). A review round
+    passes the frames its corrections propagated again: the frames it did not touch do not move.
 
     References start from their current lifted pose (a reference made by a review correction has a
     fresh lift but an old propagated ``init_mm``), every other frame from its propagated pose.
@@ -929,12 +929,14 @@ def _log_recovered(frames, quiet: bool) -> None:
 
 def _keep_refined(session: Session, init: np.ndarray, frames) -> np.ndarray | None:
     """The frames outside ``frames`` (None: none) with a refined result, which keep it: their
-    ``init`` (N, J, 3) mm rows become ``final_mm`` (in place), to be held fixed."""
+    ``init`` (N, J, 3) mm rows become ``final_mm`` (in place), to be held fixed. References are
+    never among them: refinement holds them at their (possibly new) lift."""
     if frames is None:
         return None
     final = session.load_results()["final_mm"]
     keep = np.all(np.isfinite(final), axis=(1, 2))
     keep[np.asarray(frames, dtype=np.int64)] = False
+    keep[session.reference_frames] = False
     init[keep] = final[keep]
     return np.flatnonzero(keep)
 

@@ -47,6 +47,7 @@ import numpy as np
 from . import handmodel as hm
 from .camera import CameraIntrinsics
 from .datasets.base import segment_ids
+from .forest import descendants
 from .skeleton import Skeleton
 
 
@@ -141,16 +142,13 @@ def carry_unseen(
     (:meth:`Skeleton.palm_rotation`): the chain keeps its old articulation and moves with the
     new palm, its bones as long as in ``old_mm``. The root stays where ``new_mm`` has it."""
     parents = skeleton.parent_array
-    order = skeleton.topological_order
-    carry = np.asarray(unseen, dtype=bool).copy()
-    for j in order:
-        if parents[j] >= 0 and carry[parents[j]]:
-            carry[j] = True
+    carry = np.zeros(len(parents), dtype=bool)
+    carry[descendants(parents, np.flatnonzero(unseen))] = True
     if not carry.any():
         return new_mm
     rot_old, rot_new = skeleton.palm_rotation(old_mm), skeleton.palm_rotation(new_mm)
     out = np.array(new_mm, dtype=np.float64)
-    for j in order:
+    for j in skeleton.topological_order:
         p = parents[j]
         if carry[j] and p >= 0:
             out[j] = out[p] + ((old_mm[j] - old_mm[p]) @ rot_old) @ rot_new.T

@@ -573,7 +573,7 @@ def review_rounds(
             pipeline.propagate(session, workers=workers, aligner=aligner, frames=frames, quiet=True)
             timings["propagate"] = round(time.perf_counter() - t, 3)
             t = time.perf_counter()
-            pipeline.refine(session, quiet=True, frames=np.union1d(frames, corrected))
+            pipeline.refine(session, quiet=True, frames=frames)  # the corrected frames too
             timings["refine"] = round(time.perf_counter() - t, 3)
         clicked += round_clicks
         entry = _entry(session, gt, r, clicked, bad_mm)
